@@ -1,0 +1,1 @@
+"""Composition root: scenario loading, experiment runner, sweeps, report, recording, CLI."""

@@ -1,0 +1,86 @@
+"""Settings of the pipeline stages that follow acquisition: localization, calibration,
+evaluation and reconstruction (defaults: the paper's values)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+__all__ = ["CalibrationConfig", "EvaluationConfig", "LocalizerConfig", "ReconstructionConfig"]
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Threshold-free sphere localization (paper, "Threshold-Free Sphere Localization")."""
+
+    method: Literal["threshold_free"] = field(
+        default="threshold_free", metadata={"doc": "Sphere-centre localizer."}
+    )
+    grid_mm: float = field(
+        default=1.0,
+        metadata={"doc": "Spacing of the exhaustive candidate-centre grid.", "gt": 0.05, "le": 5},
+    )
+    shell_samples: int = field(
+        default=256,
+        metadata={"doc": "Fibonacci directions on the proximal shell.", "ge": 8, "le": 10000},
+    )
+    interior_samples: int = field(
+        default=256, metadata={"doc": "Samples in the proximal half-ball.", "ge": 8, "le": 10000}
+    )
+    refinement_passes: int = field(
+        default=2, metadata={"doc": "Radial-band refinement passes.", "ge": 0, "le": 10}
+    )
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Single- and three-marker calibration (paper, "Single- and Three-Marker Calibration")."""
+
+    initial_error_mm: float = field(
+        default=3.0,
+        metadata={
+            "doc": "Simulation: the coarse T_ee_us handed to the pipeline is off by up to "
+            "± this per axis.",
+            "ge": 0,
+            "le": 50,
+        },
+    )
+    initial_error_deg: float = field(
+        default=10.0,
+        metadata={
+            "doc": "Simulation: coarse T_ee_us rotation error, up to ± this per axis.",
+            "ge": 0,
+            "le": 45,
+        },
+    )
+    max_alternations: int = field(
+        default=5, metadata={"doc": "Localize/calibrate alternations at most.", "ge": 1, "le": 50}
+    )
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """Cross-validation of the paper (Tables I and II)."""
+
+    datasets: tuple[str, ...] = field(
+        default=("A", "B", "C"), metadata={"doc": "Independent acquisitions (leave-one-out DH)."}
+    )
+    dh_regularizer: float = field(
+        default=0.01, metadata={"doc": "Weight of ‖z‖² in the touch loss.", "ge": 0, "le": 100}
+    )
+    initialisations: int = field(
+        default=12,
+        metadata={"doc": "Deterministic initialisations of the DH fit.", "ge": 1, "le": 100},
+    )
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """Cone and prism reconstruction with ICP (Table III)."""
+
+    central_frames: int = field(
+        default=10, metadata={"doc": "Central frames of each sweep used.", "ge": 1, "le": 401}
+    )
+    icp_max_iterations: int = field(
+        default=50, metadata={"doc": "ICP iterations at most.", "ge": 1, "le": 1000}
+    )

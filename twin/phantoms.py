@@ -1,0 +1,320 @@
+"""Phantoms of the paper as trimesh meshes in metres, each with named landmarks.
+
+Every phantom is a set of *convex* parts (MuJoCo collides meshes by their convex hull, so
+a non-convex phantom must be split) in its CAD frame ``phantom``: origin at the centre
+of the phantom's bottom face, z up. The union of the parts is what the B-mode simulator
+ray-casts.
+
+Four-sphere calibration phantom (paper, "System Overview"): four spheres of radius 5 mm
+at the corners of a 50 mm square, on thin posts above a base plate; four cone vertices
+used as touch targets lie in the plane of the sphere centres, on the square's axes
+outside it (layout below). Cone: 60 mm base diameter, 44.64 mm high. Triangular prism:
+60 mm wide, 120 mm ridge, 44.64 mm high.
+
+Layout of the four-sphere phantom (top view, phantom frame, mm; ``h`` = centre height)::
+
+              V4 (0, +o)
+        S4 (-s/2,+s/2)   S3 (+s/2,+s/2)
+    V1 (-o, 0)        +        V3 (+o, 0)
+        S1 (-s/2,-s/2)   S2 (+s/2,-s/2)
+              V2 (0, -o)
+
+with ``s`` the sphere spacing (50) and ``o`` the vertex offset (60): vertices sit 60 mm
+from the centre, 39 mm from the nearest sphere centres, so a tilted stylus reaches them
+without touching a sphere and the probe sweeping a sphere keeps clear of the targets.
+
+A manufacturing tolerance perturbs the *true* radii and positions; the CAD stays nominal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from calib import se3
+
+__all__ = [
+    "Phantom",
+    "PhantomConfig",
+    "PhantomPart",
+    "build_phantom",
+    "build_tank",
+    "phantom_pair",
+]
+
+Array = NDArray[np.float64]
+
+_SPHERE_SUBDIVISIONS = 4  # icosphere of 5120 faces: facets deviate ≤ 4 µm at r = 5 mm
+_ROUND_SECTIONS = 96  # facets around cylinders and cones
+
+
+@dataclass(frozen=True)
+class PhantomConfig:
+    """The phantom in the tank: which one, where (truth), its CAD and its tolerance."""
+
+    kind: Literal["spheres", "cone", "prism"] = field(
+        default="spheres",
+        metadata={"doc": "Phantom in the tank: four-sphere calibration phantom, cone or prism."},
+    )
+    position_mm: tuple[float, float, float] = field(
+        default=(300.0, 0.0, 0.0),
+        metadata={"doc": "True position of the phantom frame (bottom-face centre) in base."},
+    )
+    rotation_deg: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 0.0),
+        metadata={"doc": "True orientation, extrinsic x-y-z Euler angles about base axes."},
+    )
+    sphere_radius_mm: float = field(
+        default=5.0, metadata={"doc": "CAD sphere radius.", "gt": 0.5, "le": 50}
+    )
+    sphere_spacing_mm: float = field(
+        default=50.0, metadata={"doc": "Side of the square of sphere centres.", "gt": 5, "le": 200}
+    )
+    center_height_mm: float = field(
+        default=30.0,
+        metadata={
+            "doc": "Height of sphere centres and touch vertices above the bottom face.",
+            "gt": 5,
+            "le": 150,
+        },
+    )
+    vertex_offset_mm: float = field(
+        default=60.0,
+        metadata={
+            "doc": "Distance of the four touch vertices from the phantom centre.",
+            "gt": 5,
+            "le": 300,
+        },
+    )
+    plate_thickness_mm: float = field(
+        default=5.0, metadata={"doc": "Base plate thickness.", "gt": 0.5, "le": 50}
+    )
+    cone_base_diameter_mm: float = field(
+        default=60.0, metadata={"doc": "Cone phantom base diameter.", "gt": 1, "le": 300}
+    )
+    cone_height_mm: float = field(
+        default=44.64, metadata={"doc": "Cone phantom height.", "gt": 1, "le": 300}
+    )
+    prism_width_mm: float = field(
+        default=60.0, metadata={"doc": "Triangular prism base width.", "gt": 1, "le": 300}
+    )
+    prism_length_mm: float = field(
+        default=120.0, metadata={"doc": "Triangular prism ridge length.", "gt": 1, "le": 300}
+    )
+    prism_height_mm: float = field(
+        default=44.64, metadata={"doc": "Triangular prism height.", "gt": 1, "le": 300}
+    )
+    tolerance_radius_mm: float = field(
+        default=0.05,
+        metadata={
+            "doc": "Printing tolerance (1 σ) of true radii and dimensions (truth only).",
+            "ge": 0,
+            "le": 5,
+        },
+    )
+    tolerance_position_mm: float = field(
+        default=0.1,
+        metadata={
+            "doc": "Printing tolerance (1 σ) of true sphere and vertex positions, per axis.",
+            "ge": 0,
+            "le": 5,
+        },
+    )
+    tank_inner_mm: tuple[float, float, float] = field(
+        default=(320.0, 240.0, 150.0),
+        metadata={"doc": "Water tank inner length (x), width (y), height (z).", "gt": 10},
+    )
+    tank_wall_mm: float = field(
+        default=6.0, metadata={"doc": "Tank wall and floor thickness.", "gt": 0.5, "le": 50}
+    )
+    tank_position_mm: tuple[float, float, float] = field(
+        default=(300.0, 0.0, 0.0),
+        metadata={"doc": "Centre of the tank's inner floor in base (tank axes = base axes)."},
+    )
+    water_level_mm: float = field(
+        default=100.0, metadata={"doc": "Water depth above the tank floor.", "gt": 0}
+    )
+
+    @property
+    def T_base_phantom(self) -> Array:
+        """True phantom pose (4, 4)."""
+        R = se3.matrix_from_euler(np.radians(self.rotation_deg))
+        return se3.make(R, np.array(self.position_mm) * 1e-3)
+
+    @property
+    def T_base_tank(self) -> Array:
+        """Pose of the tank frame (centre of its inner floor), (4, 4)."""
+        return se3.make(np.eye(3), np.array(self.tank_position_mm) * 1e-3)
+
+
+@dataclass(frozen=True)
+class PhantomPart:
+    """One convex solid of a phantom, in the phantom's CAD frame (metres)."""
+
+    name: str
+    mesh: trimesh.Trimesh
+    material: str
+
+
+@dataclass(frozen=True, eq=False)
+class Phantom:
+    """A phantom: convex parts and named landmarks (``name -> (3,)`` metres, own frame)."""
+
+    name: str
+    parts: tuple[PhantomPart, ...]
+    landmarks: dict[str, Array]
+    sphere_radii: dict[str, float] = field(default_factory=dict)
+
+    def mesh(self) -> trimesh.Trimesh:
+        """All parts concatenated into one mesh (for ray casting and display)."""
+        return trimesh.util.concatenate([p.mesh for p in self.parts])
+
+    def landmarks_in(self, T_frame_phantom: Array) -> dict[str, Array]:
+        """Landmarks mapped into another frame (e.g. base) with ``T_frame_phantom``."""
+        return {k: se3.apply(T_frame_phantom, v) for k, v in self.landmarks.items()}
+
+
+def _placed(mesh: trimesh.Trimesh, translation: Array) -> trimesh.Trimesh:
+    mesh.apply_translation(translation)
+    return mesh
+
+
+def _cylinder(radius: float, z0: float, z1: float, xy: Array) -> trimesh.Trimesh:
+    mesh = trimesh.creation.cylinder(radius=radius, height=z1 - z0, sections=_ROUND_SECTIONS)
+    return _placed(mesh, np.array([xy[0], xy[1], 0.5 * (z0 + z1)]))
+
+
+def _cone(radius: float, z0: float, z1: float, xy: Array) -> trimesh.Trimesh:
+    mesh = trimesh.creation.cone(radius=radius, height=z1 - z0, sections=_ROUND_SECTIONS)
+    return _placed(mesh, np.array([xy[0], xy[1], z0]))
+
+
+@dataclass(frozen=True)
+class _SphereGeometry:
+    """Dimensions of a four-sphere phantom (metres), nominal or perturbed."""
+
+    centres: Array  # (4, 3)
+    radii: Array  # (4,)
+    vertices: Array  # (4, 3)
+    plate_half: float
+    plate_thickness: float
+
+
+def _sphere_geometry(cfg: PhantomConfig) -> _SphereGeometry:
+    h = cfg.center_height_mm * 1e-3
+    s = 0.5 * cfg.sphere_spacing_mm * 1e-3
+    o = cfg.vertex_offset_mm * 1e-3
+    centres = np.array([[-s, -s, h], [s, -s, h], [s, s, h], [-s, s, h]])
+    vertices = np.array([[-o, 0, h], [0, -o, h], [o, 0, h], [0, o, h]])
+    half = max(s + cfg.sphere_radius_mm * 1e-3, o) + 0.015
+    return _SphereGeometry(
+        centres,
+        np.full(4, cfg.sphere_radius_mm * 1e-3),
+        vertices,
+        half,
+        cfg.plate_thickness_mm * 1e-3,
+    )
+
+
+def _build_spheres(g: _SphereGeometry) -> Phantom:
+    plate = trimesh.creation.box(extents=[2 * g.plate_half, 2 * g.plate_half, g.plate_thickness])
+    parts = [PhantomPart("plate", _placed(plate, np.array([0, 0, g.plate_thickness / 2])), "pla")]
+    landmarks: dict[str, Array] = {}
+    radii: dict[str, float] = {}
+    for i, (c, r) in enumerate(zip(g.centres, g.radii, strict=True), start=1):
+        sphere = trimesh.creation.icosphere(subdivisions=_SPHERE_SUBDIVISIONS, radius=r)
+        parts.append(PhantomPart(f"sphere_{i}", _placed(sphere, c), "pla"))
+        # The post ends just inside the sphere so the two solids overlap (printed as one).
+        post_top = c[2] - 0.8 * r
+        parts.append(
+            PhantomPart(f"post_{i}", _cylinder(0.4 * r, g.plate_thickness, post_top, c), "pla")
+        )
+        landmarks[f"sphere_{i}"] = c.copy()
+        radii[f"sphere_{i}"] = float(r)
+    for j, v in enumerate(g.vertices, start=1):
+        parts.append(
+            PhantomPart(f"vertex_cone_{j}", _cone(0.008, g.plate_thickness, v[2], v), "pla")
+        )
+        landmarks[f"vertex_{j}"] = v.copy()
+    return Phantom("spheres", tuple(parts), landmarks, radii)
+
+
+def _build_cone(diameter: float, height: float) -> Phantom:
+    cone = _cone(diameter / 2, 0.0, height, np.zeros(2))
+    landmarks = {"apex": np.array([0.0, 0.0, height]), "base_centre": np.zeros(3)}
+    return Phantom("cone", (PhantomPart("cone", cone, "pla"),), landmarks)
+
+
+def _build_prism(width: float, length: float, height: float) -> Phantom:
+    # Ridge along x at the top; the triangular cross-section in the y-z plane.
+    section = np.array([[-width / 2, 0.0], [width / 2, 0.0], [0.0, height]])
+    corners = np.array(
+        [[x, y, z] for x in (-length / 2, length / 2) for (y, z) in section], dtype=float
+    )
+    prism = trimesh.convex.convex_hull(corners)
+    landmarks = {
+        "ridge_start": np.array([-length / 2, 0.0, height]),
+        "ridge_end": np.array([length / 2, 0.0, height]),
+    }
+    return Phantom("prism", (PhantomPart("prism", prism, "pla"),), landmarks)
+
+
+def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) -> Phantom:
+    """The phantom of ``cfg``: its CAD if ``rng`` is None, else a printed (true) copy.
+
+    The true copy draws each sphere radius and cone/prism dimension with
+    ``tolerance_radius_mm`` and each sphere centre and touch vertex with
+    ``tolerance_position_mm`` (1 σ, per axis).
+    """
+    tol_r = 0.0 if rng is None else cfg.tolerance_radius_mm * 1e-3
+    tol_p = 0.0 if rng is None else cfg.tolerance_position_mm * 1e-3
+    gen = rng if rng is not None else np.random.default_rng(0)
+
+    def jitter(values: Array, sigma: float) -> Array:
+        return values + (gen.normal(0.0, sigma, np.shape(values)) if sigma > 0 else 0.0)
+
+    if cfg.kind == "spheres":
+        g = _sphere_geometry(cfg)
+        g = replace(
+            g,
+            radii=jitter(g.radii, tol_r),
+            centres=jitter(g.centres, tol_p),
+            vertices=jitter(g.vertices, tol_p),
+        )
+        return _build_spheres(g)
+    if cfg.kind == "cone":
+        d, h = jitter(np.array([cfg.cone_base_diameter_mm, cfg.cone_height_mm]) * 1e-3, tol_r)
+        return _build_cone(d, h)
+    w, length, h = jitter(
+        np.array([cfg.prism_width_mm, cfg.prism_length_mm, cfg.prism_height_mm]) * 1e-3, tol_r
+    )
+    return _build_prism(w, length, h)
+
+
+def phantom_pair(cfg: PhantomConfig, rng: np.random.Generator) -> tuple[Phantom, Phantom]:
+    """(CAD, true) phantoms: what the pipeline knows and what the twin images."""
+    return build_phantom(cfg), build_phantom(cfg, rng)
+
+
+def build_tank(cfg: PhantomConfig) -> Phantom:
+    """The water tank (floor and four walls, convex boxes) in its own frame: origin at the
+    centre of the inner floor, z up. Landmark ``water_surface`` is the surface centre."""
+    length, width, height = (v * 1e-3 for v in cfg.tank_inner_mm)
+    t = cfg.tank_wall_mm * 1e-3
+    boxes = {
+        "tank_floor": ([length + 2 * t, width + 2 * t, t], [0, 0, -t / 2]),
+        "tank_wall_xneg": ([t, width + 2 * t, height], [-(length + t) / 2, 0, height / 2]),
+        "tank_wall_xpos": ([t, width + 2 * t, height], [(length + t) / 2, 0, height / 2]),
+        "tank_wall_yneg": ([length, t, height], [0, -(width + t) / 2, height / 2]),
+        "tank_wall_ypos": ([length, t, height], [0, (width + t) / 2, height / 2]),
+    }
+    parts = tuple(
+        PhantomPart(name, _placed(trimesh.creation.box(extents=ext), np.array(pos)), "acrylic")
+        for name, (ext, pos) in boxes.items()
+    )
+    landmarks = {"water_surface": np.array([0.0, 0.0, cfg.water_level_mm * 1e-3])}
+    return Phantom("tank", parts, landmarks)
