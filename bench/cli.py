@@ -1,0 +1,172 @@
+"""The ``uscal`` command line.
+
+Every :class:`~calib.errors.UscalError` becomes one line on stderr and exit code 2;
+``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import yaml
+from rich.console import Console
+from rich.table import Table
+
+from calib import se3
+from calib.errors import UscalError
+
+from .scenario import Scenario, load_scenario, scenarios_markdown
+
+__all__ = ["main"]
+
+EXIT_USER_ERROR = 2
+
+
+def _add_scenario_args(p: argparse.ArgumentParser, optional: bool = False) -> None:
+    p.add_argument("scenario", nargs="?" if optional else None, default=None,
+                   help="scenario YAML file" + (" (default: the built-in paper setup)"
+                                                if optional else ""))
+    p.add_argument("--set", dest="overrides", action="append", default=[],
+                   metavar="KEY.PATH=VALUE",
+                   help="override a scenario key (value in YAML syntax); repeatable")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="uscal",
+        description="Tracker-free robotic ultrasound calibration: digital twin and test bench.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    check = sub.add_parser("check", help="validate a scenario and print a summary")
+    _add_scenario_args(check, optional=True)
+
+    twin = sub.add_parser("twin", help="the digital twin")
+    twin_sub = twin.add_subparsers(dest="twin_command", required=True)
+    export = twin_sub.add_parser(
+        "export", help="write the scene as MJCF + STL meshes and print the true landmarks"
+    )
+    _add_scenario_args(export)
+    export.add_argument("outdir", help="output directory (created atomically)")
+    export.add_argument("--force", action="store_true", help="replace an existing OUTDIR")
+
+    docs = sub.add_parser("docs", help="generate documentation")
+    docs.add_argument("topic", choices=["scenarios"])
+    docs.add_argument("--output", "-o", help="write to this file instead of stdout")
+    return parser
+
+
+def _summary(s: Scenario, console: Console) -> None:
+    table = Table(title=f"scenario {s.source}", show_header=True)
+    table.add_column("section")
+    table.add_column("summary")
+    r, p, t = s.robot, s.phantom, s.tools
+    rows = [
+        ("seed", str(s.seed)),
+        ("robot", f"{r.model}, DH error ×{r.dh_error_scale:g} (RMS θ {r.dh_rms_theta_deg:g}°, "
+                  f"d {r.dh_rms_d_mm:g} mm, a {r.dh_rms_a_mm:g} mm, α {r.dh_rms_alpha_deg:g}°), "
+                  f"repeatability {r.joint_repeatability_deg:g}°, encoder {r.encoder_noise_deg:g}°"),
+        ("tools", f"{t.mounted} mounted; probe at {list(t.probe_mount_position_mm)} mm / "
+                  f"{list(t.probe_mount_rotation_deg)}°; stylus tip {list(t.stylus_tip_mm)} mm"),
+        ("phantom", f"{p.kind} at {list(p.position_mm)} mm, {list(p.rotation_deg)}°; tank "
+                    f"{list(p.tank_inner_mm)} mm, water {p.water_level_mm:g} mm"),
+        ("medium", f"{s.medium.kind} at {s.medium.temperature_c:g} °C"),
+        ("imaging", f"{s.imaging.width_mm:g} × {s.imaging.depth_mm:g} mm at "
+                    f"{list(s.imaging.pixel_spacing_mm)} mm/px, {s.imaging.f_mhz:g} MHz, "
+                    f"gain {s.imaging.gain_db:g} dB"),
+        ("protocol", f"9 orientations (±{s.protocol.rotation_deg:g}°) × 5 positions "
+                     f"(±{s.protocol.translation_mm:g} mm), sweeps ±"
+                     f"{s.protocol.sweep_half_length_mm:g} mm × {s.protocol.frames_per_sweep} "
+                     "frames"),
+        ("output", s.output.dir),
+    ]
+    for name, text in rows:
+        table.add_row(name, text)
+    console.print(table)
+    console.print("[green]ok[/green]: scenario is valid; every target is reachable at all "
+                  "nine orientations and the probe clears phantom and tank.")
+
+
+def _cmd_check(args: argparse.Namespace, console: Console) -> int:
+    scenario = load_scenario(args.scenario, args.overrides)
+    _summary(scenario, console)
+    return 0
+
+
+def _cmd_twin_export(args: argparse.Namespace, console: Console) -> int:
+    from twin.scene import export_scene
+
+    from .experiment import make_twin
+    from .output import atomic_output_dir
+
+    scenario = load_scenario(args.scenario, args.overrides)
+    twin = make_twin(scenario)
+    truth = twin.truth
+    landmarks = {k: [round(1e3 * float(v), 4) for v in p] for k, p in
+                 truth.landmarks_base.items()}
+    with atomic_output_dir(args.outdir, force=args.force) as tmp:
+        files = export_scene(twin.scene.scene, tmp)
+        truth_doc = {
+            "scenario": scenario.source,
+            "seed": scenario.seed,
+            "landmarks_base_mm": landmarks,
+            "sphere_radii_mm": {k: round(1e3 * v, 4) for k, v in truth.sphere_radii.items()},
+            "T_ee_us": np.round(truth.T_ee_us, 9).tolist(),
+            "stylus_tip_ee_mm": np.round(1e3 * truth.p_ee_tip, 4).tolist(),
+            "dh_true": {k: list(v) for k, v in zip(
+                ("theta_rad", "d_m", "a_m", "alpha_rad"),
+                (truth.dh_table.theta, truth.dh_table.d, truth.dh_table.a, truth.dh_table.alpha),
+                strict=True)},
+        }
+        (tmp / "truth.yaml").write_text(yaml.safe_dump(truth_doc, sort_keys=False))
+        files.append("truth.yaml")
+    table = Table(title="true landmarks (base frame, mm)")
+    for col in ("landmark", "x", "y", "z"):
+        table.add_column(col, justify="right" if col != "landmark" else "left")
+    for name, (x, y, z) in landmarks.items():
+        table.add_row(name, f"{x:.3f}", f"{y:.3f}", f"{z:.3f}")
+    console.print(table)
+    rot = np.degrees(se3.euler_from_matrix(truth.T_ee_us[:3, :3]))
+    console.print(f"true T_ee_us: position {np.round(1e3 * truth.T_ee_us[:3, 3], 3).tolist()} mm, "
+                  f"rotation (xyz) {np.round(rot, 3).tolist()}°")
+    console.print(f"wrote {len(files)} files to {args.outdir} (open {Path(args.outdir) / 'scene.xml'}"
+                  " in MuJoCo's viewer)")
+    return 0
+
+
+def _cmd_docs(args: argparse.Namespace, console: Console) -> int:
+    text = scenarios_markdown()
+    if args.output:
+        Path(args.output).write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``uscal`` console script; returns the exit code."""
+    args = _parser().parse_args(argv)
+    console = Console()
+    handlers = {"check": _cmd_check, "docs": _cmd_docs}
+    try:
+        if args.command == "twin":
+            return _cmd_twin_export(args, console)
+        return handlers[args.command](args, console)
+    except UscalError as exc:
+        if args.debug:
+            traceback.print_exc()
+        print(f"uscal: error: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("uscal: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""The dependency rules of DESIGN.md §2, checked by parsing every module's imports."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("calib", "sim_us", "twin", "hw", "bench")
+THIRD_PARTY_ONLY_IN = {
+    "rerun": {"bench/recording.py"},
+    "ur_rtde": {"hw"},
+    "rtde_control": {"hw"},
+    "rtde_receive": {"hw"},
+    "cv2": {"hw"},
+}
+# calib and sim_us may use only these third-party packages.
+SCIENTIFIC = {"numpy", "scipy", "skimage", "trimesh"}
+# twin and hw may use only these calib modules (pure maths, records, errors).
+CALIB_SHARED = {"calib.se3", "calib.records", "calib.errors", "calib.dh"}
+
+
+def imports_of(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    names: set[str] = set()
+    package = path.parent.name
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:  # relative: resolve inside the package
+                base = package if node.level == 1 else ""
+                mod = f"{base}.{node.module}" if node.module else base
+                names.add(mod)
+                if not node.module:
+                    names.update(f"{base}.{a.name}" for a in node.names)
+            else:
+                names.add(node.module or "")
+                names.update(f"{node.module}.{a.name}" for a in node.names)
+    return names
+
+
+def modules():
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            yield pkg, path
+
+
+def test_there_are_modules_to_check():
+    assert sum(1 for _ in modules()) >= 15
+
+
+@pytest.mark.parametrize("pkg,path", list(modules()), ids=lambda v: str(v))
+def test_import_rules(pkg, path):
+    rel = path.relative_to(ROOT).as_posix()
+    names = imports_of(path)
+    tops = {n.split(".")[0] for n in names}
+    for lib, allowed in THIRD_PARTY_ONLY_IN.items():
+        if lib in tops:
+            assert any(rel == a or rel.startswith(a + "/") for a in allowed), (
+                f"{rel} imports {lib}, allowed only in {sorted(allowed)}"
+            )
+    if "dask" in tops or "distributed" in tops:
+        assert rel.startswith("bench/"), f"{rel} imports dask"
+    stdlib = set(__import__("sys").stdlib_module_names)
+    if pkg in ("calib", "sim_us"):
+        foreign = tops - stdlib - SCIENTIFIC - {pkg, "__future__"}
+        assert not foreign, f"{rel} imports {sorted(foreign)}"
+    if pkg == "twin":
+        assert "hw" not in tops, f"{rel} imports hw"
+    if pkg == "hw":
+        assert "twin" not in tops and "sim_us" not in tops, f"{rel} imports twin/sim_us"
+    if pkg in ("twin", "hw"):
+        assert "bench" not in tops, f"{rel} imports bench"
+        calib_mods = {n for n in names if n.startswith("calib.")}
+        assert not {m for m in calib_mods if not any(m.startswith(c) for c in CALIB_SHARED)}, (
+            f"{rel} imports {sorted(calib_mods)}; twin and hw may use only {sorted(CALIB_SHARED)}"
+        )
+    if pkg == "sim_us":
+        assert not tops & {"twin", "bench", "hw", "calib"}, f"{rel} imports another package"
