@@ -28,12 +28,20 @@ EXIT_USER_ERROR = 2
 
 
 def _add_scenario_args(p: argparse.ArgumentParser, optional: bool = False) -> None:
-    p.add_argument("scenario", nargs="?" if optional else None, default=None,
-                   help="scenario YAML file" + (" (default: the built-in paper setup)"
-                                                if optional else ""))
-    p.add_argument("--set", dest="overrides", action="append", default=[],
-                   metavar="KEY.PATH=VALUE",
-                   help="override a scenario key (value in YAML syntax); repeatable")
+    p.add_argument(
+        "scenario",
+        nargs="?" if optional else None,
+        default=None,
+        help="scenario YAML file" + (" (default: the built-in paper setup)" if optional else ""),
+    )
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY.PATH=VALUE",
+        help="override a scenario key (value in YAML syntax); repeatable",
+    )
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -69,28 +77,45 @@ def _summary(s: Scenario, console: Console) -> None:
     r, p, t = s.robot, s.phantom, s.tools
     rows = [
         ("seed", str(s.seed)),
-        ("robot", f"{r.model}, DH error ×{r.dh_error_scale:g} (RMS θ {r.dh_rms_theta_deg:g}°, "
-                  f"d {r.dh_rms_d_mm:g} mm, a {r.dh_rms_a_mm:g} mm, α {r.dh_rms_alpha_deg:g}°), "
-                  f"repeatability {r.joint_repeatability_deg:g}°, encoder {r.encoder_noise_deg:g}°"),
-        ("tools", f"{t.mounted} mounted; probe at {list(t.probe_mount_position_mm)} mm / "
-                  f"{list(t.probe_mount_rotation_deg)}°; stylus tip {list(t.stylus_tip_mm)} mm"),
-        ("phantom", f"{p.kind} at {list(p.position_mm)} mm, {list(p.rotation_deg)}°; tank "
-                    f"{list(p.tank_inner_mm)} mm, water {p.water_level_mm:g} mm"),
+        (
+            "robot",
+            f"{r.model}, DH error ×{r.dh_error_scale:g} (RMS θ {r.dh_rms_theta_deg:g}°, "
+            f"d {r.dh_rms_d_mm:g} mm, a {r.dh_rms_a_mm:g} mm, α {r.dh_rms_alpha_deg:g}°), "
+            f"repeatability {r.joint_repeatability_deg:g}°, encoder {r.encoder_noise_deg:g}°",
+        ),
+        (
+            "tools",
+            f"{t.mounted} mounted; probe at {list(t.probe_mount_position_mm)} mm / "
+            f"{list(t.probe_mount_rotation_deg)}°; stylus tip {list(t.stylus_tip_mm)} mm",
+        ),
+        (
+            "phantom",
+            f"{p.kind} at {list(p.position_mm)} mm, {list(p.rotation_deg)}°; tank "
+            f"{list(p.tank_inner_mm)} mm, water {p.water_level_mm:g} mm",
+        ),
         ("medium", f"{s.medium.kind} at {s.medium.temperature_c:g} °C"),
-        ("imaging", f"{s.imaging.width_mm:g} × {s.imaging.depth_mm:g} mm at "
-                    f"{list(s.imaging.pixel_spacing_mm)} mm/px, {s.imaging.f_mhz:g} MHz, "
-                    f"gain {s.imaging.gain_db:g} dB"),
-        ("protocol", f"9 orientations (±{s.protocol.rotation_deg:g}°) × 5 positions "
-                     f"(±{s.protocol.translation_mm:g} mm), sweeps ±"
-                     f"{s.protocol.sweep_half_length_mm:g} mm × {s.protocol.frames_per_sweep} "
-                     "frames"),
+        (
+            "imaging",
+            f"{s.imaging.width_mm:g} × {s.imaging.depth_mm:g} mm at "
+            f"{list(s.imaging.pixel_spacing_mm)} mm/px, {s.imaging.f_mhz:g} MHz, "
+            f"gain {s.imaging.gain_db:g} dB",
+        ),
+        (
+            "protocol",
+            f"9 orientations (±{s.protocol.rotation_deg:g}°) × 5 positions "
+            f"(±{s.protocol.translation_mm:g} mm), sweeps ±"
+            f"{s.protocol.sweep_half_length_mm:g} mm × {s.protocol.frames_per_sweep} "
+            "frames",
+        ),
         ("output", s.output.dir),
     ]
     for name, text in rows:
         table.add_row(name, text)
     console.print(table)
-    console.print("[green]ok[/green]: scenario is valid; every target is reachable at all "
-                  "nine orientations and the probe clears phantom and tank.")
+    console.print(
+        "[green]ok[/green]: scenario is valid; every target is reachable at all "
+        "nine orientations and the probe clears phantom and tank."
+    )
 
 
 def _cmd_check(args: argparse.Namespace, console: Console) -> int:
@@ -108,8 +133,7 @@ def _cmd_twin_export(args: argparse.Namespace, console: Console) -> int:
     scenario = load_scenario(args.scenario, args.overrides)
     twin = make_twin(scenario)
     truth = twin.truth
-    landmarks = {k: [round(1e3 * float(v), 4) for v in p] for k, p in
-                 truth.landmarks_base.items()}
+    landmarks = {k: [round(1e3 * float(v), 4) for v in p] for k, p in truth.landmarks_base.items()}
     with atomic_output_dir(args.outdir, force=args.force) as tmp:
         files = export_scene(twin.scene.scene, tmp)
         truth_doc = {
@@ -119,10 +143,19 @@ def _cmd_twin_export(args: argparse.Namespace, console: Console) -> int:
             "sphere_radii_mm": {k: round(1e3 * v, 4) for k, v in truth.sphere_radii.items()},
             "T_ee_us": np.round(truth.T_ee_us, 9).tolist(),
             "stylus_tip_ee_mm": np.round(1e3 * truth.p_ee_tip, 4).tolist(),
-            "dh_true": {k: list(v) for k, v in zip(
-                ("theta_rad", "d_m", "a_m", "alpha_rad"),
-                (truth.dh_table.theta, truth.dh_table.d, truth.dh_table.a, truth.dh_table.alpha),
-                strict=True)},
+            "dh_true": {
+                k: list(v)
+                for k, v in zip(
+                    ("theta_rad", "d_m", "a_m", "alpha_rad"),
+                    (
+                        truth.dh_table.theta,
+                        truth.dh_table.d,
+                        truth.dh_table.a,
+                        truth.dh_table.alpha,
+                    ),
+                    strict=True,
+                )
+            },
         }
         (tmp / "truth.yaml").write_text(yaml.safe_dump(truth_doc, sort_keys=False))
         files.append("truth.yaml")
@@ -133,10 +166,14 @@ def _cmd_twin_export(args: argparse.Namespace, console: Console) -> int:
         table.add_row(name, f"{x:.3f}", f"{y:.3f}", f"{z:.3f}")
     console.print(table)
     rot = np.degrees(se3.euler_from_matrix(truth.T_ee_us[:3, :3]))
-    console.print(f"true T_ee_us: position {np.round(1e3 * truth.T_ee_us[:3, 3], 3).tolist()} mm, "
-                  f"rotation (xyz) {np.round(rot, 3).tolist()}°")
-    console.print(f"wrote {len(files)} files to {args.outdir} (open {Path(args.outdir) / 'scene.xml'}"
-                  " in MuJoCo's viewer)")
+    console.print(
+        f"true T_ee_us: position {np.round(1e3 * truth.T_ee_us[:3, 3], 3).tolist()} mm, "
+        f"rotation (xyz) {np.round(rot, 3).tolist()}°"
+    )
+    console.print(
+        f"wrote {len(files)} files to {args.outdir} (open {Path(args.outdir) / 'scene.xml'}"
+        " in MuJoCo's viewer)"
+    )
     return 0
 
 

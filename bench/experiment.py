@@ -23,5 +23,11 @@ def stage_rngs(scenario: Scenario) -> dict[str, np.random.Generator]:
 def make_twin(scenario: Scenario) -> Twin:
     """Build the twin of a scenario: truth drawn from its seed."""
     rngs = stage_rngs(scenario)
-    return build_twin(scenario.robot, scenario.tools, scenario.phantom, rngs["dh"],
-                      rngs["phantom"], rngs["joints"])
+    return build_twin(
+        scenario.robot,
+        scenario.tools,
+        scenario.phantom,
+        rngs["dh"],
+        rngs["phantom"],
+        rngs["joints"],
+    )

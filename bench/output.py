@@ -31,8 +31,9 @@ def atomic_output_dir(target: str | os.PathLike[str], force: bool = False) -> It
     if target.exists() and not target.is_dir():
         raise OutputExistsError(f"{target}: exists and is not a directory")
     if target.is_dir() and any(target.iterdir()) and not force:
-        raise OutputExistsError(f"{target}: directory exists and is not empty (use --force to "
-                                "replace it)")
+        raise OutputExistsError(
+            f"{target}: directory exists and is not empty (use --force to replace it)"
+        )
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:

@@ -130,7 +130,7 @@ def _read_yaml(path: str) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"cannot read the file ({exc})", source=path) from None
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - strict *safe* loader
+        return yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         line = mark.line + 1 if mark is not None else None
@@ -184,13 +184,14 @@ def _coerce(value: Any, tp: Any, meta: dict[str, Any], where: dict[str, Any]) ->
     def fail(what: str) -> typing.NoReturn:
         allowed = _type_text(tp, meta)
         bounds = _bounds_text(meta)
-        raise ScenarioError(what, value=value, allowed=allowed + (f", {bounds}" if bounds else ""),
-                            **where)
+        raise ScenarioError(
+            what, value=value, allowed=allowed + (f", {bounds}" if bounds else ""), **where
+        )
 
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        inner = [a for a in args if a is not type(None)][0]
+        inner = next(a for a in args if a is not type(None))
         return _coerce(value, inner, meta, where)
     if origin is Literal:
         if value not in args:
@@ -269,8 +270,9 @@ def scenario_from_mapping(data: Any, source: str = "<scenario>") -> Scenario:
             )
     seed = data.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ScenarioError("invalid seed", source=source, key="seed", value=seed,
-                            allowed="an integer ≥ 0")
+        raise ScenarioError(
+            "invalid seed", source=source, key="seed", value=seed, allowed="an integer ≥ 0"
+        )
     sections = {
         name: _build_section(cls, data.get(name), name, source) for name, cls in SECTIONS.items()
     }
@@ -284,15 +286,15 @@ def apply_overrides(data: Any, overrides: typing.Sequence[str], source: str) -> 
     data = dict(data or {})
     for item in overrides:
         if "=" not in item:
-            raise ScenarioError("an override must read key.path=value", source="--set",
-                                key=item)
+            raise ScenarioError("an override must read key.path=value", source="--set", key=item)
         path, _, text = item.partition("=")
         keys = path.strip().split(".")
         try:
-            value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - strict *safe* loader
+            value = yaml.load(text, Loader=_StrictLoader)
         except yaml.YAMLError:
-            raise ScenarioError("value is not valid YAML", source="--set", key=path,
-                                value=text) from None
+            raise ScenarioError(
+                "value is not valid YAML", source="--set", key=path, value=text
+            ) from None
         node = data
         for k in keys[:-1]:
             child = node.get(k)
@@ -303,8 +305,11 @@ def apply_overrides(data: Any, overrides: typing.Sequence[str], source: str) -> 
     return data
 
 
-def load_scenario(path: str | os.PathLike[str] | None, overrides: typing.Sequence[str] = (),
-                  check_reach: bool = True) -> Scenario:
+def load_scenario(
+    path: str | os.PathLike[str] | None,
+    overrides: typing.Sequence[str] = (),
+    check_reach: bool = True,
+) -> Scenario:
     """Read, override and validate a scenario file (``None``: the built-in default).
 
     ``check_reach`` also runs :func:`check_geometry` (reachability and collisions).
@@ -330,28 +335,47 @@ def _check_consistency(s: Scenario) -> None:
     src = s.source
     p = s.phantom
     if p.water_level_mm > p.tank_inner_mm[2]:
-        raise ScenarioError("the water would overflow the tank", source=src,
-                            key="phantom.water_level_mm", value=p.water_level_mm,
-                            allowed=f"≤ tank height {p.tank_inner_mm[2]:g}")
+        raise ScenarioError(
+            "the water would overflow the tank",
+            source=src,
+            key="phantom.water_level_mm",
+            value=p.water_level_mm,
+            allowed=f"≤ tank height {p.tank_inner_mm[2]:g}",
+        )
     if p.kind == "spheres":
         r, half = p.sphere_radius_mm, p.sphere_spacing_mm / 2
         if p.sphere_spacing_mm <= 2 * r:
-            raise ScenarioError("spheres would overlap", source=src,
-                                key="phantom.sphere_spacing_mm", value=p.sphere_spacing_mm,
-                                allowed=f"> 2 × sphere_radius_mm = {2 * r:g}")
+            raise ScenarioError(
+                "spheres would overlap",
+                source=src,
+                key="phantom.sphere_spacing_mm",
+                value=p.sphere_spacing_mm,
+                allowed=f"> 2 × sphere_radius_mm = {2 * r:g}",
+            )
         if p.center_height_mm - r <= p.plate_thickness_mm:
-            raise ScenarioError("spheres would sink into the base plate", source=src,
-                                key="phantom.center_height_mm", value=p.center_height_mm,
-                                allowed=f"> plate_thickness_mm + radius = "
-                                        f"{p.plate_thickness_mm + r:g}")
+            raise ScenarioError(
+                "spheres would sink into the base plate",
+                source=src,
+                key="phantom.center_height_mm",
+                value=p.center_height_mm,
+                allowed=f"> plate_thickness_mm + radius = {p.plate_thickness_mm + r:g}",
+            )
         if p.vertex_offset_mm < half + r + 8:
-            raise ScenarioError("touch vertices would sit inside the sphere square", source=src,
-                                key="phantom.vertex_offset_mm", value=p.vertex_offset_mm,
-                                allowed=f"≥ spacing/2 + radius + 8 = {half + r + 8:g}")
+            raise ScenarioError(
+                "touch vertices would sit inside the sphere square",
+                source=src,
+                key="phantom.vertex_offset_mm",
+                value=p.vertex_offset_mm,
+                allowed=f"≥ spacing/2 + radius + 8 = {half + r + 8:g}",
+            )
     if s.protocol.target_depth_mm >= s.imaging.depth_mm:
-        raise ScenarioError("the target would lie below the imaged depth", source=src,
-                            key="protocol.target_depth_mm", value=s.protocol.target_depth_mm,
-                            allowed=f"< imaging.depth_mm = {s.imaging.depth_mm:g}")
+        raise ScenarioError(
+            "the target would lie below the imaged depth",
+            source=src,
+            key="protocol.target_depth_mm",
+            value=s.protocol.target_depth_mm,
+            allowed=f"< imaging.depth_mm = {s.imaging.depth_mm:g}",
+        )
 
 
 def _targets(s: Scenario) -> dict[str, np.ndarray]:
@@ -371,9 +395,9 @@ def check_geometry(s: Scenario) -> None:
     every target at the protocol's nine orientations (nominal inverse kinematics within joint
     limits) without the true arm or tool hitting the phantom or tank at the nominal ones.
     """
+    from twin.ik import solve_ik
     from twin.phantoms import build_phantom, build_tank
     from twin.scene import Scene, SceneModel
-    from twin.ik import solve_ik
 
     src, p = s.source, s.phantom
     phantom = build_phantom(p)
@@ -383,16 +407,20 @@ def check_geometry(s: Scenario) -> None:
     half = np.array(p.tank_inner_mm[:2]) * 1e-3 / 2
     if np.any(np.abs(P_tank[:, :2]) > half + 1e-9) or np.any(P_tank[:, 2] < -1e-4):
         raise ScenarioError(
-            "the phantom does not fit inside the tank (it must rest on the floor within the "
-            "walls)", source=src, key="phantom.position_mm", value=list(p.position_mm),
+            "the phantom does not fit inside the tank (it must rest on the floor within the walls)",
+            source=src,
+            key="phantom.position_mm",
+            value=list(p.position_mm),
             allowed=f"a pose keeping the phantom within ±{1e3 * half[0]:.0f} × "
-                    f"±{1e3 * half[1]:.0f} mm of the tank centre, at or above its floor",
+            f"±{1e3 * half[1]:.0f} mm of the tank centre, at or above its floor",
         )
     top = P_tank[:, 2].max() * 1e3
     if top >= p.water_level_mm:
         raise ScenarioError(
             f"the phantom (top {top:.1f} mm above the floor) is not under water",
-            source=src, key="phantom.water_level_mm", value=p.water_level_mm,
+            source=src,
+            key="phantom.water_level_mm",
+            value=p.water_level_mm,
             allowed=f"> {top:.1f}",
         )
     depth = s.protocol.target_depth_mm * 1e-3
@@ -408,8 +436,12 @@ def check_geometry(s: Scenario) -> None:
             try:
                 q = solve_ik(nominal, T_base_ee, q_home, pose_label=label)
             except UnreachablePoseError as exc:
-                raise ScenarioError(f"out of the robot's reach: {exc}", source=src,
-                                    key="phantom.position_mm", value=list(p.position_mm)) from None
+                raise ScenarioError(
+                    f"out of the robot's reach: {exc}",
+                    source=src,
+                    key="phantom.position_mm",
+                    value=list(p.position_mm),
+                ) from None
             if k == 0 and s.tools.mounted == "probe":
                 contacts = scene.collisions(q)
                 if contacts:
@@ -417,7 +449,10 @@ def check_geometry(s: Scenario) -> None:
                     raise ScenarioError(
                         f"the probe facing {name} would put {c.robot_geom} "
                         f"{1e3 * c.depth:.1f} mm into {c.environment_geom}",
-                        source=src, key="phantom.position_mm", value=list(p.position_mm))
+                        source=src,
+                        key="phantom.position_mm",
+                        value=list(p.position_mm),
+                    )
 
 
 # --------------------------------------------------------------------------- docs
@@ -448,8 +483,15 @@ def scenarios_markdown() -> str:
     ]
     for section, cls in SECTIONS.items():
         doc = (cls.__doc__ or "").strip().splitlines()[0]
-        lines += ["", f"## {section}", "", doc, "", "| key | type | default | meaning |",
-                  "|---|---|---|---|"]
+        lines += [
+            "",
+            f"## {section}",
+            "",
+            doc,
+            "",
+            "| key | type | default | meaning |",
+            "|---|---|---|---|",
+        ]
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             meta = dict(f.metadata)
@@ -459,7 +501,13 @@ def scenarios_markdown() -> str:
             bounds = _bounds_text(meta)
             if bounds:
                 kind += f" ({bounds})"
-            shown_text = "null" if shown is None else yaml.safe_dump(
-                shown, default_flow_style=True).strip().removesuffix("...").strip()
+            shown_text = (
+                "null"
+                if shown is None
+                else yaml.safe_dump(shown, default_flow_style=True)
+                .strip()
+                .removesuffix("...")
+                .strip()
+            )
             lines.append(f"| `{f.name}` | {kind} | `{shown_text}` | {meta.get('doc', '')} |")
     return "\n".join(lines) + "\n"

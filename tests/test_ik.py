@@ -77,8 +77,11 @@ def test_perturbed_table_solutions_are_exact(rng):
 
 def test_unreachable_pose_names_pose_and_reason():
     T = se3.make(np.eye(3), [0.9, 0.0, 0.2])
-    with pytest.raises(UnreachablePoseError, match=r"sphere_9 .*xyz \[900\.0, 0\.0, 200\.0\] mm.*"
-                                                   r"elbow cannot span"):
+    with pytest.raises(
+        UnreachablePoseError,
+        match=r"sphere_9 .*xyz \[900\.0, 0\.0, 200\.0\] mm.*"
+        r"elbow cannot span",
+    ):
         solve_ik(NOMINAL_TABLES["ur3"], T, np.zeros(6), pose_label="sphere_9")
 
 

@@ -22,8 +22,9 @@ ROT_TOL_RAD = 1e-9
 
 def scene_for(table) -> Scene:
     pc = PhantomConfig()
-    return Scene(table, ToolsConfig(), build_phantom(pc), pc.T_base_phantom, build_tank(pc),
-                 pc.T_base_tank)
+    return Scene(
+        table, ToolsConfig(), build_phantom(pc), pc.T_base_phantom, build_tank(pc), pc.T_base_tank
+    )
 
 
 @pytest.mark.parametrize("model", ["ur3", "ur3e"])
@@ -42,8 +43,9 @@ def test_perturbation_changes_the_arm(rng):
     """Sanity check that the comparison above can fail: deltas move the flange by mm."""
     table = perturbed_table(rng)
     q = rng.uniform(-np.pi, np.pi, (100, 6))
-    d = se3.translation_distance(forward_kinematics(table, q),
-                                 forward_kinematics(NOMINAL_TABLES["ur3"], q))
+    d = se3.translation_distance(
+        forward_kinematics(table, q), forward_kinematics(NOMINAL_TABLES["ur3"], q)
+    )
     assert np.median(d) > 1e-3
 
 
@@ -51,8 +53,11 @@ def test_perturbation_changes_the_arm(rng):
 # with rotation Rx(90°); straight up (q2 = q4 = -90°) at height d1 - a2 - a3 + d5.
 PUBLISHED_UR3 = [
     (np.zeros(6), [-0.45690, -0.19425, 0.06655], [[1, 0, 0], [0, 0, -1], [0, 1, 0]]),
-    (np.radians([0, -90, 0, -90, 0, 0]), [0.0, -0.19425, 0.69415],
-     [[-1, 0, 0], [0, 0, -1], [0, -1, 0]]),
+    (
+        np.radians([0, -90, 0, -90, 0, 0]),
+        [0.0, -0.19425, 0.69415],
+        [[-1, 0, 0], [0, 0, -1], [0, -1, 0]],
+    ),
 ]
 
 

@@ -77,8 +77,14 @@ def build_twin(
     table = robot_cfg.nominal_table.with_deltas(deltas)
     cad, printed = phantom_pair(phantom_cfg, rng_phantom)
     scene = SceneModel(
-        Scene(table, tools_cfg, printed, phantom_cfg.T_base_phantom, build_tank(phantom_cfg),
-              phantom_cfg.T_base_tank)
+        Scene(
+            table,
+            tools_cfg,
+            printed,
+            phantom_cfg.T_base_phantom,
+            build_tank(phantom_cfg),
+            phantom_cfg.T_base_tank,
+        )
     )
     truth = GroundTruth(
         dh_table=table,

@@ -1,0 +1,97 @@
+"""The uscal command line, run as a user runs it (separate processes)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = str(ROOT / "scenarios" / "quick.yaml")
+
+
+def uscal(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    script = Path(sys.executable).parent / "uscal"
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "bench.cli"]
+    return subprocess.run([*cmd, *args], capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def test_check_valid_scenario():
+    r = uscal("check", QUICK)
+    assert r.returncode == 0, r.stderr
+    assert "scenario is valid" in r.stdout
+
+
+def test_check_default_scenario():
+    r = uscal("check")
+    assert r.returncode == 0, r.stderr
+    assert "<default>" in r.stdout
+
+
+def test_bad_scenario_is_one_line_exit_2_no_traceback(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("imaging:\n  gain_db: 100\n")
+    r = uscal("check", str(bad))
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert "bad.yaml: imaging.gain_db = 100: out of range" in lines[0]
+    assert "≤ 60" in lines[0]
+    # --debug shows where it came from.
+    r = uscal("--debug", "check", str(bad))
+    assert r.returncode == 2 and "Traceback" in r.stderr
+
+
+def test_set_override_is_validated():
+    r = uscal("check", QUICK, "--set", "robot.dh_error_scale=-2")
+    assert r.returncode == 2
+    assert "robot.dh_error_scale = -2" in r.stderr
+
+
+def test_twin_export_writes_loadable_mjcf_and_prints_landmarks(tmp_path):
+    out = tmp_path / "twin"
+    r = uscal("twin", "export", QUICK, str(out), "--set", "robot.dh_error_scale=0")
+    assert r.returncode == 0, r.stderr
+    assert "sphere_1" in r.stdout and "vertex_4" in r.stdout
+    model = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
+    assert model.nmesh >= 13 and (out / "meshes" / "sphere_1.stl").exists()
+    assert [model.joint(i).name for i in range(6)] == [f"joint{i}" for i in range(1, 7)]
+    truth = yaml.safe_load((out / "truth.yaml").read_text())
+    s1 = np.array(truth["landmarks_base_mm"]["sphere_1"])
+    # quick.yaml: phantom at (300, 0, 0) mm turned -3° about z; sphere 1 at (-25, -25, 30).
+    c, s = np.cos(np.radians(-3)), np.sin(np.radians(-3))
+    expected = np.array([300 + c * -25 - s * -25, s * -25 + c * -25, 30])
+    assert np.linalg.norm(s1 - expected) < 1.0  # within printing tolerance (mm)
+    # Zero DH error: the exported arm is the nominal UR3.
+    assert truth["dh_true"]["a_m"][1] == pytest.approx(-0.24365, abs=1e-15)
+
+
+def test_twin_export_refuses_to_overwrite_and_failed_export_leaves_nothing(tmp_path):
+    out = tmp_path / "twin"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    r = uscal("twin", "export", QUICK, str(out))
+    assert r.returncode == 2 and "not empty" in r.stderr
+    assert (out / "keep.txt").read_text() == "mine"
+    # A scenario error after the directory would have been started leaves no output.
+    fresh = tmp_path / "fresh"
+    r = uscal("twin", "export", QUICK, str(fresh), "--set", "phantom.position_mm=[900,0,0]")
+    assert r.returncode == 2
+    assert not fresh.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["twin"]
+    # --force replaces atomically.
+    r = uscal("twin", "export", QUICK, str(out), "--force")
+    assert r.returncode == 0, r.stderr
+    assert not (out / "keep.txt").exists() and (out / "scene.xml").exists()
+
+
+def test_docs_command_prints_the_scenario_reference():
+    r = uscal("docs", "scenarios")
+    assert r.returncode == 0
+    assert r.stdout == (ROOT / "docs" / "scenarios.md").read_text(encoding="utf-8")

@@ -1,0 +1,153 @@
+"""Scenario validation: the shipped files, every kind of mistake, overrides, docs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.scenario import (
+    SECTIONS,
+    Scenario,
+    check_geometry,
+    load_scenario,
+    scenario_from_mapping,
+    scenarios_markdown,
+)
+from calib.errors import ScenarioError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", ["paper.yaml", "quick.yaml"])
+def test_shipped_scenarios_are_valid(name):
+    s = load_scenario(ROOT / "scenarios" / name)
+    assert isinstance(s, Scenario)
+    assert s.source.endswith(name)
+
+
+def test_paper_scenario_holds_the_papers_numbers():
+    s = load_scenario(ROOT / "scenarios" / "paper.yaml", check_reach=False)
+    assert (s.phantom.sphere_radius_mm, s.phantom.sphere_spacing_mm) == (5.0, 50.0)
+    assert (s.phantom.cone_base_diameter_mm, s.phantom.cone_height_mm) == (60.0, 44.64)
+    assert (s.protocol.rotation_deg, s.protocol.translation_mm) == (10.0, 3.0)
+    assert (s.protocol.sweep_half_length_mm, s.protocol.frames_per_sweep) == (10.0, 21)
+    assert (s.robot.dh_rms_theta_deg, s.robot.dh_rms_d_mm) == (2.51, 0.24)
+    assert (s.robot.dh_rms_a_mm, s.robot.dh_rms_alpha_deg) == (1.51, 0.27)
+
+
+def test_default_scenario_equals_paper_defaults():
+    assert load_scenario(None, check_reach=False).phantom.sphere_radius_mm == 5.0
+
+
+def write(tmp_path, text):
+    path = tmp_path / "s.yaml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize(
+    "text,pattern",
+    [
+        (
+            "robot:\n  dh_eror_scale: 1\n",
+            r"s\.yaml: robot\.dh_eror_scale: unknown key; did you "
+            r"mean 'dh_error_scale'\?",
+        ),
+        ("robots: {}\n", r"robots: unknown section; did you mean 'robot'\?"),
+        ("robot:\n  dh_error_scale: -1\n", r"robot\.dh_error_scale = -1: out of range.*≥ 0"),
+        ("robot:\n  dh_error_scale: lots\n", r"robot\.dh_error_scale = 'lots': expected a number"),
+        ("robot:\n  model: ur5\n", r"robot\.model = 'ur5': not an allowed value.*'ur3', 'ur3e'"),
+        (
+            "protocol:\n  frames_per_sweep: 2.5\n",
+            r"protocol\.frames_per_sweep = 2\.5: expected "
+            r"an integer",
+        ),
+        ("output:\n  rrd: 1\n", r"output\.rrd = 1: expected true or false"),
+        (
+            "tools:\n  stylus_tip_mm: [1, 2]\n",
+            r"tools\.stylus_tip_mm = \[1, 2\]: expected 3 "
+            r"values",
+        ),
+        ("imaging:\n  pixel_spacing_mm: [0.1, 0]\n", r"imaging\.pixel_spacing_mm.*out of range"),
+        ("seed: -3\n", r"seed = -3: invalid seed"),
+        (
+            "seed: 1\nrobot:\n  model: ur3\n  model: ur3e\n",
+            r"s\.yaml:4: invalid YAML: duplicate "
+            r"key 'model'",
+        ),
+        ("seed: 1\nrobot: [\n", r"s\.yaml:3: invalid YAML"),
+        ("- 1\n- 2\n", r"a scenario must be a mapping"),
+        ("phantom:\n  water_level_mm: 200\n", r"phantom\.water_level_mm = 200.*overflow"),
+        ("phantom:\n  sphere_spacing_mm: 8\n", r"sphere_spacing_mm = 8.*overlap"),
+        ("imaging:\n  depth_mm: 15\n", r"protocol\.target_depth_mm = 20.*below the imaged depth"),
+        ("medium:\n  temperature_c: .nan\n", r"temperature_c = nan: expected a finite number"),
+    ],
+)
+def test_invalid_scenarios_raise_one_clear_error(tmp_path, text, pattern):
+    with pytest.raises(ScenarioError, match=pattern):
+        load_scenario(write(tmp_path, text), check_reach=False)
+
+
+@pytest.mark.parametrize(
+    "overrides,pattern",
+    [
+        (["phantom.position_mm=[500, 0, 0]"], r"does not fit inside the tank"),
+        (["phantom.position_mm=[300, 0, -20]"], r"does not fit inside the tank"),
+        (["phantom.water_level_mm=20"], r"not under water"),
+        (
+            ["phantom.tank_position_mm=[620, 0, 0]", "phantom.position_mm=[620, 0, 0]"],
+            r"out of the robot's reach: pose facing sphere_\d \(orientation \d\)",
+        ),
+        (
+            ["phantom.tank_position_mm=[150, 0, 0]", "phantom.position_mm=[150, 0, 0]"],
+            r"would put link\d_\w .* into tank_wall",
+        ),
+    ],
+)
+def test_impossible_geometry_is_rejected(overrides, pattern):
+    with pytest.raises(ScenarioError, match=pattern):
+        load_scenario(ROOT / "scenarios" / "quick.yaml", overrides)
+
+
+def test_overrides_apply_with_validation():
+    s = load_scenario(
+        ROOT / "scenarios" / "quick.yaml",
+        ["robot.dh_error_scale=0", "phantom.rotation_deg=[0, 0, 10]", "seed=7"],
+    )
+    assert s.robot.dh_error_scale == 0.0
+    assert s.phantom.rotation_deg == (0.0, 0.0, 10.0)
+    assert s.seed == 7
+    assert "(with --set)" in s.source
+    with pytest.raises(ScenarioError, match=r"--set: nokey: an override must read"):
+        load_scenario(None, ["nokey"])
+    with pytest.raises(ScenarioError, match=r"robot\.modle: unknown key; did you mean 'model'"):
+        load_scenario(None, ["robot.modle=ur3e"])
+
+
+def test_cone_and_prism_scenarios_pass_geometry():
+    for kind in ("cone", "prism"):
+        s = scenario_from_mapping({"phantom": {"kind": kind}})
+        check_geometry(s)
+
+
+def test_seed_streams_are_reproducible():
+    a, b = Scenario(seed=3), Scenario(seed=3)
+    assert [g.random() for g in a.rngs(4)] == [g.random() for g in b.rngs(4)]
+    assert a.rngs(1)[0].random() != Scenario(seed=4).rngs(1)[0].random()
+    assert np.isfinite(a.rngs(2)[1].random())
+
+
+def test_docs_are_generated_from_the_schema_and_current():
+    text = scenarios_markdown()
+    assert (ROOT / "docs" / "scenarios.md").read_text(encoding="utf-8") == text, (
+        "docs/scenarios.md is stale: run `uscal docs scenarios -o docs/scenarios.md`"
+    )
+    import dataclasses
+
+    for section, cls in SECTIONS.items():
+        assert f"## {section}" in text
+        for f in dataclasses.fields(cls):
+            assert f"| `{f.name}` |" in text
+            assert f.metadata.get("doc"), f"{section}.{f.name} has no documentation"

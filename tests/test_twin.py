@@ -1,0 +1,123 @@
+"""The simulated robot and the scene: controller semantics, ground truth, collisions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.dh import forward_kinematics
+from calib.errors import CollisionError
+from calib.protocol import facing_pose
+from twin.phantoms import PhantomConfig
+from twin.robot import RobotConfig
+from twin.tools import ToolsConfig
+from twin.world import build_twin
+
+MM = 1e-3
+
+
+def make(robot=None, tools=None, phantom=None, seed=0):
+    r = np.random.default_rng(seed).spawn(3)
+    return build_twin(
+        robot or RobotConfig(), tools or ToolsConfig(), phantom or PhantomConfig(), *r
+    )
+
+
+def probe_pose_above(twin, name, depth=20 * MM):
+    T_base_us = facing_pose(twin.truth.landmarks_base[name], depth)
+    return T_base_us @ se3.invert(twin.truth.T_ee_us)
+
+
+def test_without_errors_report_equals_truth():
+    cfg = RobotConfig(dh_error_scale=0, joint_repeatability_deg=0, encoder_noise_deg=0)
+    twin = make(cfg)
+    T_cmd = probe_pose_above(twin, "sphere_2")
+    reading = twin.robot.move_to(T_cmd)
+    truth = twin.robot.truth
+    assert se3.translation_distance(reading.T_base_ee, T_cmd) < 1e-9
+    assert se3.translation_distance(truth.T_base_ee, T_cmd) < 1e-9
+    assert se3.rotation_angle(truth.T_base_ee, T_cmd) < 1e-9
+
+
+def test_controller_reports_nominal_fk_of_encoder_angles_while_true_arm_differs():
+    twin = make(RobotConfig())  # paper-like errors
+    T_cmd = probe_pose_above(twin, "sphere_1")
+    reading = twin.robot.move_to(T_cmd)
+    truth = twin.robot.truth
+    nominal = RobotConfig().nominal_table
+    np.testing.assert_allclose(
+        reading.T_base_ee, forward_kinematics(nominal, reading.q), atol=1e-12
+    )
+    # The controller believes it arrived (encoder noise only) ...
+    assert se3.translation_distance(reading.T_base_ee, T_cmd) < 0.1 * MM
+    # ... the true flange is elsewhere by the DH errors (mm scale) ...
+    assert 0.5 * MM < se3.translation_distance(truth.T_base_ee, T_cmd) < 30 * MM
+    # ... and is what the true DH table gives for the true angles.
+    np.testing.assert_allclose(
+        truth.T_base_ee, forward_kinematics(twin.truth.dh_table, truth.q), atol=1e-12
+    )
+    # Encoder noise: reported and true angles differ at the configured scale.
+    assert 0 < np.max(np.abs(reading.q - truth.q)) < np.radians(0.01)
+
+
+def test_same_seed_same_truth_and_readings():
+    a, b = make(seed=5), make(seed=5)
+    T = probe_pose_above(a, "sphere_3")
+    ra, rb = a.robot.move_to(T), b.robot.move_to(T)
+    np.testing.assert_array_equal(ra.q, rb.q)
+    np.testing.assert_array_equal(a.truth.dh_table.as_array(), b.truth.dh_table.as_array())
+    c = make(seed=6)
+    assert not np.array_equal(c.truth.dh_table.as_array(), a.truth.dh_table.as_array())
+
+
+def test_explicit_dh_deltas_and_scale():
+    cfg = RobotConfig(
+        dh_delta_theta_deg=(1, 0, 0, 0, 0, 0),
+        dh_delta_d_mm=(0,) * 6,
+        dh_delta_a_mm=(0,) * 6,
+        dh_delta_alpha_deg=(0,) * 6,
+        dh_error_scale=2,
+    )
+    twin = make(cfg)
+    np.testing.assert_allclose(twin.truth.dh_deltas.theta, np.radians([2, 0, 0, 0, 0, 0]))
+    assert twin.truth.dh_deltas.a == (0.0,) * 6
+
+
+def test_home_is_clear_and_probe_above_sphere_is_clear():
+    twin = make()
+    assert twin.scene.collisions(np.radians(RobotConfig().home_deg)) == []
+    q = twin.robot.move_to(probe_pose_above(twin, "sphere_1")).q
+    assert twin.scene.collisions(q) == []
+
+
+def test_probe_pushed_into_sphere_collides():
+    twin = make(RobotConfig(dh_error_scale=0))
+    # Transducer face 3 mm below the top of sphere 4: the probe body is inside it.
+    T = probe_pose_above(twin, "sphere_4", depth=2 * MM)
+    with pytest.raises(CollisionError, match=r"probe_body .* mm into sphere_4"):
+        twin.robot.move_to(T, "too deep")
+    q = twin.robot.move_to(probe_pose_above(twin, "sphere_4")).q
+    contacts = twin.scene.collisions(q)
+    assert contacts == []
+
+
+def test_arm_into_tank_wall_collides():
+    twin = make(RobotConfig(dh_error_scale=0))
+    # Arm stretched out horizontally over the tank at shoulder height: the upper arm lies
+    # across the near wall's rim.
+    contacts = twin.scene.collisions(np.radians([180, 0, 0, -90, 90, 0]))
+    assert any(
+        c.robot_geom == "link2_a" and c.environment_geom == "tank_wall_xneg" for c in contacts
+    )
+    # Lifted by 30° it clears the rim.
+    assert twin.scene.collisions(np.radians([180, -30, 0, -90, 90, 0])) == []
+
+
+def test_stylus_tool_has_true_tip_site():
+    twin = make(tools=ToolsConfig(mounted="stylus"))
+    q = np.radians(RobotConfig().home_deg)
+    twin.scene.set_q(q)
+    T_tip = twin.scene.site_pose("tip")
+    p_expected = se3.apply(twin.scene.flange_pose(q), twin.truth.p_ee_tip)
+    np.testing.assert_allclose(T_tip[:3, 3], p_expected, atol=1e-12)
