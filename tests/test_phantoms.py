@@ -76,5 +76,5 @@ def test_tank_encloses_water():
     lo, hi = tank.mesh().bounds
     inner = np.array(cfg.tank_inner_mm) * MM
     t = cfg.tank_wall_mm * MM
-    np.testing.assert_allclose(hi - lo, [*inner, 2 * t, 2 * t, t], atol=GEOM_TOL)
+    np.testing.assert_allclose(hi - lo, inner + np.array([2 * t, 2 * t, t]), atol=GEOM_TOL)
     assert tank.landmarks["water_surface"][2] == pytest.approx(cfg.water_level_mm * MM)
