@@ -30,6 +30,38 @@ class ProbeConfig:
     axial_fwhm_mm: float = field(
         default=0.35, metadata={"doc": "Axial resolution (PSF FWHM).", "gt": 0, "le": 10}
     )
+    elevation_aperture_mm: float = field(
+        default=4.0,
+        metadata={
+            "doc": "Elevation aperture height: the slice thickness at the face.",
+            "gt": 0.1,
+            "le": 30,
+        },
+    )
+    elevation_focus_mm: float = field(
+        default=18.0, metadata={"doc": "Depth of the elevation (lens) focus.", "gt": 1, "le": 200}
+    )
+    slice_thickness_mm: float = field(
+        default=0.7,
+        metadata={"doc": "Slice thickness (elevation FWHM) at the focus.", "gt": 0.05, "le": 10},
+    )
+    scanline_spacing_mm: float = field(
+        default=0.2,
+        metadata={
+            "doc": "Spacing of the simulated scanlines (rounded to whole pixels; the "
+            "lateral PSF fills in between).",
+            "gt": 0.005,
+            "le": 2,
+        },
+    )
+    elevation_planes: int = field(
+        default=15,
+        metadata={
+            "doc": "Elevation sub-planes rays are cast in (partial-volume sum).",
+            "ge": 1,
+            "le": 101,
+        },
+    )
     assumed_speed_m_s: float = field(
         default=1540.0,
         metadata={"doc": "Speed of sound the scanner assumes for display.", "ge": 1000, "le": 2000},
@@ -37,9 +69,35 @@ class ProbeConfig:
     gain_db: float = field(
         default=0.0, metadata={"doc": "Overall receive gain.", "ge": -60, "le": 60}
     )
+    tgc_db_per_cm: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Time-gain compensation slope (gain added per cm of depth).",
+            "ge": 0,
+            "le": 20,
+        },
+    )
+    noise_db: float = field(
+        default=-55.0,
+        metadata={
+            "doc": "Electronic noise (rms) relative to the echo of a perfect reflector.",
+            "ge": -200,
+            "le": 0,
+        },
+    )
+    reverberation: bool = field(
+        default=True,
+        metadata={"doc": "Add the probe-face reverberation of strong flat echoes (floor)."},
+    )
     dynamic_range_db: float = field(
         default=60.0, metadata={"doc": "Log-compression dynamic range.", "ge": 10, "le": 120}
     )
+
+    @property
+    def spacing_m(self) -> tuple[float, float]:
+        """(sx, sy) in metres."""
+        sx, sy = self.pixel_spacing_mm
+        return sx * 1e-3, sy * 1e-3
 
     @property
     def image_shape(self) -> tuple[int, int]:

@@ -1,0 +1,40 @@
+"""The image frame ``us`` and its pixels (DESIGN.md §3): the one place that maps them.
+
+Origin at the centre of the transducer face; x lateral (increasing column), y axial
+(increasing row = depth), z = x × y (elevational). Pixel (row r, col c) of a W-column
+image with spacing (sx, sy) sits at ``x = (c − (W − 1) / 2) · sx``, ``y = r · sy``, ``z = 0``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["pixel_to_us", "us_to_pixel"]
+
+
+def pixel_to_us(
+    rows: ArrayLike, cols: ArrayLike, width_px: int, spacing: tuple[float, float]
+) -> NDArray[np.float64]:
+    """Points (..., 3), metres, us frame, of pixel coordinates (fractional allowed).
+
+    Parameters
+    ----------
+    rows, cols : array_like, broadcast together
+        Row (axial) and column (lateral) pixel coordinates.
+    width_px : int
+        Image width W in pixels.
+    spacing : (sx, sy), metres
+    """
+    rows, cols = np.broadcast_arrays(np.asarray(rows, dtype=float), np.asarray(cols, dtype=float))
+    sx, sy = spacing
+    return np.stack([(cols - (width_px - 1) / 2) * sx, rows * sy, np.zeros_like(rows)], axis=-1)
+
+
+def us_to_pixel(
+    P_us: ArrayLike, width_px: int, spacing: tuple[float, float]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Fractional (rows, cols) of points (..., 3) in the us frame (z is ignored)."""
+    P_us = np.asarray(P_us, dtype=float)
+    sx, sy = spacing
+    return P_us[..., 1] / sy, P_us[..., 0] / sx + (width_px - 1) / 2

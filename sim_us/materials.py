@@ -1,0 +1,102 @@
+"""Acoustic materials: impedance, speed, attenuation, backscatter, surface behaviour.
+
+Numbers: ``notes/ultrasound-physics.md`` of the project. Water's speed of sound follows
+Marczak (1997); its attenuation goes with f² (2.17e-3 f² dB/cm, f in MHz); printed solids
+attenuate tens of dB/cm at 10–15 MHz, so a solid sphere throws a complete shadow.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+__all__ = [
+    "MATERIALS",
+    "Material",
+    "amplitude_reflection",
+    "attenuation_db_per_m",
+    "medium_material",
+    "water",
+    "water_speed_m_s",
+]
+
+# Marczak (1997), J. Acoust. Soc. Am. 102, 2776: speed of sound in pure water, 0–95 °C.
+_MARCZAK = (1.402385e3, 5.038813, -5.799136e-2, 3.287156e-4, -1.398845e-6, 2.787860e-9)
+
+
+def water_speed_m_s(temperature_c: float) -> float:
+    """Speed of sound in pure water (m/s) at ``temperature_c`` (°C)."""
+    return float(sum(c * temperature_c**k for k, c in enumerate(_MARCZAK)))
+
+
+@dataclass(frozen=True)
+class Material:
+    """Acoustic properties of a medium or solid.
+
+    Attributes
+    ----------
+    name : str
+    speed_m_s : float
+    density_kg_m3 : float
+    attenuation_db_cm_mhz : float
+        One-way attenuation coefficient at 1 MHz (dB/cm), scaled by ``f ** power``.
+    attenuation_power : float
+        Frequency exponent (1 for tissue and solids, 2 for water).
+    backscatter_db : float or None
+        Mean intensity of fully developed speckle relative to a perfect reflector (dB);
+        None for a medium without scatterers (water).
+    specular_width_deg : float
+        Width θs of the specular lobe: surface echo amplitude ∝ exp(−(θ/θs)²) in the
+        incidence angle θ.
+    diffuse : float
+        Angle-independent share of the surface echo amplitude (surface roughness).
+    """
+
+    name: str
+    speed_m_s: float
+    density_kg_m3: float
+    attenuation_db_cm_mhz: float
+    attenuation_power: float = 1.0
+    backscatter_db: float | None = None
+    specular_width_deg: float = 15.0
+    diffuse: float = 0.1
+
+    @property
+    def impedance(self) -> float:
+        """Acoustic impedance Z = ρ c (Rayl)."""
+        return self.speed_m_s * self.density_kg_m3
+
+
+def water(temperature_c: float = 20.0) -> Material:
+    """Degassed water at a temperature: no scatterers, f² attenuation."""
+    return Material("water", water_speed_m_s(temperature_c), 998.0, 2.17e-3, 2.0, None)
+
+
+#: Materials by name. PLA and resin are printed solids (rough: diffuse share 0.1).
+MATERIALS: dict[str, Material] = {
+    "water": water(20.0),
+    "gel": Material("gel", 1540.0, 1030.0, 0.5, 1.0, -38.0),
+    "pla": Material("pla", 2220.0, 1240.0, 4.0, 1.0, None, 15.0, 0.1),
+    "resin": Material("resin", 2500.0, 1180.0, 5.0, 1.0, None, 15.0, 0.08),
+    "acrylic": Material("acrylic", 2750.0, 1190.0, 0.8, 1.0, None, 10.0, 0.02),
+}
+
+
+def medium_material(kind: str, temperature_c: float) -> Material:
+    """The propagation medium: water at its temperature, or gel."""
+    if kind == "water":
+        return water(temperature_c)
+    return replace(MATERIALS[kind])
+
+
+def amplitude_reflection(z1: np.ndarray | float, z2: np.ndarray | float) -> np.ndarray:
+    """Pressure-amplitude reflection coefficient magnitude |Z2 − Z1| / (Z2 + Z1) at normal
+    incidence; its square is the intensity reflection coefficient R."""
+    z1, z2 = np.asarray(z1, dtype=float), np.asarray(z2, dtype=float)
+    return np.abs(z2 - z1) / (z2 + z1)
+
+
+def attenuation_db_per_m(material: Material, f_mhz: float) -> float:
+    """One-way attenuation (dB/m) at frequency ``f_mhz``."""
+    return 100.0 * material.attenuation_db_cm_mhz * f_mhz**material.attenuation_power

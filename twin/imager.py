@@ -1,0 +1,85 @@
+"""The simulated scanner: B-mode frames at the probe's *true* pose in the twin's scene.
+
+A :class:`SimRobot` + :class:`SimImager` pair behaves like a robot with a scanner: the
+robot reports what its controller believes, the imager sees what the true arm and the
+true probe mount point at.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib import se3
+from sim_us import MediumConfig, ProbeConfig
+from sim_us.raycast import AcousticScene, ScenePart
+from sim_us.simulator import BmodeSimulator
+
+from .robot import SimRobot
+from .scene import Scene
+
+__all__ = ["SimImager", "acoustic_scene"]
+
+
+def acoustic_scene(scene: Scene) -> AcousticScene:
+    """The twin's true phantom and tank as meshes in the base frame, with materials."""
+    parts = []
+    for phantom, T in ((scene.phantom, scene.T_base_phantom), (scene.tank, scene.T_base_tank)):
+        for part in phantom.parts:
+            mesh = part.mesh.copy()
+            mesh.apply_transform(T)
+            parts.append(ScenePart(part.name, mesh, part.material))
+    return AcousticScene(tuple(parts))
+
+
+class SimImager:
+    """Grabs frames at the robot's true probe pose.
+
+    Parameters
+    ----------
+    robot : SimRobot
+        Its ``truth`` gives the true flange pose.
+    T_ee_us : (4, 4) float
+        The true probe mount.
+    probe, medium : settings of the scanner and the tank's medium
+    rng : numpy.random.Generator
+        Electronic noise; also draws the key of the medium's speckle once.
+    """
+
+    def __init__(
+        self,
+        robot: SimRobot,
+        T_ee_us: NDArray[np.float64],
+        probe: ProbeConfig,
+        medium: MediumConfig,
+        rng: np.random.Generator,
+    ) -> None:
+        self.robot = robot
+        self._T_ee_us = np.asarray(T_ee_us, dtype=float)
+        self._rng = rng
+        self.probe = probe
+        self.simulator = BmodeSimulator(
+            acoustic_scene(robot.scene.scene),
+            probe,
+            medium,
+            speckle_key=int(rng.integers(0, 2**63)),
+        )
+
+    @property
+    def spacing(self) -> tuple[float, float]:
+        """Pixel spacing (sx, sy) in metres."""
+        return self.probe.spacing_m
+
+    def grab(self) -> NDArray[np.uint8]:
+        """One frame (H, W) uint8 at the current true probe pose."""
+        T_base_us = self.robot.truth.T_base_ee @ self._T_ee_us
+        return self.simulator.render(T_base_us[None], self._rng)[0]
+
+    def render_at(self, T_base_us: NDArray[np.float64]) -> NDArray[np.uint8]:
+        """Frames (n, H, W) at given true image poses (batched, e.g. a whole sweep)."""
+        return self.simulator.render(np.asarray(T_base_us).reshape(-1, 4, 4), self._rng)
+
+
+def true_probe_pose(robot: SimRobot, T_ee_us: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``T_base_us`` of the true arm and true mount."""
+    return robot.truth.T_base_ee @ np.asarray(T_ee_us) @ se3.identity()
