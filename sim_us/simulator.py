@@ -109,11 +109,13 @@ class BmodeSimulator:
 
     # ------------------------------------------------------------------ echoes
 
-    def _rays(self, T_scene_us: Array) -> tuple[Array, Array]:
+    def _rays(self, T_scene_us: Array) -> tuple[Array, Array, int]:
+        """Ray origins and directions (n·K·L, 3) in the scene frame: frame-major, then
+        sub-plane, then scanline; each ray runs along its frame's axial (y) axis."""
         n = len(T_scene_us)
-        O = se3.apply(T_scene_us[:, None, None], self._origins_us[None])  # (n, K, W, 3)
-        D = np.broadcast_to(T_scene_us[:, None, None, :3, 1], O.shape)
-        return O.reshape(-1, 3), np.ascontiguousarray(D.reshape(-1, 3)), n
+        origins = se3.apply(T_scene_us[:, None, None], self._origins_us[None])  # (n, K, L, 3)
+        dirs = np.broadcast_to(T_scene_us[:, None, None, :3, 1], origins.shape)
+        return origins.reshape(-1, 3), np.ascontiguousarray(dirs.reshape(-1, 3)), n
 
     def _echo_intensity(self, T_scene_us: Array) -> tuple[NDArray[np.float32], Array]:
         """Surface-echo intensity (n, H, W) before the PSF, and each ray's medium end."""
