@@ -62,18 +62,19 @@ class RayCaster:
     """An Embree scene of an :class:`AcousticScene`."""
 
     def __init__(self, scene: AcousticScene) -> None:
-        if not scene.parts:
-            raise ValueError("an acoustic scene needs at least one part")
         self.parts = scene.parts
+        self._faces: list[NDArray[np.int64]] = []
+        self._vertex_normals: list[Array | None] = []
+        self._face_normals: list[Array] = []
+        self._scene = rtcore_scene.EmbreeScene() if scene.parts else None
+        if not scene.parts:  # an empty scene (e.g. a gel block): every ray misses
+            self.origin = np.zeros(3)
+            return
         # Embree works in float32: shift coordinates to the scene's centre so the
         # precision (≈ 1e-8 m at 0.3 m) is spent where the geometry is.
         lo = np.min([p.mesh.bounds[0] for p in scene.parts], axis=0)
         hi = np.max([p.mesh.bounds[1] for p in scene.parts], axis=0)
         self.origin = (lo + hi) / 2
-        self._scene = rtcore_scene.EmbreeScene()
-        self._faces = []
-        self._vertex_normals: list[Array | None] = []
-        self._face_normals: list[Array] = []
         for part in scene.parts:
             TriangleMesh(
                 scene=self._scene,
@@ -99,7 +100,7 @@ class RayCaster:
         t = np.full(n, np.inf)
         part = np.full(n, -1, dtype=np.int64)
         normal = np.zeros((n, 3))
-        if n == 0:
+        if n == 0 or self._scene is None:
             return Hits(t, part, normal)
         res = self._scene.run(
             (origins - self.origin).astype(np.float32),

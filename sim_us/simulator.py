@@ -14,7 +14,7 @@ with the caller.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,7 +49,6 @@ class Timings:
     formation: float = 0.0
     display: float = 0.0
     frames: int = 0
-    extra: dict[str, float] = field(default_factory=dict)
 
 
 class BmodeSimulator:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from calib import se3
 from sim_us import MediumConfig, ProbeConfig
 from sim_us.raycast import AcousticScene, ScenePart
 from sim_us.simulator import BmodeSimulator
@@ -78,8 +77,3 @@ class SimImager:
     def render_at(self, T_base_us: NDArray[np.float64]) -> NDArray[np.uint8]:
         """Frames (n, H, W) at given true image poses (batched, e.g. a whole sweep)."""
         return self.simulator.render(np.asarray(T_base_us).reshape(-1, 4, 4), self._rng)
-
-
-def true_probe_pose(robot: SimRobot, T_ee_us: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``T_base_us`` of the true arm and true mount."""
-    return robot.truth.T_base_ee @ np.asarray(T_ee_us) @ se3.identity()

@@ -1,0 +1,53 @@
+"""Small acoustic scenes for the simulator's physics checks (probe at the origin looking
+along +y of the scene frame, so image coordinates equal scene coordinates)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import trimesh
+
+from calib import se3
+from sim_us import MediumConfig, ProbeConfig
+from sim_us.raycast import AcousticScene, ScenePart
+from sim_us.simulator import BmodeSimulator
+
+MM = 1e-3
+#: The probe frame is the scene frame.
+T_IDENTITY = np.eye(4)[None]
+
+SMALL_PROBE = ProbeConfig(width_mm=12.0, depth_mm=30.0, pixel_spacing_mm=(0.1, 0.1))
+
+
+def sphere(centre_mm, radius_mm=5.0, material="pla") -> ScenePart:
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=radius_mm * MM)
+    mesh.apply_translation(np.asarray(centre_mm) * MM)
+    return ScenePart("sphere", mesh, material)
+
+
+def slab(depth_mm, thickness_mm=5.0, tilt_deg=0.0, material="pla", size_mm=200.0) -> ScenePart:
+    """A flat plate whose top face crosses the image centre line at ``depth_mm``, tilted
+    about the elevation (z) axis by ``tilt_deg``."""
+    mesh = trimesh.creation.box(extents=[size_mm * MM, thickness_mm * MM, size_mm * MM])
+    mesh.apply_translation([0.0, thickness_mm * MM / 2, 0.0])
+    R = se3.matrix_from_euler([0.0, 0.0, np.radians(tilt_deg)])
+    mesh.apply_transform(se3.make(R, [0.0, depth_mm * MM, 0.0]))
+    return ScenePart("slab", mesh, material)
+
+
+def wire(x_mm, depth_mm, radius_mm=0.03, material="pla") -> ScenePart:
+    """A thin wire along the elevational axis (a resolution target)."""
+    mesh = trimesh.creation.cylinder(radius=radius_mm * MM, height=20 * MM, sections=32)
+    mesh.apply_translation([x_mm * MM, depth_mm * MM, 0.0])
+    return ScenePart("wire", mesh, material)
+
+
+def simulator(parts, probe=SMALL_PROBE, medium=None, **probe_changes) -> BmodeSimulator:
+    probe = replace(probe, **probe_changes)
+    return BmodeSimulator(AcousticScene(tuple(parts)), probe, medium or MediumConfig())
+
+
+def elevation_shift(e_mm: float) -> np.ndarray:
+    """Probe pose moved by e along its elevational axis, (1, 4, 4)."""
+    return se3.make(np.eye(3), [0.0, 0.0, e_mm * MM])[None]
