@@ -37,10 +37,10 @@ class NoiseSource:
         self._size = frame_size
         self._pool = rng.standard_exponential(frame_size * pool_frames, dtype=np.float32)
 
-    def frames(self, n: int) -> NDArray[np.float32]:
-        """(n, frame_size) noise intensities."""
-        offsets = self._rng.integers(0, len(self._pool) - self._size, n)
-        return np.stack([self._pool[o : o + self._size] for o in offsets])
+    def frame(self) -> NDArray[np.float32]:
+        """One frame's noise intensities (frame_size,), a view into the pool."""
+        offset = int(self._rng.integers(0, len(self._pool) - self._size))
+        return self._pool[offset : offset + self._size]
 
 
 def to_bmode(
@@ -53,15 +53,23 @@ def to_bmode(
     """
     intensity = np.asarray(intensity, dtype=np.float32)
     n, H, W = intensity.shape
-    if noise is not None:
-        noise_power = np.float32(10.0 ** (probe.noise_db / 10.0))
-        intensity = intensity + noise_power * noise.frames(n).reshape(n, H, W)
-    grey = np.log10(np.maximum(intensity, np.float32(1e-30)))
     dr = np.float32(probe.dynamic_range_db)
     scale = np.float32(255.0) / dr
     # grey = (10 log10 I + gain(row) + DR) · 255 / DR, rounded, clipped to 0..255.
-    offset = (gain_profile_db(probe, H) + dr) * scale + np.float32(0.5)
-    grey *= np.float32(10.0) * scale
-    grey += offset[:, None]
-    np.clip(grey, 0.0, 255.0, out=grey)
-    return grey.astype(np.uint8)
+    offset = ((gain_profile_db(probe, H) + dr) * scale + np.float32(0.5))[:, None]
+    noise_power = np.float32(10.0 ** (probe.noise_db / 10.0))
+    out = np.empty((n, H, W), dtype=np.uint8)
+    buf = np.empty((H, W), dtype=np.float32)
+    # Frame by frame, in place: the buffer stays in cache across the passes.
+    for f in range(n):
+        if noise is not None:
+            np.multiply(noise.frame(), noise_power, out=buf.reshape(-1))
+            buf += intensity[f]
+        else:
+            np.maximum(intensity[f], np.float32(1e-30), out=buf)
+        np.log10(buf, out=buf)
+        buf *= np.float32(10.0) * scale
+        buf += offset
+        np.clip(buf, 0.0, 255.0, out=buf)
+        out[f] = buf
+    return out
