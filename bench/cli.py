@@ -64,6 +64,13 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("outdir", help="output directory (created atomically)")
     export.add_argument("--force", action="store_true", help="replace an existing OUTDIR")
 
+    image = sub.add_parser(
+        "image", help="render a gallery of B-mode frames at the paper's representative poses"
+    )
+    _add_scenario_args(image)
+    image.add_argument("--out", required=True, help="output directory (created atomically)")
+    image.add_argument("--force", action="store_true", help="replace an existing directory")
+
     docs = sub.add_parser("docs", help="generate documentation")
     docs.add_argument("topic", choices=["scenarios"])
     docs.add_argument("--output", "-o", help="write to this file instead of stdout")
@@ -177,6 +184,19 @@ def _cmd_twin_export(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+def _cmd_image(args: argparse.Namespace, console: Console) -> int:
+    from .gallery import write_gallery
+    from .output import atomic_output_dir
+
+    scenario = load_scenario(args.scenario, args.overrides)
+    with atomic_output_dir(args.out, force=args.force) as tmp:
+        files = write_gallery(scenario, tmp)
+    console.print(
+        f"wrote {len(files)} files to {args.out} (contact sheet: {Path(args.out) / 'gallery.png'})"
+    )
+    return 0
+
+
 def _cmd_docs(args: argparse.Namespace, console: Console) -> int:
     text = scenarios_markdown()
     if args.output:
@@ -190,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``uscal`` console script; returns the exit code."""
     args = _parser().parse_args(argv)
     console = Console()
-    handlers = {"check": _cmd_check, "docs": _cmd_docs}
+    handlers = {"check": _cmd_check, "docs": _cmd_docs, "image": _cmd_image}
     try:
         if args.command == "twin":
             return _cmd_twin_export(args, console)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from twin.imager import SimImager
 from twin.world import Twin, build_twin
 
 from .scenario import Scenario
 
-__all__ = ["RNG_STREAMS", "make_twin", "stage_rngs"]
+__all__ = ["RNG_STREAMS", "make_imager", "make_twin", "stage_rngs"]
 
 #: One generator per stage, spawned from the scenario seed in this order. Appending a
 #: stream keeps every earlier stream (and so every earlier result) unchanged.
@@ -30,4 +31,15 @@ def make_twin(scenario: Scenario) -> Twin:
         rngs["dh"],
         rngs["phantom"],
         rngs["joints"],
+    )
+
+
+def make_imager(scenario: Scenario, twin: Twin) -> SimImager:
+    """The simulated scanner of a scenario, looking through the twin's true probe mount."""
+    return SimImager(
+        twin.robot,
+        twin.truth.T_ee_us,
+        scenario.imaging,
+        scenario.medium,
+        stage_rngs(scenario)["imaging"],
     )

@@ -64,9 +64,9 @@ def test_twin_export_writes_loadable_mjcf_and_prints_landmarks(tmp_path):
     assert [model.joint(i).name for i in range(6)] == [f"joint{i}" for i in range(1, 7)]
     truth = yaml.safe_load((out / "truth.yaml").read_text())
     s1 = np.array(truth["landmarks_base_mm"]["sphere_1"])
-    # quick.yaml: phantom at (300, 0, 0) mm turned -3° about z; sphere 1 at (-25, -25, 30).
+    # quick.yaml: phantom at (300, 0, 0) mm turned -3° about z; sphere 1 at (-25, -25, 20).
     c, s = np.cos(np.radians(-3)), np.sin(np.radians(-3))
-    expected = np.array([300 + c * -25 - s * -25, s * -25 + c * -25, 30])
+    expected = np.array([300 + c * -25 - s * -25, s * -25 + c * -25, 20])
     assert np.linalg.norm(s1 - expected) < 1.0  # within printing tolerance (mm)
     # Zero DH error: the exported arm is the nominal UR3.
     assert truth["dh_true"]["a_m"][1] == pytest.approx(-0.24365, abs=1e-15)
@@ -95,3 +95,18 @@ def test_docs_command_prints_the_scenario_reference():
     r = uscal("docs", "scenarios")
     assert r.returncode == 0
     assert r.stdout == (ROOT / "docs" / "scenarios.md").read_text(encoding="utf-8")
+
+
+def test_image_gallery(tmp_path):
+    out = tmp_path / "gallery"
+    r = uscal("image", QUICK, "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    from skimage import io as skio
+
+    nominal = skio.imread(out / "frame_nominal.png")
+    assert nominal.dtype == np.uint8 and nominal.ndim == 2
+    assert nominal.max() > 150  # the sphere's cap and the floor line
+    assert (out / "gallery.png").stat().st_size > 10_000
+    poses = yaml.safe_load((out / "gallery.yaml").read_text())["poses"]
+    assert poses["a_m10_p10_p10_offset"]["in_plane_mm"] == [3, 3]
+    assert len(list(out.glob("frame_*.png"))) == len(poses) == 10

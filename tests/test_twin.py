@@ -121,3 +121,43 @@ def test_stylus_tool_has_true_tip_site():
     T_tip = twin.scene.site_pose("tip")
     p_expected = se3.apply(twin.scene.flange_pose(q), twin.truth.p_ee_tip)
     np.testing.assert_allclose(T_tip[:3, 3], p_expected, atol=1e-12)
+
+
+def test_robot_and_imager_behave_like_a_robot_with_a_scanner():
+    """With no kinematic error the grabbed frame shows sphere 2's cap on the centre line
+    at its apparent depth; the imager follows the *true* arm, not the report."""
+    from sim_us import MediumConfig, ProbeConfig
+    from sim_us.materials import water_speed_m_s
+    from twin.imager import SimImager
+
+    twin = make(RobotConfig(dh_error_scale=0, joint_repeatability_deg=0, encoder_noise_deg=0))
+    probe = ProbeConfig()
+    imager = SimImager(
+        twin.robot, twin.truth.T_ee_us, probe, MediumConfig(), np.random.default_rng(1)
+    )
+    twin.robot.move_to(probe_pose_above(twin, "sphere_2", depth=20 * MM))
+    frame = imager.grab()
+    assert frame.shape == probe.image_shape and frame.dtype == np.uint8
+    centre = (frame.shape[1] - 1) // 2
+    radius_mm = twin.truth.sphere_radii["sphere_2"] / MM
+    apparent_mm = (20.0 - radius_mm) * 1540.0 / water_speed_m_s(20.0)
+    column = frame[:, centre - 2 : centre + 3].mean(axis=1)
+    assert abs(np.argmax(column[:300]) * 0.1 - apparent_mm) <= 0.2
+    assert column.max() > 150  # a bright cap
+    # The true arm with kinematic error looks elsewhere than the controller believes.
+    twin_err = make(RobotConfig(dh_delta_theta_deg=(0, 1.5, 0, 0, 0, 0), dh_error_scale=1))
+    imager_err = SimImager(
+        twin_err.robot, twin_err.truth.T_ee_us, probe, MediumConfig(), np.random.default_rng(1)
+    )
+    twin_err.robot.move_to(probe_pose_above(twin_err, "sphere_2", depth=20 * MM))
+    moved = imager_err.grab()[:, centre - 2 : centre + 3].mean(axis=1)
+    assert abs(np.argmax(moved[:300]) * 0.1 - apparent_mm) > 1.0
+
+
+def test_teach_puts_the_true_flange_on_target():
+    twin = make()  # paper-like kinematic errors
+    T_target = probe_pose_above(twin, "sphere_3")
+    reading = twin.robot.teach(T_target)
+    assert se3.translation_distance(twin.robot.truth.T_base_ee, T_target) < 0.05 * MM
+    # The controller reports a different pose: its nominal view of the same joints.
+    assert se3.translation_distance(reading.T_base_ee, T_target) > 0.5 * MM

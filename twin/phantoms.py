@@ -75,7 +75,7 @@ class PhantomConfig:
         default=50.0, metadata={"doc": "Side of the square of sphere centres.", "gt": 5, "le": 200}
     )
     center_height_mm: float = field(
-        default=30.0,
+        default=20.0,
         metadata={
             "doc": "Height of sphere centres and touch vertices above the bottom face.",
             "gt": 5,

@@ -188,6 +188,18 @@ class SimRobot:
         q_cmd = solve_ik(self.nominal, T, self._q_reported, pose_label=pose_label)
         return self._settle(q_cmd, pose_label or describe_pose(T))
 
+    def teach(self, T_base_ee_true: ArrayLike, pose_label: str = "") -> RobotReading:
+        """Emulate an operator jogging the arm until the *true* flange sits at a pose (the
+        operator looks at the live image, not at the controller's numbers).
+
+        Solves the inverse kinematics of the true arm; the controller then reports its own
+        (nominal) view of where it is, which is what a taught pose records.
+        """
+        q = solve_ik(
+            self.scene.scene.table, T_base_ee_true, self._q_reported, pose_label=pose_label
+        )
+        return self.move_joints(q)
+
     def move_joints(self, q: ArrayLike) -> RobotReading:
         """Joint move to commanded angles ``q`` (6,), radians."""
         q_cmd = np.asarray(q, dtype=float)
