@@ -22,7 +22,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from calib.image import pixel_to_us
 
-from .beam import FWHM_PER_SIGMA, elevation_offsets, elevation_weights
+from .beam import FWHM_PER_SIGMA, elevation_offsets, elevation_weights, slice_thickness
 from .display import NoiseSource, gain_profile_db, to_bmode
 from .materials import MATERIALS, attenuation_db_per_m, medium_material
 from .probe import MediumConfig, ProbeConfig
@@ -36,6 +36,8 @@ Array = NDArray[np.float64]
 
 # Echoes weaker than the display floor by this much more are not traced further.
 _TRACE_MARGIN_DB = 40.0
+# Speckle sums scatterers within ± this many half slice thicknesses in elevation.
+_SPECKLE_COVERAGE = 1.5
 # PSF kernels are truncated at this many σ.
 _TRUNCATE = 3.0
 
@@ -163,31 +165,51 @@ class BmodeSimulator:
     # ------------------------------------------------------------------ speckle
 
     def _speckle(self, T_scene_us: Array, medium_end: Array) -> NDArray[np.complex64]:
-        """Complex backscatter (n, H, W) of a scattering medium before the PSF: the
-        scatterers of each sub-plane weighted by the elevation profile, summed coherently,
-        with two-way attenuation; none past the first solid a scanline enters."""
+        """Complex backscatter (n, H, W) of a scattering medium before the PSF.
+
+        Each pixel sums, coherently, the scatterers of the cells its elevation beam crosses:
+        the samples sit on the scene's cell lattice along the probe's elevational axis
+        (not on the probe's sub-planes), weighted by the two-way elevation profile at
+        their offset. Moving the probe in elevation therefore shifts the weights smoothly
+        over the same scatterers, and frames decorrelate on the scale of the slice
+        thickness. Two-way attenuation applies; nothing past the first solid a scanline
+        enters.
+        """
         H, W = self.shape
         n = len(T_scene_us)
-        sy = self.spacing[1]
-        depth = np.arange(H) * sy
+        depth = np.arange(H) * self.spacing[1]
         x = pixel_to_us(0, np.arange(W), W, self.spacing)[:, 0]
         level = 10.0 ** (self.medium.backscatter_db / 20.0)
         att = attenuation_db_per_m(self.medium, self.probe.f_mhz)
         # Two-way attenuation in the medium (apparent ≈ true depth in a uniform medium).
         amp_row = level * 10.0 ** (-2.0 * att * depth / 20.0)
         cell = self.scatterers.cell_m
+        st = slice_thickness(self.probe, depth)
+        reach = _SPECKLE_COVERAGE * st / 2  # elevation half-span summed at each depth (m)
+        n_side = int(np.ceil(reach.max() / cell)) + 1
         out = np.zeros((n, H, W), dtype=np.complex64)
         for f in range(n):
             R, t = T_scene_us[f, :3, :3], T_scene_us[f, :3, 3]
-            # Scene position of pixel (r, c) in plane k: t + x_c R₀ + y_r R₁ + z_k R₂, in cells.
-            rows = (depth[:, None] * R[:, 1] / cell).astype(np.float32)  # (H, 3)
+            rows = (depth[:, None] * R[:, 1] / cell).astype(np.float32)  # (H, 3) in cells
             cols = (x[:, None] * R[:, 0] / cell).astype(np.float32)  # (W, 3)
-            for k, zk in enumerate(self.z):
-                offset = ((t + zk * R[:, 2]) / cell).astype(np.float32)
-                idx = np.floor(rows[:, None, :] + (cols + offset)[None, :, :]).astype(np.int64)
-                w = (np.sqrt(self.weights[k]) * amp_row).astype(np.float32)[:, None]
-                visible = depth[:, None] < medium_end[f, k][None, :]
-                out[f] += self.scatterers.at_cells(idx) * (w * visible)
+            s0 = float(t @ R[:, 2]) / cell  # probe plane on the elevational lattice
+            norm = np.zeros(H)
+            acc = np.zeros((H, W), dtype=np.complex64)
+            for j in range(-n_side, n_side + 1):
+                z = (np.floor(s0) + j - s0) * cell  # this lattice line's offset from the plane
+                sel = np.flatnonzero(np.abs(z) <= reach)
+                if sel.size == 0:
+                    continue
+                b = np.exp(-4.0 * np.log(2.0) * z**2 / st[sel] ** 2)  # two-way amplitude
+                norm[sel] += b**2
+                offset = ((t + z * R[:, 2]) / cell).astype(np.float32)
+                idx = np.floor(rows[sel, None, :] + (cols + offset)[None]).astype(np.int64)
+                k = int(np.argmin(np.abs(self.z - z)))  # sub-plane that knows the shadow
+                visible = depth[sel, None] < medium_end[f, k][None, :]
+                acc[sel] += self.scatterers.at_cells(idx) * (b[:, None] * visible)
+            # Unit mean intensity per row, then the medium's level and attenuation.
+            gain = np.where(norm > 0, amp_row / np.sqrt(np.maximum(norm, 1e-30)), 0.0)
+            out[f] = acc * gain.astype(np.float32)[:, None]
         return out
 
     # ------------------------------------------------------------------ public

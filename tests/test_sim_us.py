@@ -61,6 +61,26 @@ def test_fully_developed_speckle_statistics():
     assert log_std == pytest.approx(RAYLEIGH_LOG_STD_DB, abs=0.25)
 
 
+def test_speckle_is_spatially_consistent_and_decorrelates_over_the_slice():
+    sim = simulator([], medium=MediumConfig(kind="gel"), width_mm=10.0, depth_mm=25.0)
+    band = slice(150, 200)  # 15–20 mm, near the elevation focus
+    st_mm = float(np.mean(slice_thickness(sim.probe, np.arange(150, 200) * 0.1 * MM))) / MM
+
+    def frame(e_mm):
+        env = sim.envelope(elevation_shift(e_mm))[0][band].astype(float)
+        return (env - env.mean(axis=1, keepdims=True)).ravel()
+
+    base = frame(0.0)
+    np.testing.assert_array_equal(base, frame(0.0))  # same pose, same speckle
+
+    def rho(e_mm):
+        return np.corrcoef(base, frame(e_mm))[0, 1]
+
+    assert rho(0.05) > 0.9
+    assert 0.3 < rho(st_mm / 2) < 0.75
+    assert rho(2 * st_mm) < 0.3
+
+
 # 2 ------------------------------------------------------------------ point spread function
 def test_point_target_gives_configured_resolution():
     probe = replace(
