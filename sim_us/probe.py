@@ -55,7 +55,7 @@ class ProbeConfig:
         },
     )
     elevation_planes: int = field(
-        default=15,
+        default=9,
         metadata={
             "doc": "Elevation sub-planes rays are cast in (partial-volume sum).",
             "ge": 1,

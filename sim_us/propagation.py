@@ -73,70 +73,76 @@ def trace(
     origins, directions : (n, 3) float, scene frame
     max_depth : float, metres (apparent)
     floor_db : float
-        Stop a ray once its two-way loss exceeds this (dB, positive).
+        Stop a ray once no echo it could still return would reach this far below a
+        perfect reflector's (dB, positive): two-way losses and transmission included.
     """
     n = len(origins)
     # Material table: index 0 is the medium, i + 1 is part i.
     mats = [medium, *part_materials]
     speed = np.array([m.speed_m_s for m in mats])
     imped = np.array([m.impedance for m in mats])
-    att = np.array([attenuation_db_per_m(m, f_mhz) for m in mats])
+    att_np = np.array([attenuation_db_per_m(m, f_mhz) for m in mats]) * np.log(10.0) / 20.0
     spec_w = np.radians([m.specular_width_deg for m in mats])
     diffuse = np.array([m.diffuse for m in mats])
+    log_floor = -floor_db * np.log(10.0) / 20.0
 
-    active = np.arange(n)
-    pos = np.asarray(origins, dtype=float).copy()
-    dirs = np.asarray(directions, dtype=float)
-    y_app = np.zeros(n)
-    loss = np.zeros(n)
-    trans = np.ones(n)
-    cur = np.zeros(n, dtype=np.int64)
+    # State of the rays still travelling, one row per ray, compacted with a single gather
+    # per pass: position (3), direction (3), apparent depth, log path gain, material, ray.
+    # ``log gain`` is the log of the path's two-way transmission times attenuation.
+    state = np.empty((n, 10))
+    state[:, 0:3] = origins
+    state[:, 3:6] = directions
+    state[:, 6:8] = 0.0
+    state[:, 8] = 0  # the medium
+    state[:, 9] = np.arange(n)
     medium_end = np.full(n, np.inf)
     out_ray, out_depth, out_amp = [], [], []
 
     for _ in range(_MAX_PASSES):
-        if active.size == 0:
+        if len(state) == 0:
             break
-        a = active
-        c = speed[cur[a]]
-        max_geo = (max_depth - y_app[a]) * c / assumed_speed
+        cur = state[:, 8].astype(np.int64)
+        c = speed[cur]
+        a2 = 2.0 * att_np[cur]  # two-way attenuation, nepers per metre
+        max_geo = (max_depth - state[:, 6]) * c / assumed_speed
         with np.errstate(divide="ignore"):
-            max_att = np.where(att[cur[a]] > 0, (floor_db - loss[a]) / (2 * att[cur[a]]), np.inf)
-        hits = caster.first_hits(pos[a], dirs[a], np.minimum(max_geo, max_att))
+            max_att = np.where(a2 > 0, (state[:, 7] - log_floor) / a2, np.inf)
+        hits = caster.first_hits(state[:, 0:3], state[:, 3:6], np.minimum(max_geo, max_att))
         hit = hits.part >= 0
-        a, t, part, nrm = a[hit], hits.t[hit], hits.part[hit], hits.normal[hit]
-        c = c[hit]
-        d = dirs[a]
-        y_hit = y_app[a] + t * assumed_speed / c
-        loss_hit = loss[a] + 2.0 * att[cur[a]] * t
-        cos_in = np.einsum("ij,ij->i", d, nrm)
+        state, cur, c, a2 = state[hit], cur[hit], c[hit], a2[hit]
+        t, part, nrm = hits.t[hit], hits.part[hit], hits.normal[hit]
+        dirs = state[:, 3:6]
+        ray = state[:, 9].astype(np.int64)
+        y_app = state[:, 6] + t * assumed_speed / c
+        log_gain = state[:, 7] - a2 * t
+        cos_in = np.einsum("ij,ij->i", dirs, nrm)
         entering = cos_in < 0
         new = np.where(entering, part + 1, 0)
-        r = amplitude_reflection(imped[cur[a]], imped[new])
-        theta = np.arccos(np.clip(np.abs(cos_in), 0.0, 1.0))
+        r = amplitude_reflection(imped[cur], imped[new])
+        theta = np.arccos(np.minimum(np.abs(cos_in), 1.0))
         surface = part + 1
         spec = np.exp(-((theta / spec_w[surface]) ** 2))
         shape = (1.0 - diffuse[surface]) * spec + diffuse[surface]
-        amp = trans[a] * r * shape * 10.0 ** (-loss_hit / 20.0)
-        out_ray.append(a)
-        out_depth.append(y_hit)
+        path = np.exp(log_gain)
+        amp = path * r * shape
+        out_ray.append(ray)
+        out_depth.append(y_app)
         out_amp.append(amp)
         if reverberation:
             # Echo bounced back by the probe face and reflected once more: one more round
             # trip, specular part only (strong flat reflectors such as the tank floor).
-            rev_amp = amp * r * _FACE_REFLECTION * spec * 10.0 ** (-loss_hit / 20.0)
-            keep = 2 * y_hit < max_depth
-            out_ray.append(a[keep])
-            out_depth.append(2 * y_hit[keep])
-            out_amp.append(rev_amp[keep])
-        first_entry = entering & (cur[a] == 0)
-        medium_end[a[first_entry]] = np.minimum(medium_end[a[first_entry]], y_hit[first_entry])
-        trans[a] *= 1.0 - r**2
-        cur[a] = new
-        pos[a] += (t + _STEP_M)[:, None] * d
-        y_app[a] = y_hit
-        loss[a] = loss_hit
-        active = a[(loss_hit < floor_db) & (y_hit < max_depth)]
+            keep = 2 * y_app < max_depth
+            out_ray.append(ray[keep])
+            out_depth.append(2 * y_app[keep])
+            out_amp.append((amp * r * _FACE_REFLECTION * spec * path)[keep])
+        first_entry = entering & (cur == 0)
+        hit_rays = ray[first_entry]
+        medium_end[hit_rays] = np.minimum(medium_end[hit_rays], y_app[first_entry])
+        state[:, 0:3] += (t + _STEP_M)[:, None] * dirs
+        state[:, 6] = y_app
+        state[:, 7] = log_gain + np.log1p(-(r**2))
+        state[:, 8] = new
+        state = state[(state[:, 7] > log_floor) & (y_app < max_depth)]
 
     if not out_ray:
         return Echoes(np.empty(0, dtype=np.int64), np.empty(0), np.empty(0), medium_end)

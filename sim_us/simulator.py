@@ -18,13 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import correlate1d, gaussian_filter1d
 
 from calib.image import pixel_to_us
 
 from .beam import FWHM_PER_SIGMA, elevation_offsets, elevation_weights, slice_thickness
 from .display import NoiseSource, gain_profile_db, to_bmode
-from .materials import MATERIALS, attenuation_db_per_m, medium_material
+from .materials import MATERIALS, amplitude_reflection, attenuation_db_per_m, medium_material
 from .probe import MediumConfig, ProbeConfig
 from .propagation import trace
 from .raycast import AcousticScene, RayCaster
@@ -34,8 +34,8 @@ __all__ = ["BmodeSimulator"]
 
 Array = NDArray[np.float64]
 
-# Echoes weaker than the display floor by this much more are not traced further.
-_TRACE_MARGIN_DB = 40.0
+# Rays whose echoes would fall this far below the display floor are not traced further.
+_TRACE_MARGIN_DB = 3.0
 # Speckle sums scatterers within ± this many half slice thicknesses in elevation.
 _SPECKLE_COVERAGE = 1.5
 # PSF kernels are truncated at this many σ.
@@ -93,10 +93,14 @@ class BmodeSimulator:
         self.z, dz = elevation_offsets(probe, self.max_depth)
         rows_y = np.arange(H) * sy
         self.weights = elevation_weights(probe, rows_y, self.z, dz).astype(np.float32)  # (K, H)
-        # Scanlines every `step` columns; each stands for `step` columns of the image and
-        # the lateral PSF (FWHM ≫ spacing) fills the columns between them.
-        self.step = max(1, round(probe.scanline_spacing_mm * 1e-3 / sx))
-        self.columns = np.arange(0, W, self.step)
+        # Scanlines on the nearest columns to an even spacing; each stands for the columns
+        # nearest to it (its weight) and the lateral PSF (σ ≳ spacing) fills them in.
+        step = max(1.0, probe.scanline_spacing_mm * 1e-3 / sx)
+        self.columns = np.unique(np.rint(np.arange(0.0, W - 1 + 1e-9, step)).astype(np.int64))
+        mids = (self.columns[1:] + self.columns[:-1]) / 2
+        bounds = np.concatenate([[-0.5], mids, [W - 0.5]])
+        self.line_width = np.diff(bounds)
+        self._line_of_column = np.searchsorted(mids, np.arange(W))
         # Scanline origins in the image frame: (K planes, scanlines, 3).
         x = pixel_to_us(0, self.columns, W, self.spacing)[:, 0]
         self._origins_us = np.stack(
@@ -105,9 +109,18 @@ class BmodeSimulator:
         sigma_lat = probe.lateral_fwhm_mm * 1e-3 / FWHM_PER_SIGMA / sx
         sigma_ax = probe.axial_fwhm_mm * 1e-3 / FWHM_PER_SIGMA / sy
         self.sigma_px = (sigma_ax, sigma_lat)  # amplitude PSF σ in (rows, cols)
-        # Two-way loss past which no echo can reach the display floor at any row's gain.
+        # Path loss past which no echo can reach the display floor at any row's gain: the
+        # strongest interface of the scene reflects r_max, so a path weaker than
+        # floor / r_max cannot show.
         max_gain = float(np.max(gain_profile_db(probe, H)))
-        self.floor_db = probe.dynamic_range_db + max(max_gain, 0.0) + _TRACE_MARGIN_DB
+        imped = [m.impedance for m in [self.medium, *self.part_materials]]
+        r_max = max((float(amplitude_reflection(a, b)) for a in imped for b in imped), default=1.0)
+        self.floor_db = (
+            probe.dynamic_range_db
+            + max(max_gain, 0.0)
+            + 20 * np.log10(max(r_max, 1e-6))
+            + _TRACE_MARGIN_DB
+        )
 
     # ------------------------------------------------------------------ echoes
 
@@ -146,20 +159,22 @@ class BmodeSimulator:
         plane, line = np.divmod(rem, L)
         col = self.columns[line]
         row_f = echoes.depth / self.spacing[1]
-        row0 = np.floor(row_f).astype(np.int64)
-        frac = row_f - row0
-        ok = (row0 >= 0) & (row0 < H)
-        row_idx = np.clip(row0, 0, H - 1)
-        inten = self.step * echoes.amplitude**2 * self.weights[plane, row_idx]
-        base = (frame * H + row0) * W + col
+        inside = (row_f > -1) & (row_f < H)
+        frame, plane, line, col, row_f = (v[inside] for v in (frame, plane, line, col, row_f))
+        row_idx = np.clip(np.rint(row_f).astype(np.int64), 0, H - 1)
+        inten = self.line_width[line] * echoes.amplitude[inside] ** 2 * self.weights[plane, row_idx]
         # Linear splat over the two neighbouring rows keeps the sub-pixel depth.
-        nxt = ok & (row0 + 1 < H)
-        index = np.concatenate([base[ok], base[nxt] + W])
-        value = np.concatenate([inten[ok] * (1 - frac[ok]), inten[nxt] * frac[nxt]])
+        row0 = np.floor(row_f).astype(np.int64)
+        frac = (row_f - row0).astype(np.float32)
+        inten = inten.astype(np.float32)
+        base = (frame * H + row0) * W + col
+        lo, hi = row0 >= 0, row0 + 1 < H
+        index = np.concatenate([base[lo], base[hi] + W])
+        value = np.concatenate([inten[lo] * (1 - frac[lo]), inten[hi] * frac[hi]])
         image = np.zeros(n * H * W, dtype=np.float32)
-        np.add.at(image, index, value.astype(np.float32))
+        np.add.at(image, index, value)
         self.timings.formation += time.perf_counter() - t1
-        medium_end = np.repeat(echoes.medium_end.reshape(n, K, L), self.step, axis=2)[..., :W]
+        medium_end = echoes.medium_end.reshape(n, K, L)[:, :, self._line_of_column]
         return image.reshape(n, H, W), medium_end
 
     # ------------------------------------------------------------------ speckle
@@ -261,22 +276,29 @@ class BmodeSimulator:
         return frames
 
 
+def _gaussian_kernel(sigma: float) -> NDArray[np.float32]:
+    """Normalised Gaussian taps out to ``_TRUNCATE`` σ (as scipy's gaussian_filter1d)."""
+    radius = int(_TRUNCATE * sigma + 0.5)
+    x = np.arange(-radius, radius + 1)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return (k / k.sum()).astype(np.float32)
+
+
 def _blur_where_nonzero(image: NDArray[np.float32], sigma_rows: float, sigma_cols: float) -> None:
-    """Separable Gaussian blur of each frame (in place), limited to the bounding box of
-    its echoes plus the kernel radius: surface echoes are sparse (a sphere's cap, a floor
-    line), and blurring zeros costs most of the time otherwise."""
-    n, H, W = image.shape
-    pad_r = int(_TRUNCATE * sigma_rows + 1.5)
-    pad_c = int(_TRUNCATE * sigma_cols + 1.5)
-    for f in range(n):
-        rows = np.flatnonzero(image[f].any(axis=1))
-        if rows.size == 0:
-            continue
-        cols = np.flatnonzero(image[f, rows[0] : rows[-1] + 1].any(axis=0))
-        r0, r1 = max(rows[0] - pad_r, 0), min(rows[-1] + pad_r + 1, H)
+    """Separable Gaussian blur of frames (n, H, W), in place, limited to the row bands
+    that hold echoes in any frame (plus the kernel radius) and to their columns: surface
+    echoes are sparse (a sphere's cap, a floor line), and blurring zeros would cost most
+    of the time. The frames of a sweep share their bands, so each band is one call."""
+    _, _, W = image.shape
+    k_rows, k_cols = _gaussian_kernel(sigma_rows), _gaussian_kernel(sigma_cols)
+    pad_r, pad_c = len(k_rows) // 2 + 1, len(k_cols) // 2 + 1
+    occupied = image.any(axis=(0, 2))
+    if not occupied.any():
+        return
+    band = np.convolve(occupied, np.ones(2 * pad_r + 1), mode="same") > 0
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], band.astype(np.int8), [0]])))
+    for r0, r1 in zip(edges[::2], edges[1::2], strict=True):
+        cols = np.flatnonzero(image[:, r0:r1].any(axis=(0, 1)))
         c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, W)
-        block = image[f, r0:r1, c0:c1]
-        block = gaussian_filter1d(block, sigma_rows, axis=0, truncate=_TRUNCATE, mode="constant")
-        image[f, r0:r1, c0:c1] = gaussian_filter1d(
-            block, sigma_cols, axis=1, truncate=_TRUNCATE, mode="constant"
-        )
+        block = correlate1d(image[:, r0:r1, c0:c1], k_rows, axis=1, mode="constant")
+        image[:, r0:r1, c0:c1] = correlate1d(block, k_cols, axis=2, mode="constant")
