@@ -52,6 +52,13 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     sub = parser.add_subparsers(dest="command", required=True)
 
+    run = sub.add_parser(
+        "run", help="simulate the acquisition, localize, calibrate and score against truth"
+    )
+    _add_scenario_args(run, optional=True)
+    run.add_argument("--out", help="output directory (default: the scenario's output.dir)")
+    run.add_argument("--force", action="store_true", help="replace an existing directory")
+
     check = sub.add_parser("check", help="validate a scenario and print a summary")
     _add_scenario_args(check, optional=True)
 
@@ -197,6 +204,65 @@ def _cmd_image(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace, console: Console) -> int:
+    import json
+
+    from .output import atomic_output_dir
+    from .run import run
+
+    scenario = load_scenario(args.scenario, args.overrides)
+    out = args.out or scenario.output.dir
+    # Fail early (before minutes of simulation) if the output would be refused.
+    with atomic_output_dir(out, force=args.force) as tmp:
+        result = run(scenario)
+        (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
+    _print_run(result.metrics, console)
+    console.print(f"wrote {Path(out) / 'metrics.json'}")
+    return 0
+
+
+def _print_run(m: dict, console: Console) -> None:
+    loc = m["localization"]
+    console.print(
+        f"localization ({loc['method']}): {loc['n_sweeps']} sweeps, {loc['n_rejected']} "
+        f"rejected; error vs truth median {loc['error_mm']['median']:.3f} mm, "
+        f"p95 {loc['error_mm']['p95']:.3f} mm, max {loc['error_mm']['max']:.3f} mm"
+    )
+    table = Table(title="calibration against ground truth")
+    for col in (
+        "method",
+        "rotation (°)",
+        "translation (mm)",
+        "image (mm)",
+        "precision (mm)",
+        "accuracy (mm)",
+        "sweeps kept",
+        "iterations",
+    ):
+        table.add_column(col, justify="right" if col != "method" else "left")
+    for name in ("single", "three"):
+        c = m["calibration"].get(name)
+        if c is None:
+            continue
+        e = c["true_error"]
+        table.add_row(
+            f"{name}-marker",
+            f"{e['rotation_deg']:.3f}",
+            f"{e['translation_mm']:.3f}",
+            f"{e['image_mm']:.3f}",
+            f"{c['precision_mm']:.3f}",
+            f"{c['accuracy_mm']:.3f}",
+            str(c["n_retained"]),
+            str(c["iterations"]),
+        )
+    console.print(table)
+    t = m["timing_s"]
+    console.print(
+        f"time: simulate {t['simulate']:.1f} s, localize {t['localize']:.1f} s, "
+        f"calibrate {t['calibrate']:.1f} s, total {t['total']:.1f} s"
+    )
+
+
 def _cmd_docs(args: argparse.Namespace, console: Console) -> int:
     text = scenarios_markdown()
     if args.output:
@@ -210,7 +276,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``uscal`` console script; returns the exit code."""
     args = _parser().parse_args(argv)
     console = Console()
-    handlers = {"check": _cmd_check, "docs": _cmd_docs, "image": _cmd_image}
+    handlers = {"check": _cmd_check, "docs": _cmd_docs, "image": _cmd_image, "run": _cmd_run}
     try:
         if args.command == "twin":
             return _cmd_twin_export(args, console)

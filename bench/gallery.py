@@ -76,7 +76,7 @@ def write_gallery(scenario: Scenario, outdir: Path) -> list[str]:
         shift = [pose.in_plane_mm[0] * 1e-3, pose.in_plane_mm[1] * 1e-3, pose.elevation_mm * 1e-3]
         T_us = T_us @ se3.make(np.eye(3), shift)
         reading = twin.robot.move_to(T_us @ se3.invert(T_ee_us), pose_label=pose.name)
-        frame = imager.grab()
+        frame = imager.grab().image
         frames.append((pose, frame))
         name = f"frame_{pose.name}.png"
         skio.imsave(outdir / name, frame, check_contrast=False)

@@ -9,14 +9,29 @@ elevational sweep of 21 frames. Rotations turn about the sphere centre so it sta
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import se3
+from .records import RobotReading, Sweep, UsFrame
 
-__all__ = ["ProtocolConfig", "facing_pose", "orientation_offsets", "rotated_about_target"]
+__all__ = [
+    "Imager",
+    "PlannedSweep",
+    "ProtocolConfig",
+    "Robot",
+    "acquire",
+    "check_plan",
+    "facing_pose",
+    "in_plane_offsets",
+    "orientation_offsets",
+    "plan_sweeps",
+    "rotated_about_target",
+]
 
 Array = NDArray[np.float64]
 
@@ -25,6 +40,14 @@ Array = NDArray[np.float64]
 class ProtocolConfig:
     """The acquisition plan (defaults: the paper's numbers)."""
 
+    spheres: tuple[int, ...] = field(
+        default=(1, 2, 3, 4),
+        metadata={
+            "doc": "Spheres of the four-sphere phantom to scan (1–4), in order.",
+            "ge": 1,
+            "le": 4,
+        },
+    )
     rotation_deg: float = field(
         default=10.0,
         metadata={"doc": "Orientation corners: ± this about each probe axis.", "ge": 0, "le": 45},
@@ -103,3 +126,119 @@ def rotated_about_target(T_base_us: Array, R_offset: Array, depth: float) -> Arr
     ``(0, depth, 0)`` in the image, so the target stays where it is in the image."""
     T_us_target = se3.make(np.eye(3), [0.0, depth, 0.0])
     return T_base_us @ T_us_target @ se3.make(R_offset, np.zeros(3)) @ se3.invert(T_us_target)
+
+
+class Robot(Protocol):
+    """What the protocol needs of a robot (the twin's SimRobot, or the real UR3)."""
+
+    def move_to(self, T_base_ee: NDArray[np.float64], pose_label: str = "") -> RobotReading:
+        """Move the flange to a pose (controller's model); the reading after settling."""
+        ...
+
+    def check_pose(self, T_base_ee: NDArray[np.float64], pose_label: str = "") -> None:
+        """Raise UnreachablePoseError / CollisionError if the pose cannot be reached safely."""
+        ...
+
+
+class Imager(Protocol):
+    """What the protocol needs of a scanner (the twin's SimImager, or a frame grabber)."""
+
+    def grab(self) -> UsFrame:
+        """A fresh frame taken after the robot settled."""
+        ...
+
+
+@dataclass(frozen=True)
+class PlannedSweep:
+    """One sweep of the plan: flange commands for its frames.
+
+    ``orientation`` indexes :func:`orientation_offsets`, ``position`` the in-plane offsets
+    (0 = nominal, 1–4 the (±t, ±t) corners).
+    """
+
+    target: str
+    pose_id: int
+    orientation: int
+    position: int
+    T_base_ee: NDArray[np.float64]  # (n_frames, 4, 4)
+
+
+def in_plane_offsets(translation_mm: float) -> NDArray[np.float64]:
+    """(5, 2) in-plane (lateral, axial) offsets in metres: nominal, then the corners."""
+    t = translation_mm * 1e-3
+    corners = [(0.0, 0.0)] + [(sx * t, sy * t) for sx, sy in itertools.product((-1, 1), repeat=2)]
+    return np.array(corners)
+
+
+def plan_sweeps(
+    target: str, T_base_ee_taught: ArrayLike, T_ee_us_coarse: ArrayLike, cfg: ProtocolConfig
+) -> list[PlannedSweep]:
+    """The paper's plan about one sphere: 9 orientations × 5 positions, each a sweep.
+
+    The taught pose puts the sphere on the image centre line at ``target_depth_mm`` as the
+    coarse ``T_ee_us`` predicts it; orientations turn about that point, positions shift the
+    probe in its image plane, and each sweep runs along the estimated elevational axis.
+    """
+    T_ee_us = np.asarray(T_ee_us_coarse, dtype=float)
+    T_us_ee = se3.invert(T_ee_us)
+    depth = cfg.target_depth_mm * 1e-3
+    T_face = np.asarray(T_base_ee_taught, dtype=float) @ T_ee_us
+    half = cfg.sweep_half_length_mm * 1e-3
+    steps = np.linspace(-half, half, cfg.frames_per_sweep)
+    frame_shifts = se3.make(np.eye(3), np.column_stack([0 * steps, 0 * steps, steps]))
+    plan = []
+    for k, R in enumerate(orientation_offsets(cfg.rotation_deg)):
+        T_rot = rotated_about_target(T_face, R, depth)
+        for m, (dx, dy) in enumerate(in_plane_offsets(cfg.translation_mm)):
+            T_us = T_rot @ se3.make(np.eye(3), [dx, dy, 0.0])
+            commands = T_us @ frame_shifts @ T_us_ee
+            plan.append(PlannedSweep(target, len(plan), k, m, commands))
+    return plan
+
+
+def check_plan(robot: Robot, plan: Sequence[PlannedSweep]) -> None:
+    """Reachability and collision checks before any motion.
+
+    Each sweep is a short straight line, so its first, centre and last frame poses are
+    checked; the error names the sweep and frame that fails.
+    """
+    for sweep in plan:
+        n = len(sweep.T_base_ee)
+        for j in sorted({0, n // 2, n - 1}):
+            robot.check_pose(sweep.T_base_ee[j], f"{sweep.target} sweep {sweep.pose_id} frame {j}")
+
+
+def acquire(
+    robot: Robot,
+    imager: Imager,
+    plan: Sequence[PlannedSweep],
+    on_frame: Callable[[PlannedSweep, int], None] | None = None,
+) -> list[Sweep]:
+    """Run the plan: move, let the robot settle, grab, for every frame of every sweep.
+
+    ``on_frame(sweep, j)`` is called after each frame (progress, or a simulator's truth
+    log); it receives nothing the pipeline may not see.
+    """
+    sweeps = []
+    for planned in plan:
+        images, qs, poses, spacing = [], [], [], None
+        for j, T in enumerate(planned.T_base_ee):
+            reading = robot.move_to(T, f"{planned.target} sweep {planned.pose_id} frame {j}")
+            frame = imager.grab()
+            images.append(frame.image)
+            spacing = frame.spacing
+            qs.append(reading.q)
+            poses.append(reading.T_base_ee)
+            if on_frame is not None:
+                on_frame(planned, j)
+        sweeps.append(
+            Sweep(
+                planned.target,
+                planned.pose_id,
+                np.array(images),
+                spacing,
+                np.array(qs),
+                np.array(poses),
+            )
+        )
+    return sweeps

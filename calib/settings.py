@@ -1,35 +1,11 @@
-"""Settings of the pipeline stages that follow acquisition: localization, calibration,
-evaluation and reconstruction (defaults: the paper's values)."""
+"""Settings of the pipeline stages that follow localization: calibration, evaluation and
+reconstruction (defaults: the paper's values)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
 
-__all__ = ["CalibrationConfig", "EvaluationConfig", "LocalizerConfig", "ReconstructionConfig"]
-
-
-@dataclass(frozen=True)
-class LocalizerConfig:
-    """Threshold-free sphere localization (paper, "Threshold-Free Sphere Localization")."""
-
-    method: Literal["threshold_free"] = field(
-        default="threshold_free", metadata={"doc": "Sphere-centre localizer."}
-    )
-    grid_mm: float = field(
-        default=1.0,
-        metadata={"doc": "Spacing of the exhaustive candidate-centre grid.", "gt": 0.05, "le": 5},
-    )
-    shell_samples: int = field(
-        default=256,
-        metadata={"doc": "Fibonacci directions on the proximal shell.", "ge": 8, "le": 10000},
-    )
-    interior_samples: int = field(
-        default=256, metadata={"doc": "Samples in the proximal half-ball.", "ge": 8, "le": 10000}
-    )
-    refinement_passes: int = field(
-        default=2, metadata={"doc": "Radial-band refinement passes.", "ge": 0, "le": 10}
-    )
+__all__ = ["CalibrationConfig", "EvaluationConfig", "ReconstructionConfig"]
 
 
 @dataclass(frozen=True)

@@ -62,6 +62,13 @@ class ProbeConfig:
             "le": 101,
         },
     )
+    sound_speed_correction: bool = field(
+        default=True,
+        metadata={
+            "doc": "Pipeline: rescale the displayed axial spacing by the medium's true "
+            "speed of sound (from medium.temperature_c) over the assumed one."
+        },
+    )
     assumed_speed_m_s: float = field(
         default=1540.0,
         metadata={"doc": "Speed of sound the scanner assumes for display.", "ge": 1000, "le": 2000},

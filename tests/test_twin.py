@@ -136,7 +136,7 @@ def test_robot_and_imager_behave_like_a_robot_with_a_scanner():
         twin.robot, twin.truth.T_ee_us, probe, MediumConfig(), np.random.default_rng(1)
     )
     twin.robot.move_to(probe_pose_above(twin, "sphere_2", depth=20 * MM))
-    frame = imager.grab()
+    frame = imager.grab().image
     assert frame.shape == probe.image_shape and frame.dtype == np.uint8
     centre = (frame.shape[1] - 1) // 2
     radius_mm = twin.truth.sphere_radii["sphere_2"] / MM
@@ -150,7 +150,7 @@ def test_robot_and_imager_behave_like_a_robot_with_a_scanner():
         twin_err.robot, twin_err.truth.T_ee_us, probe, MediumConfig(), np.random.default_rng(1)
     )
     twin_err.robot.move_to(probe_pose_above(twin_err, "sphere_2", depth=20 * MM))
-    moved = imager_err.grab()[:, centre - 2 : centre + 3].mean(axis=1)
+    moved = imager_err.grab().image[:, centre - 2 : centre + 3].mean(axis=1)
     assert abs(np.argmax(moved[:300]) * 0.1 - apparent_mm) > 1.0
 
 

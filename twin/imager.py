@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from calib.records import UsFrame
 from sim_us import MediumConfig, ProbeConfig
 from sim_us.raycast import AcousticScene, ScenePart
 from sim_us.simulator import BmodeSimulator
@@ -69,10 +70,10 @@ class SimImager:
         """Pixel spacing (sx, sy) in metres."""
         return self.probe.spacing_m
 
-    def grab(self) -> NDArray[np.uint8]:
-        """One frame (H, W) uint8 at the current true probe pose."""
+    def grab(self) -> UsFrame:
+        """One frame at the current true probe pose, as a frame grabber delivers it."""
         T_base_us = self.robot.truth.T_base_ee @ self._T_ee_us
-        return self.simulator.render(T_base_us[None], self._rng)[0]
+        return UsFrame(self.simulator.render(T_base_us[None], self._rng)[0], self.spacing)
 
     def render_at(self, T_base_us: NDArray[np.float64]) -> NDArray[np.uint8]:
         """Frames (n, H, W) at given true image poses (batched, e.g. a whole sweep)."""

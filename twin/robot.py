@@ -188,6 +188,19 @@ class SimRobot:
         q_cmd = solve_ik(self.nominal, T, self._q_reported, pose_label=pose_label)
         return self._settle(q_cmd, pose_label or describe_pose(T))
 
+    def check_pose(self, T_base_ee: ArrayLike, pose_label: str = "") -> None:
+        """Raise if the controller cannot reach a pose or the true arm would hit something
+        there (planning check before any motion; nothing moves)."""
+        T = np.asarray(T_base_ee, dtype=float)
+        q = solve_ik(self.nominal, T, self._q_reported, pose_label=pose_label)
+        contacts = self.scene.collisions(q)
+        if contacts:
+            c = contacts[0]
+            raise CollisionError(
+                f"pose {pose_label or describe_pose(T)} would put {c.robot_geom} "
+                f"{1e3 * c.depth:.1f} mm into {c.environment_geom}"
+            )
+
     def teach(self, T_base_ee_true: ArrayLike, pose_label: str = "") -> RobotReading:
         """Emulate an operator jogging the arm until the *true* flange sits at a pose (the
         operator looks at the live image, not at the controller's numbers).

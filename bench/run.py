@@ -1,0 +1,200 @@
+"""``uscal run``: simulate the scenario's acquisition with the twin, localize, calibrate
+(single- and three-marker), and measure everything against the twin's ground truth."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib import se3
+from calib.calibrate import AlternationResult, alternate, reconstruct
+from calib.image import pixel_to_us
+from calib.localize import localize_sphere
+from sim_us.materials import water_speed_m_s
+
+from .experiment import SimulatedAcquisition, make_imager, make_twin, simulate_acquisition
+from .scenario import Scenario
+
+__all__ = ["RunResult", "image_error_mm", "run"]
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class RunResult:
+    """Metrics (the ``metrics.json`` content) and the objects they came from."""
+
+    metrics: dict[str, Any]
+    acquisition: SimulatedAcquisition
+    single: AlternationResult
+    three: AlternationResult | None
+
+
+def axial_scale(scenario: Scenario) -> float:
+    """c_medium / c_assumed when the speed-of-sound correction is on (the pipeline knows
+    the water temperature a user reads off a thermometer), else 1."""
+    if not scenario.imaging.sound_speed_correction:
+        return 1.0
+    if scenario.medium.kind == "water":
+        c = water_speed_m_s(scenario.medium.temperature_c)
+    else:
+        c = 1540.0
+    return c / scenario.imaging.assumed_speed_m_s
+
+
+def image_error_mm(scenario: Scenario, T_est: Array, T_true: Array) -> float:
+    """Mean distance (mm) over a grid covering the image between each image point mapped
+    with the true and with the estimated ``T_ee_us``: the error a user sees."""
+    W = 21
+    probe = scenario.imaging
+    spacing = (probe.width_mm * 1e-3 / (W - 1), probe.depth_mm * 1e-3 / (W - 1))
+    P = pixel_to_us(*np.meshgrid(np.arange(W), np.arange(W), indexing="ij"), W, spacing)
+    P = P.reshape(-1, 3)
+    return float(np.mean(np.linalg.norm(se3.apply(T_est, P) - se3.apply(T_true, P), axis=1))) * 1e3
+
+
+def _true_centre_in_sweep(acq, truth, target, sweep) -> Array:
+    T = acq.T_base_ee_true[(target, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
+    return se3.apply(se3.invert(T), truth.landmarks_base[target])
+
+
+def _calibration_metrics(
+    scenario, acq, truth, alt: AlternationResult, train, test, radius, scale, localizer
+) -> dict[str, Any]:
+    T_est = alt.result.T_ee_us
+    X = reconstruct(alt.observations, T_est)
+    keep = alt.result.retained
+    precision = []
+    for target in train:
+        idx = [i for i, o in enumerate(alt.observations) if o.target == target and keep[i]]
+        c = X[idx].mean(axis=0)
+        precision.append(np.mean(np.linalg.norm(X[idx] - c, axis=1)))
+    # Accuracy on spheres not used for calibration (re-localized with this estimate);
+    # on the training spheres when there are none.
+    accuracy = []
+    sweeps = acq.dataset
+    for target in test or train:
+        locs = localize_sphere(sweeps.of(target), T_est, radius, localizer, scale)
+        pts = [
+            se3.apply(s.T_base_ee[s.reference_index] @ T_est, loc.centre)
+            for s, loc in zip(sweeps.of(target), locs, strict=True)
+            if loc.accepted
+        ]
+        if pts:
+            accuracy.append(np.linalg.norm(np.mean(pts, axis=0) - truth.landmarks_base[target]))
+    return {
+        "true_error": {
+            "rotation_deg": float(np.degrees(se3.rotation_angle(T_est, truth.T_ee_us))),
+            "translation_mm": 1e3 * float(se3.translation_distance(T_est, truth.T_ee_us)),
+            "image_mm": image_error_mm(scenario, T_est, truth.T_ee_us),
+        },
+        "precision_mm": 1e3 * float(np.mean(precision)),
+        "accuracy_mm": 1e3 * float(np.mean(accuracy)) if accuracy else float("nan"),
+        "n_retained": int(keep.sum()),
+        "iterations": len(alt.history),
+        "rejected": dict(alt.result.rejection_reasons),
+        "T_ee_us": np.round(T_est, 9).tolist(),
+        "covariance_rotvec_rad_translation_m": alt.result.covariance.tolist(),
+        "history": alt.history,
+        "trained_on": list(train),
+        "tested_on": list(test),
+    }
+
+
+def run(scenario: Scenario) -> RunResult:
+    """The whole experiment of a scenario; returns metrics against ground truth."""
+    t_start = time.perf_counter()
+    twin = make_twin(scenario)
+    imager = make_imager(scenario, twin)
+    acq = simulate_acquisition(scenario, twin, imager)
+    t_sim = time.perf_counter() - t_start
+    truth = twin.truth
+    radius = scenario.phantom.sphere_radius_mm * 1e-3  # the CAD radius: the only prior
+    scale = axial_scale(scenario)
+    loc_cfg = scenario.localization
+    targets = acq.dataset.targets()
+    by_target = {t: acq.dataset.of(t) for t in targets}
+    cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
+    cal = scenario.calibration
+
+    single = alternate(
+        {targets[0]: by_target[targets[0]]},
+        radius,
+        loc_cfg,
+        scale,
+        None,
+        acq.T_ee_us_coarse,
+        cal.max_alternations,
+    )
+    three = None
+    if len(targets) >= 3:
+        three = alternate(
+            {t: by_target[t] for t in targets[:3]},
+            radius,
+            loc_cfg,
+            scale,
+            cad,
+            acq.T_ee_us_coarse,
+            cal.max_alternations,
+        )
+    t_cal_total = time.perf_counter() - t_start - t_sim
+
+    # Localization error of the final single-marker localizations vs the true centres.
+    errors, n_sweeps, n_rejected = [], 0, 0
+    final = {targets[0]: single.localizations[targets[0]]}
+    if three is not None:
+        final.update(three.localizations)
+    for target, locs in final.items():
+        for sweep, loc in zip(by_target[target], locs, strict=True):
+            n_sweeps += 1
+            if not loc.accepted:
+                n_rejected += 1
+                continue
+            p_true = _true_centre_in_sweep(acq, truth, target, sweep)
+            errors.append(1e3 * np.linalg.norm(loc.centre - p_true))
+    errors = np.array(errors) if errors else np.array([np.nan])
+    hist = single.history + (three.history if three else [])
+    t_loc = float(sum(h["localize_s"] for h in hist))
+    t_cal = float(sum(h["calibrate_s"] for h in hist))
+    metrics: dict[str, Any] = {
+        "scenario": {"name": scenario.source, "seed": scenario.seed},
+        "localization": {
+            "method": loc_cfg.method,
+            "n_sweeps": n_sweeps,
+            "n_rejected": n_rejected,
+            "error_mm": {
+                "median": float(np.median(errors)),
+                "p95": float(np.percentile(errors, 95)),
+                "max": float(np.max(errors)),
+            },
+        },
+        "calibration": {
+            "coarse_error": {
+                "rotation_deg": float(
+                    np.degrees(se3.rotation_angle(acq.T_ee_us_coarse, truth.T_ee_us))
+                ),
+                "translation_mm": 1e3
+                * float(se3.translation_distance(acq.T_ee_us_coarse, truth.T_ee_us)),
+            },
+            "single": _calibration_metrics(
+                scenario, acq, truth, single, targets[:1], targets[1:], radius, scale, loc_cfg
+            ),
+        },
+        "timing_s": {
+            "simulate": t_sim,
+            "localize": t_loc,
+            "calibrate": t_cal,
+            "total": time.perf_counter() - t_start,
+        },
+    }
+    del t_cal_total
+    if three is not None:
+        metrics["calibration"]["three"] = _calibration_metrics(
+            scenario, acq, truth, three, targets[:3], targets[3:], radius, scale, loc_cfg
+        )
+    metrics["timing_s"]["total"] = time.perf_counter() - t_start
+    return RunResult(metrics, acq, single, three)

@@ -1,0 +1,340 @@
+"""Single- and three-marker calibration (paper, "Single- and Three-Marker Calibration").
+
+Each accepted sweep k of sphere s gives a localized centre ``p_sk`` in its reference
+(centre-frame ``us``) frame; with the reported flange pose ``T_base_ee,k`` of that frame
+it reconstructs to ``x_sk(X) = T_base_ee,k · X · p_sk`` (paper Eq. 1), ``X = T_ee_us``.
+The loss (paper, distance objective) is
+
+    L(X, Y) = Σ_s Σ_k ‖x_sk(X) − x̄_s(X)‖² + Σ_s n_s ‖x̄_s(X) − C_s(Y)‖²,
+
+with ``C_s = R c_s^CAD + t`` the CAD sphere centres at the unknown phantom pose ``Y`` (only
+for two or more markers; single-marker keeps the first term). Solved with scipy's
+``least_squares(method="trf")``, residuals in millimetres, from a closed-form linear
+initialisation that needs no coarse estimate.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from . import se3
+from .errors import CalibrationError
+from .localize import LocalizerConfig, SweepLocalization, localize_sphere
+from .records import Sweep
+
+__all__ = [
+    "AlternationResult",
+    "CalibrationResult",
+    "Observation",
+    "alternate",
+    "calibrate",
+    "linear_initialisation",
+    "reconstruct",
+]
+
+Array = NDArray[np.float64]
+
+_MM = 1e3
+
+
+@dataclass(frozen=True)
+class Observation:
+    """A localized sphere centre: ``p_us`` (3,) metres in the sweep's reference frame and
+    the reported flange pose ``T_base_ee`` (4, 4) of that frame."""
+
+    target: str
+    pose_id: int
+    p_us: Array
+    T_base_ee: Array
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """An estimated ``T_ee_us`` and what it rests on.
+
+    Attributes
+    ----------
+    T_ee_us : (4, 4) float
+    T_base_phantom : (4, 4) float or None
+        The phantom pose (two or more markers).
+    retained : (n,) bool
+        Observations kept (the rest rejected as outliers; ``rejection_reasons``).
+    residuals_mm : (n,) float
+        Distance of each reconstructed centre from its sphere's centroid.
+    covariance : (6, 6) float
+        Of (rotation vector rad, translation m) of ``T_ee_us`` from the Jacobian.
+    cost : float
+        Final loss (mm²).
+    """
+
+    T_ee_us: Array
+    T_base_phantom: Array | None
+    retained: NDArray[np.bool_]
+    residuals_mm: Array
+    covariance: Array
+    cost: float
+    rejection_reasons: dict[str, str] = field(default_factory=dict)
+
+
+def reconstruct(obs: Sequence[Observation], T_ee_us: Array) -> Array:
+    """Base-frame centres (n, 3) of observations under a calibration (paper Eq. 1)."""
+    T = np.array([o.T_base_ee for o in obs]) @ T_ee_us
+    P = np.array([o.p_us for o in obs])
+    return np.einsum("nij,nj->ni", T[:, :3, :3], P) + T[:, :3, 3]
+
+
+def linear_initialisation(obs: Sequence[Observation]) -> Array:
+    """Closed-form ``T_ee_us`` from the common-point constraint, no prior needed.
+
+    Each observation of sphere s gives ``R_k (R_X p_k + t_X) + t_k = c_s``: linear in
+    ``vec(R_X)``, ``t_X`` and the unknown centres ``c_s``. The least-squares solution's
+    rotation part is projected onto SO(3) (SVD) and the translation and centres are then
+    re-solved with that rotation fixed.
+    """
+    targets = list(dict.fromkeys(o.target for o in obs))
+    n_c = 3 * len(targets)
+    A = np.zeros((3 * len(obs), 12 + n_c))
+    b = np.zeros(3 * len(obs))
+    for i, o in enumerate(obs):
+        R, t = o.T_base_ee[:3, :3], o.T_base_ee[:3, 3]
+        rows = slice(3 * i, 3 * i + 3)
+        A[rows, 0:9] = np.kron(R, o.p_us[None, :])  # R · R_X · p, R_X row-major
+        A[rows, 9:12] = R
+        s = targets.index(o.target)
+        A[rows, 12 + 3 * s : 15 + 3 * s] = -np.eye(3)
+        b[rows] = -t
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    U, _, Vt = np.linalg.svd(sol[:9].reshape(3, 3))
+    R_X = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    # Translation and centres again with the rotation fixed.
+    b2 = b - A[:, 0:9] @ R_X.ravel()
+    sol2, *_ = np.linalg.lstsq(A[:, 9:], b2, rcond=None)
+    return se3.make(R_X, sol2[:3])
+
+
+def _params_to_T(x: Array, T0: Array) -> Array:
+    return se3.exp(x) @ T0
+
+
+def calibrate(
+    obs: Sequence[Observation],
+    cad_centres: Mapping[str, Array] | None = None,
+    T_init: Array | None = None,
+    outlier_mm: float = 2.0,
+) -> CalibrationResult:
+    """Estimate ``T_ee_us`` from localized sphere centres.
+
+    Parameters
+    ----------
+    obs : observations of one (single-marker) or several (multi-marker) spheres
+    cad_centres : sphere name → (3,) metres in the phantom frame; used (with the phantom
+        pose as an unknown) when two or more spheres are observed
+    T_init : starting calibration; None uses :func:`linear_initialisation`
+    outlier_mm : an observation farther than ``max(outlier_mm, 3·1.4826·MAD)`` from its
+        sphere's centroid after a robust fit is rejected, and the fit repeated without it
+
+    Raises
+    ------
+    CalibrationError
+        Too few observations, or a degenerate problem.
+    """
+    obs = list(obs)
+    targets = list(dict.fromkeys(o.target for o in obs))
+    if len(obs) < 4:
+        raise CalibrationError(f"calibration needs at least 4 localized sweeps, got {len(obs)}")
+    multi = len(targets) >= 2 and cad_centres is not None
+    T0 = linear_initialisation(obs) if T_init is None else np.asarray(T_init, dtype=float)
+    keep = np.ones(len(obs), dtype=bool)
+    reasons: dict[str, str] = {}
+    for _ in range(5):
+        sol, T_base_phantom = _solve(
+            [o for o, k in zip(obs, keep, strict=True) if k],
+            targets,
+            cad_centres if multi else None,
+            T0,
+        )
+        T_X = _params_to_T(sol.x[:6], T0)
+        X = reconstruct(obs, T_X)
+        dist = np.zeros(len(obs))
+        for s in targets:
+            idx = np.array([i for i, o in enumerate(obs) if o.target == s])
+            centroid = X[idx[keep[idx]]].mean(axis=0) if keep[idx].any() else X[idx].mean(axis=0)
+            dist[idx] = np.linalg.norm(X[idx] - centroid, axis=1) * _MM
+        kept = dist[keep]
+        limit = max(outlier_mm, 3.0 * 1.4826 * float(np.median(np.abs(kept - np.median(kept)))))
+        new_keep = dist <= limit
+        for i in np.flatnonzero(keep & ~new_keep):
+            reasons[f"{obs[i].target}/{obs[i].pose_id}"] = (
+                f"{obs[i].target} sweep {obs[i].pose_id}: {dist[i]:.2f} mm from the centroid "
+                f"(limit {limit:.2f} mm)"
+            )
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        T0 = T_X
+        if keep.sum() < 4:
+            raise CalibrationError("fewer than 4 sweeps left after outlier rejection")
+    J = sol.jac[:, :6]
+    dof = max(len(sol.fun) - len(sol.x), 1)
+    sigma2 = 2 * sol.cost / dof
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma2 / _MM**2  # parameters were in rad and m
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.nan)
+    # Reorder se(3) (ρ, ω) into (rotation vector, translation).
+    cov = cov[np.ix_([3, 4, 5, 0, 1, 2], [3, 4, 5, 0, 1, 2])]
+    return CalibrationResult(T_X, T_base_phantom, keep, dist, cov, float(2 * sol.cost), reasons)
+
+
+def _solve(obs, targets, cad_centres, T0):
+    """One TRF solve of the paper's loss; parameters: se(3) increment of X (6), then the
+    phantom pose (6) when markers' CAD geometry is used."""
+    T_b = np.array([o.T_base_ee for o in obs])
+    P = np.array([o.p_us for o in obs])
+    groups = [np.array([i for i, o in enumerate(obs) if o.target == s]) for s in targets]
+    groups = [g for g in groups if len(g)]
+    multi = cad_centres is not None
+    if multi:
+        C_cad = np.array([cad_centres[obs[g[0]].target] for g in groups])
+
+    def residuals(x: Array) -> Array:
+        T_X = se3.exp(x[:6]) @ T0
+        T = T_b @ T_X
+        X = np.einsum("nij,nj->ni", T[:, :3, :3], P) + T[:, :3, 3]
+        res = []
+        means = []
+        for g in groups:
+            m = X[g].mean(axis=0)
+            means.append(m)
+            res.append((X[g] - m).ravel())
+        if multi:
+            Y = se3.exp(x[6:12])
+            C = se3.apply(Y, C_cad)
+            for g, m, c in zip(groups, means, C, strict=True):
+                res.append(np.sqrt(len(g)) * (m - c))
+        return np.concatenate(res) * _MM
+
+    x0 = np.zeros(12 if multi else 6)
+    if multi:
+        # Phantom pose start: align the CAD centres to the centroids under T0 (Kabsch).
+        X0 = reconstruct(obs, T0)
+        centroids = np.array([X0[g].mean(axis=0) for g in groups])
+        x0[6:12] = se3.log(_kabsch(C_cad, centroids))
+    sol = least_squares(residuals, x0, method="trf", x_scale="jac")
+    T_base_phantom = se3.exp(sol.x[6:12]) if multi else None
+    return sol, T_base_phantom
+
+
+def _kabsch(P: Array, Q: Array) -> Array:
+    """Rigid transform (4, 4) best mapping points P onto Q (least squares)."""
+    p0, q0 = P.mean(axis=0), Q.mean(axis=0)
+    H = (P - p0).T @ (Q - q0)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.linalg.det(Vt.T @ U.T)])
+    R = Vt.T @ D @ U.T
+    return se3.make(R, q0 - R @ p0)
+
+
+@dataclass(frozen=True, eq=False)
+class AlternationResult:
+    """Calibration after alternating localization and calibration.
+
+    ``history`` holds one entry per iteration: the estimate, its change from the previous
+    one (mm, degrees) and the loss; ``localizations`` the final per-sweep results.
+    """
+
+    result: CalibrationResult
+    observations: list[Observation]
+    localizations: dict[str, list[SweepLocalization]]
+    history: list[dict[str, float]]
+
+
+def _observations(
+    sweeps: Mapping[str, Sequence[Sweep]], locs: Mapping[str, Sequence[SweepLocalization]]
+) -> list[Observation]:
+    obs = []
+    for target, ss in sweeps.items():
+        for sweep, loc in zip(ss, locs[target], strict=True):
+            if loc.accepted:
+                obs.append(
+                    Observation(
+                        target, sweep.pose_id, loc.centre, sweep.T_base_ee[sweep.reference_index]
+                    )
+                )
+    return obs
+
+
+def alternate(
+    sweeps: Mapping[str, Sequence[Sweep]],
+    radius: float,
+    localizer: LocalizerConfig,
+    axial_scale: float = 1.0,
+    cad_centres: Mapping[str, Array] | None = None,
+    T_coarse: Array | None = None,
+    max_iterations: int = 5,
+    tol_mm: float = 0.01,
+    tol_deg: float = 0.01,
+) -> AlternationResult:
+    """Localize → calibrate → re-stack with the new ``T_ee_us`` → re-localize, until the
+    estimate changes by less than ``tol_mm`` and ``tol_deg`` or ``max_iterations``.
+
+    The first localization stacks at the robot-measured spacing and the first calibration
+    starts from the closed-form initialisation; ``T_coarse`` (the holder's CAD) is only a
+    fallback check: if the closed form lands far from it, a start from the coarse
+    estimate is tried too and the lower loss wins.
+    """
+
+    def localize_all(T: Array | None) -> tuple[dict[str, list[SweepLocalization]], float]:
+        t0 = time.perf_counter()
+        out = {
+            t: localize_sphere(ss, T, radius, localizer, axial_scale) for t, ss in sweeps.items()
+        }
+        return out, time.perf_counter() - t0
+
+    locs, t_localize = localize_all(None)
+    history: list[dict[str, float]] = []
+    T_prev: Array | None = None
+    result = None
+    for it in range(max_iterations):
+        obs = _observations(sweeps, locs)
+        used = locs
+        t0 = time.perf_counter()
+        result = calibrate(obs, cad_centres, T_init=T_prev)
+        if T_prev is None and T_coarse is not None:
+            far = (
+                se3.translation_distance(result.T_ee_us, T_coarse) > 0.03
+                or np.degrees(se3.rotation_angle(result.T_ee_us, T_coarse)) > 30
+            )
+            if far:
+                other = calibrate(obs, cad_centres, T_init=T_coarse)
+                if other.cost < result.cost:
+                    result = other
+        t_calibrate = time.perf_counter() - t0
+        change_mm = change_deg = float("inf")
+        if T_prev is not None:
+            change_mm = 1e3 * float(se3.translation_distance(result.T_ee_us, T_prev))
+            change_deg = float(np.degrees(se3.rotation_angle(result.T_ee_us, T_prev)))
+        history.append(
+            {
+                "iteration": it,
+                "cost_mm2": result.cost,
+                "change_mm": change_mm,
+                "change_deg": change_deg,
+                "n_observations": len(obs),
+                "n_retained": int(result.retained.sum()),
+                "localize_s": t_localize,
+                "calibrate_s": t_calibrate,
+            }
+        )
+        if change_mm < tol_mm and change_deg < tol_deg:
+            break
+        T_prev = result.T_ee_us
+        locs, t_localize = localize_all(T_prev)
+    assert result is not None
+    return AlternationResult(result, obs, used, history)

@@ -1,0 +1,550 @@
+"""Threshold-free sphere localization (paper, "Threshold-Free Sphere Localization").
+
+Per sweep:
+
+1. **Adaptive brightness.** A pixel is bright when it is above the mean of its own frame
+   (no user-chosen intensity cut-off).
+2. **Sweep volume.** The frames are stacked at the robot-measured spacing; once a
+   ``T_ee_us`` is known they are re-stacked into the sweep's reference frame (the centre
+   frame's ``us`` frame), which removes the shear a wrong calibration puts into the stack.
+3. **Count-based exhaustive search.** Candidate centres on a 1 mm grid over the sweep,
+   starting one radius below the face. Each candidate samples a proximal shell at radius R
+   (Fibonacci directions) and the proximal half-ball (volume-distributed points); each
+   sample takes its nearest voxel and asks whether it is bright. Samples outside the
+   acquired volume count in neither numerator nor denominator. The score is
+   ``f_shell − f_interior``; its argmax is the seed.
+4. **Radial-band refinement.** Around the current centres, the bright fraction on proximal
+   hemispheres of trial radius, averaged over all sweeps of the sphere and normalised to its
+   peak, gives a radial profile: the interior extends to its first rising 0.25 crossing, the
+   shell band lies between its 0.75 crossings. Those bands replace the initial samples for
+   the refinement passes.
+
+``method="paper"`` stops there (grid-point centres). ``method="refined"`` then fits the
+centre to the bright voxels of the shell band with the known radius (sub-voxel).
+
+Frames of one sweep share their orientation (a linear sweep); the re-stack applies each
+frame's in-plane and elevational offset and treats the frames as parallel (the residual
+rotation between frames of a sweep is the robot's repeatability, micro-radians).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from . import se3
+from .errors import LocalizationError
+from .records import Sweep
+
+__all__ = [
+    "LocalizerConfig",
+    "SweepLocalization",
+    "SweepVolume",
+    "fibonacci_hemisphere",
+    "half_ball_samples",
+    "localize_sphere",
+    "score_candidates",
+    "score_candidates_reference",
+    "stack_sweep",
+]
+
+Array = NDArray[np.float64]
+
+# Label values of the stacked volume; bright samples add 1 to the valid count and
+# 1 << 16 to the bright count, so one integer sum yields both (see score_candidates).
+_OUTSIDE, _DARK, _BRIGHT = 0, 1, 1 + (1 << 16)
+_GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+_REFINE_ROUNDS = 4
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Threshold-free sphere localization (paper, "Threshold-Free Sphere Localization")."""
+
+    method: Literal["paper", "refined"] = field(
+        default="refined",
+        metadata={
+            "doc": "'paper': grid-point centres exactly as published; 'refined': plus a "
+            "sub-voxel fit of the centre to the shell band."
+        },
+    )
+    grid_mm: float = field(
+        default=1.0,
+        metadata={"doc": "Spacing of the exhaustive candidate-centre grid.", "gt": 0.05, "le": 5},
+    )
+    shell_samples: int = field(
+        default=256,
+        metadata={"doc": "Fibonacci directions on the proximal shell.", "ge": 8, "le": 10000},
+    )
+    interior_samples: int = field(
+        default=256, metadata={"doc": "Samples in the proximal half-ball.", "ge": 8, "le": 10000}
+    )
+    refinement_passes: int = field(
+        default=2, metadata={"doc": "Radial-band refinement passes.", "ge": 0, "le": 10}
+    )
+    refine_window_mm: float = field(
+        default=2.0,
+        metadata={
+            "doc": "Refinement passes search ± this around the current centre.",
+            "ge": 0,
+            "le": 20,
+        },
+    )
+    min_coverage: float = field(
+        default=0.7,
+        metadata={
+            "doc": "A candidate needs at least this share of its shell and of its "
+            "interior samples inside the acquired volume (partial caps are "
+            "scored from their visible part; too small a part is noise).",
+            "ge": 0,
+            "le": 1,
+        },
+    )
+    min_score: float = field(
+        default=0.2,
+        metadata={
+            "doc": "Detection confidence: a sweep whose best score (a difference of "
+            "bright fractions, not an intensity) stays below this is rejected.",
+            "ge": 0,
+            "le": 1,
+        },
+    )
+
+
+# ----------------------------------------------------------------------------- samples
+
+
+def fibonacci_hemisphere(n: int) -> Array:
+    """``n`` near-uniform unit directions (n, 3) on the proximal hemisphere (y < 0: towards
+    the transducer face, which looks along +y)."""
+    i = np.arange(n) + 0.5
+    y = -i / n  # uniform in (-1, 0): equal areas on the hemisphere
+    r = np.sqrt(1.0 - y**2)
+    phi = i * _GOLDEN_ANGLE
+    return np.column_stack([r * np.cos(phi), y, r * np.sin(phi)])
+
+
+def half_ball_samples(n: int, radius: float, inner: float = 0.0) -> Array:
+    """``n`` deterministic volume-distributed points (n, 3) in the proximal half-shell
+    ``inner ≤ r ≤ radius`` (a half-ball for ``inner = 0``), y ≤ 0."""
+    i = np.arange(n) + 0.5
+    u = (i * 0.7548776662466927) % 1.0  # R2 sequence, second coordinate: radius
+    r = np.cbrt(inner**3 + u * (radius**3 - inner**3))
+    return fibonacci_hemisphere(n) * r[:, None]
+
+
+# ----------------------------------------------------------------------------- stacking
+
+
+@dataclass(frozen=True, eq=False)
+class SweepVolume:
+    """A sweep stacked in its reference frame on a regular grid.
+
+    ``labels[k, r, c]`` is 0 outside the acquired volume, else dark/bright versus the
+    frame it came from; voxel (k, r, c) sits at ``x = (c − (W − 1)/2)·dx, y = r·dy,
+    z = z0 + k·dz`` (metres, reference frame). ``intensity`` holds each voxel's grey level
+    minus its frame mean (for the refined fit's weights).
+    """
+
+    labels: NDArray[np.int32]
+    intensity: NDArray[np.float32]
+    spacing: tuple[float, float, float]  # dx, dy, dz
+    z0: float
+    width: int  # of the frames
+    row0: int = 0  # frame row and column of voxel (k, 0, 0): the grid grows to hold
+    col0: int = 0  # every frame's shifted extent
+
+    def position(self, k: Array, r: Array, c: Array) -> Array:
+        """Reference-frame points (..., 3) of voxel indices."""
+        dx, dy, dz = self.spacing
+        return np.stack(
+            [(c + self.col0 - (self.width - 1) / 2) * dx, (r + self.row0) * dy, self.z0 + k * dz],
+            axis=-1,
+        )
+
+    def index(self, P: Array) -> tuple[Array, Array, Array]:
+        """Nearest voxel (k, r, c) of points (..., 3), unbounded."""
+        dx, dy, dz = self.spacing
+        c = np.rint(P[..., 0] / dx + (self.width - 1) / 2).astype(np.int64) - self.col0
+        r = np.rint(P[..., 1] / dy).astype(np.int64) - self.row0
+        k = np.rint((P[..., 2] - self.z0) / dz).astype(np.int64)
+        return k, r, c
+
+
+def frame_offsets(sweep: Sweep, T_ee_us: Array | None) -> Array:
+    """Each frame's origin in the sweep's reference frame, (n, 3) metres.
+
+    Without ``T_ee_us`` the frames sit on the elevational axis at the robot-measured
+    distances along the sweep; with it, at their full offsets (in-plane shift included).
+    """
+    T = sweep.T_base_ee
+    ref = sweep.reference_index
+    if T_ee_us is None:
+        t = T[:, :3, 3]
+        direction = t[-1] - t[0]
+        direction /= np.linalg.norm(direction)
+        z = (t - t[ref]) @ direction
+        return np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+    T_base_us = T @ T_ee_us
+    return se3.apply(se3.invert(T_base_us[ref]), T_base_us[:, :3, 3])
+
+
+def stack_sweep(sweep: Sweep, T_ee_us: Array | None, axial_scale: float = 1.0) -> SweepVolume:
+    """Stack (or re-stack) a sweep into a labelled volume in its reference frame.
+
+    ``axial_scale`` corrects the displayed axial spacing for the medium's true speed of
+    sound (c_medium / c_assumed).
+    """
+    images = sweep.images
+    n, H, W = images.shape
+    sx, sy = sweep.spacing
+    sy = sy * axial_scale
+    offsets = frame_offsets(sweep, T_ee_us)
+    z = offsets[:, 2]
+    order = np.argsort(z)
+    dz = float(np.median(np.diff(z[order]))) if n > 1 else 1e-3
+    if dz <= 0:
+        raise LocalizationError(f"{sweep.target} sweep {sweep.pose_id}: frames do not advance")
+    z0 = float(z[order[0]])
+    n_slices = int(np.rint((z[order[-1]] - z0) / dz)) + 1
+    # Nearest frame of each slice.
+    slice_z = z0 + np.arange(n_slices) * dz
+    nearest = order[np.argmin(np.abs(slice_z[:, None] - z[order][None, :]), axis=1)]
+    means = images.reshape(n, -1).mean(axis=1)
+    # Integer pixel shift of each frame's in-plane offset (nearest voxel); the grid spans
+    # every shifted frame.
+    shift_c = np.rint(offsets[:, 0] / sx).astype(np.int64)
+    shift_r = np.rint(offsets[:, 1] / sy).astype(np.int64)
+    col0, row0 = int(min(0, shift_c.min())), int(min(0, shift_r.min()))
+    width = W - col0 + int(max(0, shift_c.max()))
+    height = H - row0 + int(max(0, shift_r.max()))
+    labels = np.zeros((n_slices, height, width), dtype=np.int32)
+    intensity = np.zeros((n_slices, height, width), dtype=np.float32)
+    for k, j in enumerate(nearest):
+        r0, c0 = shift_r[j] - row0, shift_c[j] - col0
+        frame = images[j]
+        labels[k, r0 : r0 + H, c0 : c0 + W] = np.where(frame > means[j], _BRIGHT, _DARK)
+        intensity[k, r0 : r0 + H, c0 : c0 + W] = frame - np.float32(means[j])
+    return SweepVolume(labels, intensity, (sx, sy, dz), z0, W, row0, col0)
+
+
+# ----------------------------------------------------------------------------- scoring
+
+
+def _offsets_vox(vol: SweepVolume, P: Array) -> Array:
+    """Sample offsets (m, 3) in metres → integer voxel offsets (m, 3) as (k, r, c)."""
+    dx, dy, dz = vol.spacing
+    return np.column_stack(
+        [np.rint(P[:, 2] / dz), np.rint(P[:, 1] / dy), np.rint(P[:, 0] / dx)]
+    ).astype(np.int64)
+
+
+def score_candidates(
+    vol: SweepVolume,
+    candidates: NDArray[np.int64],
+    shell: Array,
+    interior: Array,
+    min_coverage: float = 0.0,
+) -> tuple[Array, Array, Array]:
+    """Scores of candidate centres (voxel indices (N, 3) as (k, r, c)).
+
+    Returns ``(score, f_shell, f_interior)``, each (N,); candidates with fewer than
+    ``min_coverage`` of their shell or interior samples inside the volume (or none) score
+    −inf. Samples take the voxel at candidate + rounded offset, so a candidate on the
+    voxel grid sees exactly the voxels the reference implementation looks up one by one.
+    """
+    off = {name: _offsets_vox(vol, P) for name, P in (("shell", shell), ("interior", interior))}
+    pad = int(max(np.abs(o).max() for o in off.values())) + 1
+    padded = np.pad(vol.labels, pad)  # outside the acquired volume = 0: excluded
+    _, H, W = padded.shape
+    strides = np.array([H * W, W, 1])
+    flat = padded.ravel()
+    base = (candidates + pad) @ strides
+    fractions = {}
+    for name, o in off.items():
+        sums = np.empty(len(base), dtype=np.int64)
+        rel = o @ strides
+        # Chunks keep the gathered block in cache.
+        for s in range(0, len(base), 2048):
+            block = flat[base[s : s + 2048, None] + rel[None, :]]
+            sums[s : s + 2048] = block.sum(axis=1, dtype=np.int64)
+        valid = sums & 0xFFFF
+        bright = sums >> 16
+        enough = (valid > 0) & (valid >= min_coverage * len(o))
+        fractions[name] = np.where(enough, bright / np.maximum(valid, 1), np.nan)
+    score = fractions["shell"] - fractions["interior"]
+    return np.where(np.isnan(score), -np.inf, score), fractions["shell"], fractions["interior"]
+
+
+def score_candidates_reference(
+    sweep: Sweep,
+    T_ee_us: Array | None,
+    axial_scale: float,
+    vol: SweepVolume,
+    candidates: NDArray[np.int64],
+    shell: Array,
+    interior: Array,
+) -> Array:
+    """The same scores computed the obvious way, one sample at a time, from the frames.
+
+    For each sample: its voxel (candidate + rounded offset), that voxel's position in the
+    reference frame, the nearest frame in elevation, the pixel of that frame under the
+    voxel (through the frame's offset), and the comparison with that frame's mean. Slow;
+    the test oracle of :func:`score_candidates`.
+    """
+    offsets = frame_offsets(sweep, T_ee_us)
+    n, H, W = sweep.images.shape
+    sx, sy = sweep.spacing[0], sweep.spacing[1] * axial_scale
+    means = sweep.images.reshape(n, -1).mean(axis=1)
+    slice_z = vol.z0 + np.arange(vol.labels.shape[0]) * vol.spacing[2]
+    out = np.empty(len(candidates))
+    for i, cand in enumerate(candidates):
+        fractions = []
+        for P in (shell, interior):
+            bright = valid = 0
+            for o in _offsets_vox(vol, P):
+                k, r, c = cand + o
+                if not 0 <= k < len(slice_z):
+                    continue  # outside the swept elevations
+                j = int(np.argmin(np.abs(slice_z[k] - offsets[:, 2])))
+                x, y, _ = vol.position(np.float64(k), np.float64(r), np.float64(c))
+                # The pixel of frame j under the voxel, through the frame's offset.
+                col = int(np.rint((x - offsets[j, 0]) / sx + (W - 1) / 2))
+                row = int(np.rint((y - offsets[j, 1]) / sy))
+                if not (0 <= row < H and 0 <= col < W):
+                    continue
+                valid += 1
+                bright += int(sweep.images[j, row, col] > means[j])
+            fractions.append(bright / valid if valid else np.nan)
+        s = fractions[0] - fractions[1]
+        out[i] = -np.inf if np.isnan(s) else s
+    return out
+
+
+# ----------------------------------------------------------------------------- search
+
+
+@dataclass(frozen=True)
+class SweepLocalization:
+    """Result for one sweep.
+
+    ``centre`` (3,) metres in the sweep's reference frame (NaN when rejected); ``score`` the
+    peak score; ``f_shell``/``f_interior`` its two fractions (their difference is the
+    contrast); ``accepted`` and, if not, ``reason``.
+    """
+
+    target: str
+    pose_id: int
+    centre: Array
+    score: float
+    f_shell: float
+    f_interior: float
+    accepted: bool
+    reason: str = ""
+
+
+def _candidate_grid(vol: SweepVolume, radius: float, grid: float) -> NDArray[np.int64]:
+    """Voxel indices (N, 3) of the 1 mm candidate grid over the sweep, starting one
+    radius below the face."""
+    dx, dy, dz = vol.spacing
+    K, H, W = vol.labels.shape
+    step = [max(1, int(np.rint(grid / s))) for s in (dz, dy, dx)]
+    k = np.arange(0, K, step[0])
+    r = np.arange(int(np.ceil(radius / dy)) - vol.row0, H, step[1])
+    c = np.arange(0, W, step[2])
+    kk, rr, cc = np.meshgrid(k, r, c, indexing="ij")
+    return np.column_stack([kk.ravel(), rr.ravel(), cc.ravel()])
+
+
+def _local_grid(
+    centre_vox: Array, vol: SweepVolume, window: float, grid: float
+) -> NDArray[np.int64]:
+    dx, dy, dz = vol.spacing
+    axes = []
+    for centre, s, size in zip(centre_vox, (dz, dy, dx), vol.labels.shape, strict=True):
+        step = max(1, int(np.rint(grid / s)))
+        half = int(np.rint(window / s))
+        ax = np.arange(centre - half, centre + half + 1, step)
+        axes.append(ax[(ax >= 0) & (ax < size)])
+    kk, rr, cc = np.meshgrid(*axes, indexing="ij")
+    return np.column_stack([kk.ravel(), rr.ravel(), cc.ravel()])
+
+
+def _best(vol, candidates, shell, interior, min_coverage):
+    score, fs, fi = score_candidates(vol, candidates, shell, interior, min_coverage)
+    i = int(np.argmax(score))
+    return candidates[i], float(score[i]), float(fs[i]), float(fi[i])
+
+
+def radial_profile(
+    vols: Sequence[SweepVolume], centres_vox: Sequence[Array], radii: Array, n_dirs: int
+) -> Array:
+    """Peak-normalised bright fraction on proximal hemispheres of trial radius, averaged
+    over sweeps; (len(radii),)."""
+    dirs = fibonacci_hemisphere(n_dirs)
+    total = np.zeros(len(radii))
+    count = np.zeros(len(radii))
+    for vol, cv in zip(vols, centres_vox, strict=True):
+        centre = vol.position(*np.asarray(cv, dtype=float))
+        P = centre[None, None, :] + radii[:, None, None] * dirs[None, :, :]
+        k, r, c = vol.index(P)
+        K, H, W = vol.labels.shape
+        inside = (k >= 0) & (k < K) & (r >= 0) & (r < H) & (c >= 0) & (c < W)
+        lab = np.zeros(P.shape[:2], dtype=np.int32)
+        lab[inside] = vol.labels[k[inside], r[inside], c[inside]]
+        valid = (lab > 0).sum(axis=1)
+        bright = (lab == _BRIGHT).sum(axis=1)
+        ok = valid > 0
+        total[ok] += bright[ok] / valid[ok]
+        count[ok] += 1
+    profile = np.where(count > 0, total / np.maximum(count, 1), 0.0)
+    peak = profile.max()
+    return profile / peak if peak > 0 else profile
+
+
+def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, float, float]:
+    """(interior limit, shell inner, shell outer) from a peak-normalised radial profile:
+    first rising 0.25 crossing; rising and falling 0.75 crossings around the peak. Falls
+    back to (0.8 R, 0.9 R, 1.1 R) pieces when a crossing is missing."""
+    peak = int(np.argmax(profile))
+
+    def crossing(level: float, rising: bool) -> float | None:
+        idx = range(1, peak + 1) if rising else range(peak + 1, len(profile))
+        for i in idx:
+            a, b = profile[i - 1], profile[i]
+            if (a < level <= b) if rising else (a >= level > b):
+                return float(radii[i - 1] + (level - a) / (b - a) * (radii[i] - radii[i - 1]))
+        return None
+
+    inner = crossing(0.25, True)
+    rise = crossing(0.75, True)
+    fall = crossing(0.75, False)
+    return (
+        inner if inner is not None else 0.8 * radius,
+        rise if rise is not None else 0.9 * radius,
+        fall if fall is not None else 1.1 * radius,
+    )
+
+
+def _refine_centre(
+    vol: SweepVolume, centre: Array, radius: float, band: tuple[float, float]
+) -> Array:
+    """Sub-voxel centre: least-squares fit of the known radius to the bright voxels of the
+    proximal shell band, weighted by their brightness above the frame mean (robust loss).
+    The band is re-selected around each new centre (a few rounds), so a grid seed a voxel
+    off does not bias which voxels are fitted."""
+    lo, hi = band
+    dx, dy, dz = vol.spacing
+    seed = np.asarray(centre, dtype=float)
+    current = seed
+    for _ in range(_REFINE_ROUNDS):
+        span = np.array([hi / dz, hi / dy, hi / dx])
+        cv = np.array(vol.index(current), dtype=float)
+        ranges = [
+            np.arange(max(int(c - s) - 1, 0), min(int(c + s) + 2, n))
+            for c, s, n in zip(cv, span, vol.labels.shape, strict=True)
+        ]
+        kk, rr, cc = np.meshgrid(*ranges, indexing="ij")
+        P = vol.position(kk.astype(float), rr.astype(float), cc.astype(float)).reshape(-1, 3)
+        lab = vol.labels[kk, rr, cc].ravel()
+        w = vol.intensity[kk, rr, cc].ravel()
+        d = np.linalg.norm(P - current, axis=1)
+        keep = (lab == _BRIGHT) & (d >= lo) & (d <= hi) & (P[:, 1] <= current[1])
+        if keep.sum() < 20:
+            break
+        Pk, wk = P[keep], np.sqrt(np.maximum(w[keep], 0.0))
+        sol = least_squares(
+            lambda c, Pk=Pk, wk=wk: wk * (np.linalg.norm(Pk - c, axis=1) - radius) * 1e3,
+            current,
+            loss="soft_l1",
+            f_scale=0.2,
+            method="trf",
+        )
+        moved = np.linalg.norm(sol.x - current)
+        current = sol.x
+        if moved < 1e-6:
+            break
+    # A fit that wanders off the grid cell is not trusted.
+    if np.linalg.norm(current - seed) > 1.5 * max(dx, dy, dz, 1e-3):
+        return seed
+    return current
+
+
+def localize_sphere(
+    sweeps: Sequence[Sweep],
+    T_ee_us: Array | None,
+    radius: float,
+    cfg: LocalizerConfig,
+    axial_scale: float = 1.0,
+) -> list[SweepLocalization]:
+    """Localize one sphere in each of its sweeps (centres in each sweep's reference frame).
+
+    Parameters
+    ----------
+    sweeps : the sweeps of one sphere
+    T_ee_us : (4, 4) float or None
+        Current calibration for re-stacking; None stacks at the robot-measured spacing.
+    radius : float, metres
+        The sphere radius: the only geometric prior.
+    axial_scale : float
+        c_medium / c_assumed (1 when the speed-of-sound correction is off).
+    """
+    grid = cfg.grid_mm * 1e-3
+    shell = fibonacci_hemisphere(cfg.shell_samples) * radius
+    interior = half_ball_samples(cfg.interior_samples, radius)
+    vols = [stack_sweep(s, T_ee_us, axial_scale) for s in sweeps]
+    results = []
+    for vol in vols:
+        results.append(
+            _best(vol, _candidate_grid(vol, radius, grid), shell, interior, cfg.min_coverage)
+        )
+    radii = np.arange(0.0, 1.6 * radius, min(vols[0].spacing[:2]))
+    band = (0.9 * radius, 1.1 * radius)
+    for _ in range(cfg.refinement_passes):
+        ok = [i for i, r in enumerate(results) if r[1] >= cfg.min_score]
+        if not ok:
+            break
+        profile = radial_profile(
+            [vols[i] for i in ok], [results[i][0] for i in ok], radii, cfg.shell_samples
+        )
+        inner, rise, fall = profile_bands(radii, profile, radius)
+        band = (rise, fall)
+        shell_p = half_ball_samples(cfg.shell_samples, fall, rise)
+        interior_p = half_ball_samples(cfg.interior_samples, inner)
+        results = [
+            _best(
+                vol,
+                _local_grid(res[0], vol, cfg.refine_window_mm * 1e-3, grid),
+                shell_p,
+                interior_p,
+                cfg.min_coverage,
+            )
+            for vol, res in zip(vols, results, strict=True)
+        ]
+    out = []
+    for sweep, vol, (cv, score, fs, fi) in zip(sweeps, vols, results, strict=True):
+        centre = vol.position(*np.asarray(cv, dtype=float))
+        accepted = bool(score >= cfg.min_score)
+        reason = (
+            "" if accepted else (f"no sphere found: best score {score:.2f} < {cfg.min_score:.2f}")
+        )
+        if accepted and cfg.method == "refined":
+            centre = _refine_centre(vol, centre, radius, band)
+        out.append(
+            SweepLocalization(
+                sweep.target,
+                sweep.pose_id,
+                centre if accepted else np.full(3, np.nan),
+                score,
+                fs,
+                fi,
+                accepted,
+                reason,
+            )
+        )
+    return out

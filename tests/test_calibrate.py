@@ -1,0 +1,105 @@
+"""Calibration on synthetic observations: exact recovery, initialisation, outliers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.calibrate import Observation, calibrate, linear_initialisation, reconstruct
+from calib.errors import CalibrationError
+from calib.protocol import ProtocolConfig, plan_sweeps
+
+MM = 1e-3
+T_EE_US_TRUE = se3.make(
+    se3.matrix_from_euler(np.radians([91.0, -0.8, 1.5])), [0.8e-3, -1.2e-3, 0.158]
+)
+
+
+def observations(centre_base, target="sphere_1", noise_mm=0.0, rng=None, X=T_EE_US_TRUE):
+    """Noise-free (or noisy) localized centres from the paper's 45-pose plan."""
+    cfg = ProtocolConfig()
+    depth = cfg.target_depth_mm * MM
+    T_face_us = se3.make(
+        np.column_stack([[0, 1, 0], [0, 0, -1], [-1, 0, 0]]), centre_base + np.array([0, 0, depth])
+    )
+    T_taught = T_face_us @ se3.invert(X)
+    obs = []
+    for sweep in plan_sweeps(target, T_taught, X, cfg):
+        T_ref = sweep.T_base_ee[len(sweep.T_base_ee) // 2]
+        p = se3.apply(se3.invert(T_ref @ X), centre_base)
+        if noise_mm:
+            p = p + rng.normal(0, noise_mm * MM, 3)
+        obs.append(Observation(target, sweep.pose_id, p, T_ref))
+    return obs
+
+
+def pose_errors(T_est, T_true=T_EE_US_TRUE):
+    return (
+        1e3 * se3.translation_distance(T_est, T_true),
+        np.degrees(se3.rotation_angle(T_est, T_true)),
+    )
+
+
+def test_linear_initialisation_is_exact_on_noise_free_points():
+    obs = observations(np.array([0.3, 0.02, 0.02]))
+    d_mm, d_deg = pose_errors(linear_initialisation(obs))
+    assert d_mm < 1e-6 and d_deg < 1e-6
+
+
+def test_single_marker_recovers_exactly():
+    obs = observations(np.array([0.3, -0.02, 0.02]))
+    res = calibrate(obs)
+    d_mm, d_deg = pose_errors(res.T_ee_us)
+    assert d_mm < 1e-6 and d_deg < 1e-6
+    assert res.retained.all() and res.cost < 1e-9
+    np.testing.assert_allclose(reconstruct(obs, res.T_ee_us), [[0.3, -0.02, 0.02]] * 45, atol=1e-9)
+
+
+@pytest.mark.parametrize("dt_mm,dr_deg", [(10.0, 20.0), (-10.0, -20.0)])
+def test_converges_from_a_bad_start(dt_mm, dr_deg):
+    obs = observations(np.array([0.3, 0.0, 0.02]))
+    start = T_EE_US_TRUE @ se3.make(
+        se3.matrix_from_euler(np.radians([dr_deg] * 3)), [dt_mm * MM] * 3
+    )
+    d_mm, d_deg = pose_errors(calibrate(obs, T_init=start).T_ee_us)
+    assert d_mm < 1e-5 and d_deg < 1e-5
+
+
+def test_three_marker_recovers_transform_and_phantom_pose():
+    cad = {
+        "sphere_1": np.array([-0.025, -0.025, 0.02]),
+        "sphere_2": np.array([0.025, -0.025, 0.02]),
+        "sphere_3": np.array([0.025, 0.025, 0.02]),
+    }
+    Y = se3.make(se3.matrix_from_euler(np.radians([0.5, -0.3, 4.0])), [0.3, 0.01, 0.0])
+    obs = []
+    for name, c in cad.items():
+        obs += observations(se3.apply(Y, c), name)
+    res = calibrate(obs, cad)
+    d_mm, d_deg = pose_errors(res.T_ee_us)
+    assert d_mm < 1e-6 and d_deg < 1e-6
+    assert se3.translation_distance(res.T_base_phantom, Y) < 1e-9
+
+
+def test_noise_gives_physical_errors_and_outliers_are_rejected(rng):
+    obs = observations(np.array([0.3, 0.0, 0.02]), noise_mm=0.15, rng=rng)
+    bad = obs[7]
+    obs[7] = Observation(
+        bad.target, bad.pose_id, bad.p_us + np.array([0.0, 0.010, 0.0]), bad.T_base_ee
+    )
+    res = calibrate(obs)
+    assert not res.retained[7] and res.retained.sum() == 44
+    assert "sphere_1/7" in res.rejection_reasons
+    assert "from the centroid" in res.rejection_reasons["sphere_1/7"]
+    d_mm, d_deg = pose_errors(res.T_ee_us)
+    assert d_mm < 1.0 and d_deg < 1.0
+    # The covariance is a real uncertainty: positive definite, of the noise's scale.
+    sd = np.sqrt(np.diag(res.covariance))
+    assert np.all(np.isfinite(sd)) and 1e-6 < sd[3:].max() < 2e-3
+
+
+def test_too_few_observations():
+    obs = observations(np.array([0.3, 0.0, 0.02]))[:3]
+    with pytest.raises(CalibrationError, match="at least 4"):
+        calibrate(obs)

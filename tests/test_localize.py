@@ -1,0 +1,124 @@
+"""Threshold-free localization: the fast score equals the obvious one; sample sets; a
+rendered sweep localized against ground truth; a sweep without a sphere is rejected."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.localize import (
+    LocalizerConfig,
+    fibonacci_hemisphere,
+    half_ball_samples,
+    localize_sphere,
+    score_candidates,
+    score_candidates_reference,
+    stack_sweep,
+)
+from calib.records import Sweep
+
+MM = 1e-3
+
+
+def test_sample_sets():
+    d = fibonacci_hemisphere(200)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert np.all(d[:, 1] < 0)  # proximal: towards the probe
+    # Near-uniform: the mean direction of a uniform hemisphere is (0, -1/2, 0).
+    np.testing.assert_allclose(d.mean(axis=0), [0, -0.5, 0], atol=0.02)
+    P = half_ball_samples(500, 5 * MM)
+    r = np.linalg.norm(P, axis=1)
+    assert r.max() <= 5 * MM + 1e-12 and np.all(P[:, 1] <= 0)
+    # Volume-distributed: half the points within radius R / 2^(1/3).
+    assert np.mean(r < 5 * MM / 2 ** (1 / 3)) == pytest.approx(0.5, abs=0.03)
+    shell = half_ball_samples(300, 6 * MM, 4 * MM)
+    assert np.linalg.norm(shell, axis=1).min() >= 4 * MM - 1e-12
+
+
+def random_sweep(rng, shear_mm=0.0):
+    """A small sweep of random frames moving along the probe's z, with an optional drift
+    of the flange in the image plane (so a re-stack has in-plane offsets to apply)."""
+    n, H, W = 7, 40, 30
+    images = rng.integers(0, 255, (n, H, W), dtype=np.uint8)
+    z = (np.arange(n) - n // 2) * 1e-3
+    T = np.array([se3.make(np.eye(3), [shear_mm * MM * k / n, 0.0, zk]) for k, zk in enumerate(z)])
+    return Sweep("sphere_1", 0, images, (0.2e-3, 0.2e-3), np.zeros((n, 6)), T)
+
+
+@pytest.mark.parametrize("restack", [False, True])
+def test_fast_score_equals_reference(rng, restack):
+    sweep = random_sweep(rng, shear_mm=1.3)
+    T = np.eye(4) if restack else None
+    vol = stack_sweep(sweep, T, axial_scale=0.96)
+    shell = fibonacci_hemisphere(40) * 2 * MM
+    interior = half_ball_samples(40, 2 * MM)
+    K, H, W = vol.labels.shape
+    cand = np.array([[k, r, c] for k in range(K) for r in range(0, H, 5) for c in range(0, W, 5)])
+    fast, _, _ = score_candidates(vol, cand, shell, interior)
+    slow = score_candidates_reference(sweep, T, 0.96, vol, cand, shell, interior)
+    np.testing.assert_array_equal(np.isfinite(fast), np.isfinite(slow))
+    ok = np.isfinite(fast)
+    assert ok.sum() > 100
+    np.testing.assert_allclose(fast[ok], slow[ok], atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def rendered_sweeps():
+    """Three sweeps of sphere 1 rendered by the twin (no kinematic error), with truth."""
+    from bench.experiment import make_imager, make_twin
+    from bench.scenario import load_scenario
+    from calib.protocol import facing_pose
+
+    s = load_scenario(
+        None, ["robot.dh_error_scale=0", "imaging.pixel_spacing_mm=[0.1, 0.1]"], check_reach=False
+    )
+    twin = make_twin(s)
+    imager = make_imager(s, twin)
+    T_ee_us = twin.truth.T_ee_us
+    centre = twin.truth.landmarks_base["sphere_1"]
+    sweeps, truths = [], []
+    for k, (dx, dz, tilt) in enumerate([(0, 0, 0), (2, 1.5, 8), (-3, -2, -8)]):
+        T_face = facing_pose(centre + np.array([dx * MM, 0, 0]), 0.02)
+        T_face = T_face @ se3.make(se3.matrix_from_euler(np.radians([0, tilt, 0])), [0, 0, dz * MM])
+        images, poses, true_poses = [], [], []
+        for z in np.linspace(-0.01, 0.01, 21):
+            reading = twin.robot.move_to(
+                T_face @ se3.make(np.eye(3), [0, 0, z]) @ se3.invert(T_ee_us)
+            )
+            images.append(imager.grab().image)
+            poses.append(reading.T_base_ee)
+            true_poses.append(twin.robot.truth.T_base_ee)
+        sweep = Sweep(
+            "sphere_1", k, np.array(images), imager.spacing, np.zeros((21, 6)), np.array(poses)
+        )
+        T_ref_true = true_poses[10] @ T_ee_us
+        sweeps.append(sweep)
+        truths.append(se3.apply(se3.invert(T_ref_true), centre))
+    scale = 1482.3 / 1540.0
+    return sweeps, truths, twin, scale
+
+
+# Paper: grid-point centres, within one grid cell (half-diagonal of 1 mm: 0.87 mm) plus
+# noise. Refined: sub-voxel.
+@pytest.mark.parametrize("method,tol_mm", [("paper", 1.2), ("refined", 0.5)])
+def test_localizes_rendered_sweeps_against_truth(rendered_sweeps, method, tol_mm):
+    sweeps, truths, twin, scale = rendered_sweeps
+    radius = 5 * MM
+    res = localize_sphere(sweeps, twin.truth.T_ee_us, radius, LocalizerConfig(method=method), scale)
+    for r, p_true in zip(res, truths, strict=True):
+        assert r.accepted, r.reason
+        assert np.linalg.norm(r.centre - p_true) < tol_mm * MM
+        assert r.f_shell > r.f_interior
+
+
+def test_sweep_without_a_sphere_is_rejected(rendered_sweeps):
+    sweeps, _, _, scale = rendered_sweeps
+    empty = sweeps[0]
+    # Keep the poses, replace the images by noise-floor frames of the same shape.
+    rng = np.random.default_rng(0)
+    noise = rng.rayleigh(8.0, empty.images.shape).clip(0, 255).astype(np.uint8)
+    blank = Sweep(empty.target, 99, noise, empty.spacing, empty.q, empty.T_base_ee)
+    (r,) = localize_sphere([blank], None, 5 * MM, LocalizerConfig(), scale)
+    assert not r.accepted
+    assert "no sphere found" in r.reason and np.all(np.isnan(r.centre))
