@@ -6,15 +6,22 @@ Run: python benchmarks/kinematics.py
 
 from __future__ import annotations
 
-import time
+import os
+import sys
 
-import numpy as np
+# benchmarks/sim_us.py shares its name with the package: keep this folder off the path.
+_HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
-from calib.dh import NOMINAL_TABLES, DHDeltas, forward_kinematics
-from twin.ik import solve_ik
-from twin.phantoms import PhantomConfig, build_phantom, build_tank
-from twin.scene import Scene, SceneModel
-from twin.tools import ToolsConfig
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from calib.dh import NOMINAL_TABLES, DHDeltas, forward_kinematics  # noqa: E402
+from twin.ik import solve_ik  # noqa: E402
+from twin.phantoms import PhantomConfig, build_phantom, build_tank  # noqa: E402
+from twin.scene import Scene, SceneModel  # noqa: E402
+from twin.tools import ToolsConfig  # noqa: E402
 
 
 def rate(fn, n: int) -> float:

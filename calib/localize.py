@@ -19,8 +19,8 @@ Per sweep:
    shell band lies between its 0.75 crossings. Those bands replace the initial samples for
    the refinement passes.
 
-``method="paper"`` stops there (grid-point centres). ``method="refined"`` then fits the
-centre to the bright voxels of the shell band with the known radius (sub-voxel).
+``method="paper"`` stops there (grid-point centres). ``method="refined"`` then takes the
+centre sub-voxel from the moments of the cap's echo (see ``_refine_centre``).
 
 Frames of one sweep share their orientation (a linear sweep); the re-stack applies each
 frame's in-plane and elevational offset and treats the frames as parallel (the residual
@@ -35,7 +35,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from . import se3
 from .errors import LocalizationError
@@ -50,6 +49,7 @@ __all__ = [
     "localize_sphere",
     "score_candidates",
     "score_candidates_reference",
+    "score_grid",
     "stack_sweep",
 ]
 
@@ -60,6 +60,7 @@ Array = NDArray[np.float64]
 _OUTSIDE, _DARK, _BRIGHT = 0, 1, 1 + (1 << 16)
 _GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 _REFINE_ROUNDS = 4
+_MM = 1e-3
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,7 @@ class LocalizerConfig:
         default="refined",
         metadata={
             "doc": "'paper': grid-point centres exactly as published; 'refined': plus a "
-            "sub-voxel fit of the centre to the shell band."
+            "sub-voxel centre from the moments of the cap's echo."
         },
     )
     grid_mm: float = field(
@@ -141,23 +142,44 @@ def half_ball_samples(n: int, radius: float, inner: float = 0.0) -> Array:
 # ----------------------------------------------------------------------------- stacking
 
 
-@dataclass(frozen=True, eq=False)
 class SweepVolume:
     """A sweep stacked in its reference frame on a regular grid.
 
     ``labels[k, r, c]`` is 0 outside the acquired volume, else dark/bright versus the
-    frame it came from; voxel (k, r, c) sits at ``x = (c − (W − 1)/2)·dx, y = r·dy,
-    z = z0 + k·dz`` (metres, reference frame). ``intensity`` holds each voxel's grey level
-    minus its frame mean (for the refined fit's weights).
+    frame it came from; voxel (k, r, c) sits at ``x = (c + col0 − (W − 1)/2)·dx,
+    y = (r + row0)·dy, z = z0 + k·dz`` (metres, reference frame). The labels live inside a
+    zero margin of ``pad`` voxels per axis (``padded``), so samples reaching past the
+    volume read "outside" without bounds checks.
     """
 
-    labels: NDArray[np.int32]
-    intensity: NDArray[np.float32]
-    spacing: tuple[float, float, float]  # dx, dy, dz
-    z0: float
-    width: int  # of the frames
-    row0: int = 0  # frame row and column of voxel (k, 0, 0): the grid grows to hold
-    col0: int = 0  # every frame's shifted extent
+    def __init__(
+        self,
+        padded: NDArray[np.int32],
+        pad: tuple[int, int, int],
+        spacing: tuple[float, float, float],
+        z0: float,
+        width: int,
+        row0: int,
+        col0: int,
+        frames: NDArray[np.uint8],
+        means: Array,
+        nearest: NDArray[np.int64],
+        frame_rows: NDArray[np.int64],
+        frame_cols: NDArray[np.int64],
+    ) -> None:
+        self.padded = padded
+        self.pad = pad
+        pk, pr, pc = pad
+        K, H, W = padded.shape
+        self.labels = padded[pk : K - pk, pr : H - pr, pc : W - pc]
+        self.spacing = spacing
+        self.z0 = z0
+        self.width = width
+        self.row0 = row0
+        self.col0 = col0
+        self._frames, self._means, self._nearest = frames, means, nearest
+        self._frame_rows, self._frame_cols = frame_rows, frame_cols
+        self._phases: dict[tuple[int, int], list[list[NDArray[np.int32]]]] = {}
 
     def position(self, k: Array, r: Array, c: Array) -> Array:
         """Reference-frame points (..., 3) of voxel indices."""
@@ -174,6 +196,34 @@ class SweepVolume:
         r = np.rint(P[..., 1] / dy).astype(np.int64) - self.row0
         k = np.rint((P[..., 2] - self.z0) / dz).astype(np.int64)
         return k, r, c
+
+    def intensity(
+        self, ks: NDArray[np.int64], rs: NDArray[np.int64], cs: NDArray[np.int64]
+    ) -> Array:
+        """Grey level minus frame mean of the voxel block ks × rs × cs (0 outside)."""
+        out = np.zeros((len(ks), len(rs), len(cs)))
+        H, W = self._frames.shape[1:]
+        for a, k in enumerate(ks):
+            j = self._nearest[k]
+            rows = rs - self._frame_rows[j]
+            cols = cs - self._frame_cols[j]
+            rok = (rows >= 0) & (rows < H)
+            cok = (cols >= 0) & (cols < W)
+            block = self._frames[j][np.ix_(rows[rok], cols[cok])].astype(float) - self._means[j]
+            out[a][np.ix_(rok, cok)] = block
+        return out
+
+    def phases(self, step_r: int, step_c: int) -> list[list[NDArray[np.int32]]]:
+        """The padded labels split by row and column residue: ``phases[i][j]`` holds rows
+        ``i::step_r`` and columns ``j::step_c``, contiguous (cached). A grid search with
+        these steps then reads one compact block per sample offset."""
+        key = (step_r, step_c)
+        if key not in self._phases:
+            self._phases[key] = [
+                [np.ascontiguousarray(self.padded[:, i::step_r, j::step_c]) for j in range(step_c)]
+                for i in range(step_r)
+            ]
+        return self._phases[key]
 
 
 def frame_offsets(sweep: Sweep, T_ee_us: Array | None) -> Array:
@@ -194,11 +244,14 @@ def frame_offsets(sweep: Sweep, T_ee_us: Array | None) -> Array:
     return se3.apply(se3.invert(T_base_us[ref]), T_base_us[:, :3, 3])
 
 
-def stack_sweep(sweep: Sweep, T_ee_us: Array | None, axial_scale: float = 1.0) -> SweepVolume:
+def stack_sweep(
+    sweep: Sweep, T_ee_us: Array | None, axial_scale: float = 1.0, margin: float = 0.0
+) -> SweepVolume:
     """Stack (or re-stack) a sweep into a labelled volume in its reference frame.
 
     ``axial_scale`` corrects the displayed axial spacing for the medium's true speed of
-    sound (c_medium / c_assumed).
+    sound (c_medium / c_assumed); ``margin`` (metres) is how far samples may reach past
+    the volume (the zero padding).
     """
     images = sweep.images
     n, H, W = images.shape
@@ -223,14 +276,19 @@ def stack_sweep(sweep: Sweep, T_ee_us: Array | None, axial_scale: float = 1.0) -
     col0, row0 = int(min(0, shift_c.min())), int(min(0, shift_r.min()))
     width = W - col0 + int(max(0, shift_c.max()))
     height = H - row0 + int(max(0, shift_r.max()))
-    labels = np.zeros((n_slices, height, width), dtype=np.int32)
-    intensity = np.zeros((n_slices, height, width), dtype=np.float32)
+    pad = tuple(int(np.ceil(margin / s)) + 1 for s in (dz, sy, sx))
+    pk, pr, pc = pad
+    padded = np.zeros((n_slices + 2 * pk, height + 2 * pr, width + 2 * pc), dtype=np.int32)
+    # "Brighter than the frame mean" for integer grey levels: at least floor(mean) + 1.
+    thresholds = np.floor(means).astype(np.int64) + 1
+    frame_rows, frame_cols = shift_r - row0, shift_c - col0
     for k, j in enumerate(nearest):
-        r0, c0 = shift_r[j] - row0, shift_c[j] - col0
-        frame = images[j]
-        labels[k, r0 : r0 + H, c0 : c0 + W] = np.where(frame > means[j], _BRIGHT, _DARK)
-        intensity[k, r0 : r0 + H, c0 : c0 + W] = frame - np.float32(means[j])
-    return SweepVolume(labels, intensity, (sx, sy, dz), z0, W, row0, col0)
+        r0, c0 = frame_rows[j] + pr, frame_cols[j] + pc
+        bright = images[j] >= min(thresholds[j], 256)
+        padded[k + pk, r0 : r0 + H, c0 : c0 + W] = _DARK + (_BRIGHT - _DARK) * bright
+    return SweepVolume(
+        padded, pad, (sx, sy, dz), z0, W, row0, col0, images, means, nearest, frame_rows, frame_cols
+    )
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -242,6 +300,16 @@ def _offsets_vox(vol: SweepVolume, P: Array) -> Array:
     return np.column_stack(
         [np.rint(P[:, 2] / dz), np.rint(P[:, 1] / dy), np.rint(P[:, 0] / dx)]
     ).astype(np.int64)
+
+
+def _padded_for(vol: SweepVolume, offsets: dict[str, Array]) -> tuple[NDArray[np.int32], tuple]:
+    """The volume's padded labels, if its margin covers the offsets, else a wider copy."""
+    need = np.max([np.abs(o).max(axis=0) for o in offsets.values()], axis=0)
+    if np.all(need < np.array(vol.pad)):
+        return vol.padded, vol.pad
+    extra = [(int(n) + 1 - p if n >= p else 0) for n, p in zip(need, vol.pad, strict=True)]
+    wider = np.pad(vol.padded, [(e, e) for e in extra])
+    return wider, tuple(p + e for p, e in zip(vol.pad, extra, strict=True))
 
 
 def score_candidates(
@@ -259,12 +327,11 @@ def score_candidates(
     voxel grid sees exactly the voxels the reference implementation looks up one by one.
     """
     off = {name: _offsets_vox(vol, P) for name, P in (("shell", shell), ("interior", interior))}
-    pad = int(max(np.abs(o).max() for o in off.values())) + 1
-    padded = np.pad(vol.labels, pad)  # outside the acquired volume = 0: excluded
+    padded, pad = _padded_for(vol, off)
     _, H, W = padded.shape
     strides = np.array([H * W, W, 1])
     flat = padded.ravel()
-    base = (candidates + pad) @ strides
+    base = (candidates + np.array(pad)) @ strides
     fractions = {}
     for name, o in off.items():
         sums = np.empty(len(base), dtype=np.int64)
@@ -275,6 +342,60 @@ def score_candidates(
             sums[s : s + 2048] = block.sum(axis=1, dtype=np.int64)
         valid = sums & 0xFFFF
         bright = sums >> 16
+        enough = (valid > 0) & (valid >= min_coverage * len(o))
+        fractions[name] = np.where(enough, bright / np.maximum(valid, 1), np.nan)
+    score = fractions["shell"] - fractions["interior"]
+    return np.where(np.isnan(score), -np.inf, score), fractions["shell"], fractions["interior"]
+
+
+def score_grid(
+    vol: SweepVolume,
+    start: tuple[int, int, int],
+    step: tuple[int, int, int],
+    count: tuple[int, int, int],
+    shell: Array,
+    interior: Array,
+    min_coverage: float = 0.0,
+) -> tuple[Array, Array, Array]:
+    """:func:`score_candidates` for a regular grid of candidates, (count) shaped.
+
+    Written for speed: for each sample offset the labels under every candidate form one
+    compact block of a phase-split copy of the volume (:meth:`SweepVolume.phases`), so
+    the counts accumulate block by block with no index arrays (the exhaustive search then
+    costs one small vectorised add per sample).
+    """
+    off = {name: _offsets_vox(vol, P) for name, P in (("shell", shell), ("interior", interior))}
+    padded, pad = _padded_for(vol, off)
+    if padded is not vol.padded:  # samples reach past the margin: use a padded copy
+        vol = SweepVolume(
+            padded,
+            pad,
+            vol.spacing,
+            vol.z0,
+            vol.width,
+            vol.row0,
+            vol.col0,
+            vol._frames,
+            vol._means,
+            vol._nearest,
+            vol._frame_rows,
+            vol._frame_cols,
+        )
+    sk, sr, sc = step
+    nk, nr, nc = count
+    phases = vol.phases(sr, sc)
+    fractions = {}
+    for name, o in off.items():
+        acc = np.zeros(count, dtype=np.int32)
+        for dk, dr, dc in o:
+            k0 = start[0] + pad[0] + dk
+            r0 = start[1] + pad[1] + dr
+            c0 = start[2] + pad[2] + dc
+            block = phases[r0 % sr][c0 % sc]
+            i0, j0 = r0 // sr, c0 // sc
+            acc += block[k0 : k0 + sk * nk : sk, i0 : i0 + nr, j0 : j0 + nc]
+        valid = acc & 0xFFFF
+        bright = acc >> 16
         enough = (valid > 0) & (valid >= min_coverage * len(o))
         fractions[name] = np.where(enough, bright / np.maximum(valid, 1), np.nan)
     score = fractions["shell"] - fractions["interior"]
@@ -348,17 +469,27 @@ class SweepLocalization:
     reason: str = ""
 
 
-def _candidate_grid(vol: SweepVolume, radius: float, grid: float) -> NDArray[np.int64]:
-    """Voxel indices (N, 3) of the 1 mm candidate grid over the sweep, starting one
-    radius below the face."""
+def _candidate_grid(
+    vol: SweepVolume, radius: float, grid: float
+) -> tuple[tuple[int, int, int], tuple[int, int, int], tuple[int, int, int]]:
+    """(start, step, count) in voxels of the 1 mm candidate grid over the sweep, starting
+    one radius below the face."""
     dx, dy, dz = vol.spacing
     K, H, W = vol.labels.shape
-    step = [max(1, int(np.rint(grid / s))) for s in (dz, dy, dx)]
-    k = np.arange(0, K, step[0])
-    r = np.arange(int(np.ceil(radius / dy)) - vol.row0, H, step[1])
-    c = np.arange(0, W, step[2])
-    kk, rr, cc = np.meshgrid(k, r, c, indexing="ij")
-    return np.column_stack([kk.ravel(), rr.ravel(), cc.ravel()])
+    step = tuple(max(1, int(np.rint(grid / s))) for s in (dz, dy, dx))
+    start = (0, max(int(np.ceil(radius / dy)) - vol.row0, 0), 0)
+    count = tuple(
+        max(0, -(-(n - s0) // st)) for n, s0, st in zip((K, H, W), start, step, strict=True)
+    )
+    return start, step, count
+
+
+def _search_grid(vol, radius, grid, shell, interior, min_coverage):
+    start, step, count = _candidate_grid(vol, radius, grid)
+    score, fs, fi = score_grid(vol, start, step, count, shell, interior, min_coverage)
+    i = np.unravel_index(int(np.argmax(score)), score.shape)
+    cv = np.array(start) + np.array(step) * np.array(i)
+    return cv, float(score[i]), float(fs[i]), float(fi[i])
 
 
 def _local_grid(
@@ -431,46 +562,59 @@ def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, f
     )
 
 
-def _refine_centre(
-    vol: SweepVolume, centre: Array, radius: float, band: tuple[float, float]
-) -> Array:
-    """Sub-voxel centre: least-squares fit of the known radius to the bright voxels of the
-    proximal shell band, weighted by their brightness above the frame mean (robust loss).
-    The band is re-selected around each new centre (a few rounds), so a grid seed a voxel
-    off does not bias which voxels are fitted."""
-    lo, hi = band
+def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
+    """Sub-voxel centre from the moments of the cap's echo.
+
+    The probe-facing cap is mirror-symmetric about the centre's lateral and elevational
+    coordinates, so the echo-weighted means of x and z over the cap give them; the top of
+    the cap (normal incidence, the strongest echo, seen in every nearby frame through the
+    slice thickness) lies one radius above the centre, so its echo-weighted depth plus R
+    gives y. A least-squares sphere fit would be pulled upwards instead: the elevation beam
+    smears that top echo over neighbouring frames and flattens the stacked cap. Weights are
+    grey levels above the frame mean; a few rounds re-centre the windows.
+    """
     dx, dy, dz = vol.spacing
     seed = np.asarray(centre, dtype=float)
     current = seed
+    K, H, W = vol.labels.shape
     for _ in range(_REFINE_ROUNDS):
-        span = np.array([hi / dz, hi / dy, hi / dx])
-        cv = np.array(vol.index(current), dtype=float)
-        ranges = [
-            np.arange(max(int(c - s) - 1, 0), min(int(c + s) + 2, n))
-            for c, s, n in zip(cv, span, vol.labels.shape, strict=True)
-        ]
-        kk, rr, cc = np.meshgrid(*ranges, indexing="ij")
-        P = vol.position(kk.astype(float), rr.astype(float), cc.astype(float)).reshape(-1, 3)
-        lab = vol.labels[kk, rr, cc].ravel()
-        w = vol.intensity[kk, rr, cc].ravel()
-        d = np.linalg.norm(P - current, axis=1)
-        keep = (lab == _BRIGHT) & (d >= lo) & (d <= hi) & (P[:, 1] <= current[1])
-        if keep.sum() < 20:
-            break
-        Pk, wk = P[keep], np.sqrt(np.maximum(w[keep], 0.0))
-        sol = least_squares(
-            lambda c, Pk=Pk, wk=wk: wk * (np.linalg.norm(Pk - c, axis=1) - radius) * 1e3,
-            current,
-            loss="soft_l1",
-            f_scale=0.2,
-            method="trf",
+        y_c = current[1]
+        k0, _, c0 = (int(v) for v in vol.index(current))
+        # Cap window: ±R laterally and in elevation, a band of ±R/2 about the cap's depth.
+        ks = np.arange(max(k0 - int(radius / dz) - 1, 0), min(k0 + int(radius / dz) + 2, K))
+        rs = np.arange(
+            max(int((y_c - 1.5 * radius) / dy) - vol.row0, 0),
+            min(int((y_c - 0.5 * radius) / dy) - vol.row0 + 1, H),
         )
-        moved = np.linalg.norm(sol.x - current)
-        current = sol.x
+        cs = np.arange(max(c0 - int(radius / dx) - 1, 0), min(c0 + int(radius / dx) + 2, W))
+        if not (len(ks) and len(rs) and len(cs)):
+            break
+        w = np.maximum(vol.intensity(ks, rs, cs), 0.0)
+        P = vol.position(
+            *np.meshgrid(ks.astype(float), rs.astype(float), cs.astype(float), indexing="ij")
+        )
+        d = np.linalg.norm(P - current, axis=-1)
+        w = np.where(np.abs(d - radius) <= 0.5 * radius, w, 0.0)
+        total = w.sum()
+        if total <= 0:
+            break
+        x_new = float((w * P[..., 0]).sum() / total)
+        z_new = float((w * P[..., 2]).sum() / total)
+        # Top of the cap: the column under (x, z) in the nearest frames.
+        top = (np.abs(P[..., 0] - x_new) <= max(dx, 0.25 * _MM)) & (
+            np.abs(P[..., 2] - z_new) <= 0.75 * dz
+        )
+        wt = np.where(top, w, 0.0)
+        if wt.sum() <= 0:
+            break
+        y_top = float((wt * P[..., 1]).sum() / wt.sum())
+        new = np.array([x_new, y_top + radius, z_new])
+        moved = np.linalg.norm(new - current)
+        current = new
         if moved < 1e-6:
             break
-    # A fit that wanders off the grid cell is not trusted.
-    if np.linalg.norm(current - seed) > 1.5 * max(dx, dy, dz, 1e-3):
+    # A refinement that wanders far from the grid seed is not trusted.
+    if np.linalg.norm(current - seed) > 2.0 * max(dx, dy, dz, _MM):
         return seed
     return current
 
@@ -497,14 +641,11 @@ def localize_sphere(
     grid = cfg.grid_mm * 1e-3
     shell = fibonacci_hemisphere(cfg.shell_samples) * radius
     interior = half_ball_samples(cfg.interior_samples, radius)
-    vols = [stack_sweep(s, T_ee_us, axial_scale) for s in sweeps]
+    vols = [stack_sweep(s, T_ee_us, axial_scale, margin=1.7 * radius) for s in sweeps]
     results = []
     for vol in vols:
-        results.append(
-            _best(vol, _candidate_grid(vol, radius, grid), shell, interior, cfg.min_coverage)
-        )
+        results.append(_search_grid(vol, radius, grid, shell, interior, cfg.min_coverage))
     radii = np.arange(0.0, 1.6 * radius, min(vols[0].spacing[:2]))
-    band = (0.9 * radius, 1.1 * radius)
     for _ in range(cfg.refinement_passes):
         ok = [i for i, r in enumerate(results) if r[1] >= cfg.min_score]
         if not ok:
@@ -513,7 +654,6 @@ def localize_sphere(
             [vols[i] for i in ok], [results[i][0] for i in ok], radii, cfg.shell_samples
         )
         inner, rise, fall = profile_bands(radii, profile, radius)
-        band = (rise, fall)
         shell_p = half_ball_samples(cfg.shell_samples, fall, rise)
         interior_p = half_ball_samples(cfg.interior_samples, inner)
         results = [
@@ -534,7 +674,7 @@ def localize_sphere(
             "" if accepted else (f"no sphere found: best score {score:.2f} < {cfg.min_score:.2f}")
         )
         if accepted and cfg.method == "refined":
-            centre = _refine_centre(vol, centre, radius, band)
+            centre = _refine_centre(vol, centre, radius)
         out.append(
             SweepLocalization(
                 sweep.target,
