@@ -599,7 +599,13 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         if total <= 0:
             break
         x_new = float((w * P[..., 0]).sum() / total)
-        z_new = float((w * P[..., 2]).sum() / total)
+        # Elevation from the top of the cap only (where the echo stands far above noise).
+        near_top = (np.abs(P[..., 0] - x_new) <= 0.5 * _MM) & (
+            np.abs(P[..., 1] - (y_c - radius)) <= 0.75 * _MM
+        )
+        z_new = _elevation_vertex(
+            np.where(near_top, w, 0.0), P, float((w * P[..., 2]).sum() / total), dz
+        )
         # Top of the cap: the column under (x, z) in the nearest frames.
         top = (np.abs(P[..., 0] - x_new) <= max(dx, 0.25 * _MM)) & (
             np.abs(P[..., 2] - z_new) <= 0.75 * dz
@@ -614,9 +620,30 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         if moved < 1e-6:
             break
     # A refinement that wanders far from the grid seed is not trusted.
-    if np.linalg.norm(current - seed) > 2.0 * max(dx, dy, dz, _MM):
+    if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _MM):
         return seed
     return current
+
+
+def _elevation_vertex(w: Array, P: Array, z_mean: float, dz: float) -> float:
+    """Sub-slice elevation of the cap: the vertex of the parabola through the brightest
+    slice's peak grey level and its two neighbours'.
+
+    Frames sit 1 mm apart while the cap's echo spans about a slice thickness, so a
+    weighted mean over slices is biased by where the centre falls between frames; the
+    peak grey level per slice is log-compressed (dB), in which a Gaussian beam profile is a
+    parabola, so its vertex is unbiased.
+    """
+    peaks = w.max(axis=(1, 2))  # per slice (axis 0 of the window)
+    k = int(np.argmax(peaks))
+    if k == 0 or k == len(peaks) - 1 or peaks[k] <= 0:
+        return z_mean
+    a, b, c = peaks[k - 1], peaks[k], peaks[k + 1]
+    denom = a - 2 * b + c
+    if denom >= 0:
+        return z_mean
+    shift = 0.5 * (a - c) / denom  # in slices, within (-0.5, 0.5)
+    return float(P[k, 0, 0, 2] + shift * dz)
 
 
 def localize_sphere(

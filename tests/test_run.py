@@ -1,0 +1,95 @@
+"""End to end on simulated scans with known ground truth (the CI regression of the
+calibration pipeline): quick.yaml, the all-errors-off sanity case, convergence from a bad
+coarse estimate, the speed-of-sound bias, and `uscal run` writing metrics.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bench.run import run
+from bench.scenario import load_scenario
+
+from .test_cli import uscal
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = ROOT / "scenarios" / "quick.yaml"
+ONE_SPHERE = ["protocol.spheres=[1]"]
+ALL_ERRORS_OFF = [
+    "robot.dh_error_scale=0",
+    "robot.joint_repeatability_deg=0",
+    "robot.encoder_noise_deg=0",
+    "phantom.tolerance_radius_mm=0",
+    "phantom.tolerance_position_mm=0",
+    "protocol.teaching_error_mm=0",
+    "imaging.noise_db=-200",
+]
+
+
+@pytest.fixture(scope="module")
+def quick_metrics():
+    return run(load_scenario(QUICK)).metrics
+
+
+def test_quick_end_to_end_meets_the_regression_limits(quick_metrics):
+    m = quick_metrics
+    loc = m["localization"]
+    assert loc["n_sweeps"] == 135  # 3 spheres × 45 poses
+    assert loc["n_rejected"] <= 5
+    assert loc["error_mm"]["median"] <= 0.2
+    single = m["calibration"]["single"]
+    assert single["true_error"]["image_mm"] <= 0.5
+    assert single["true_error"]["rotation_deg"] <= 0.6
+    assert single["n_retained"] >= 40
+    three = m["calibration"]["three"]
+    assert three["true_error"]["image_mm"] <= 0.5
+    # The coarse estimate really was coarse: calibration did the work.
+    assert m["calibration"]["coarse_error"]["rotation_deg"] > 2.0
+
+
+def test_metrics_have_the_documented_keys(quick_metrics):
+    m = quick_metrics
+    assert {"name", "seed"} <= set(m["scenario"])
+    assert {"n_sweeps", "n_rejected"} <= set(m["localization"])
+    assert {"median", "p95", "max"} <= set(m["localization"]["error_mm"])
+    for method in ("single", "three"):
+        c = m["calibration"][method]
+        assert {"rotation_deg", "translation_mm", "image_mm"} <= set(c["true_error"])
+        assert {"precision_mm", "accuracy_mm", "n_retained", "iterations"} <= set(c)
+    assert {"simulate", "localize", "calibrate", "total"} <= set(m["timing_s"])
+
+
+def test_all_error_sources_off_is_near_perfect():
+    m = run(load_scenario(QUICK, ONE_SPHERE + ALL_ERRORS_OFF)).metrics
+    assert m["calibration"]["single"]["true_error"]["image_mm"] <= 0.1
+
+
+def test_converges_from_a_bad_coarse_estimate(tmp_path):
+    out = tmp_path / "run"
+    r = uscal(
+        "run",
+        str(QUICK),
+        "--out",
+        str(out),
+        "--set",
+        "protocol.spheres=[1]",
+        "--set",
+        "calibration.initial_error_mm=10",
+        "--set",
+        "calibration.initial_error_deg=20",
+    )
+    assert r.returncode == 0, r.stderr
+    assert "single-marker" in r.stdout
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["calibration"]["coarse_error"]["rotation_deg"] > 10
+    single = m["calibration"]["single"]
+    assert single["true_error"]["image_mm"] <= 0.5
+    assert single["true_error"]["rotation_deg"] <= 0.6
+
+
+def test_speed_of_sound_correction_removes_a_real_bias():
+    off = run(load_scenario(QUICK, [*ONE_SPHERE, "imaging.sound_speed_correction=false"]))
+    err_off = off.metrics["calibration"]["single"]["true_error"]["image_mm"]
+    assert err_off > 0.3  # water at 20 °C: depths 3.9 % too large
