@@ -55,9 +55,12 @@ __all__ = [
 
 Array = NDArray[np.float64]
 
-# Label values of the stacked volume; bright samples add 1 to the valid count and
-# 1 << 16 to the bright count, so one integer sum yields both (see score_candidates).
-_OUTSIDE, _DARK, _BRIGHT = 0, 1, 1 + (1 << 16)
+# Label values of the stacked volume (int16): a sample adds 1 to the valid count, and a
+# bright one also _UNIT to the bright count, so one integer sum yields both (valid =
+# sum % _UNIT, bright = sum // _UNIT) for up to _UNIT - 1 samples per set.
+_UNIT = 512
+_OUTSIDE, _DARK, _BRIGHT = 0, 1, 1 + _UNIT
+MAX_SAMPLES = _UNIT - 1
 _GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 _REFINE_ROUNDS = 4
 _MM = 1e-3
@@ -80,10 +83,10 @@ class LocalizerConfig:
     )
     shell_samples: int = field(
         default=256,
-        metadata={"doc": "Fibonacci directions on the proximal shell.", "ge": 8, "le": 10000},
+        metadata={"doc": "Fibonacci directions on the proximal shell.", "ge": 8, "le": 511},
     )
     interior_samples: int = field(
-        default=256, metadata={"doc": "Samples in the proximal half-ball.", "ge": 8, "le": 10000}
+        default=256, metadata={"doc": "Samples in the proximal half-ball.", "ge": 8, "le": 511}
     )
     refinement_passes: int = field(
         default=2, metadata={"doc": "Radial-band refinement passes.", "ge": 0, "le": 10}
@@ -154,7 +157,7 @@ class SweepVolume:
 
     def __init__(
         self,
-        padded: NDArray[np.int32],
+        padded: NDArray[np.int16],
         pad: tuple[int, int, int],
         spacing: tuple[float, float, float],
         z0: float,
@@ -179,7 +182,6 @@ class SweepVolume:
         self.col0 = col0
         self._frames, self._means, self._nearest = frames, means, nearest
         self._frame_rows, self._frame_cols = frame_rows, frame_cols
-        self._phases: dict[tuple[int, int], list[list[NDArray[np.int32]]]] = {}
 
     def position(self, k: Array, r: Array, c: Array) -> Array:
         """Reference-frame points (..., 3) of voxel indices."""
@@ -212,18 +214,6 @@ class SweepVolume:
             block = self._frames[j][np.ix_(rows[rok], cols[cok])].astype(float) - self._means[j]
             out[a][np.ix_(rok, cok)] = block
         return out
-
-    def phases(self, step_r: int, step_c: int) -> list[list[NDArray[np.int32]]]:
-        """The padded labels split by row and column residue: ``phases[i][j]`` holds rows
-        ``i::step_r`` and columns ``j::step_c``, contiguous (cached). A grid search with
-        these steps then reads one compact block per sample offset."""
-        key = (step_r, step_c)
-        if key not in self._phases:
-            self._phases[key] = [
-                [np.ascontiguousarray(self.padded[:, i::step_r, j::step_c]) for j in range(step_c)]
-                for i in range(step_r)
-            ]
-        return self._phases[key]
 
 
 def frame_offsets(sweep: Sweep, T_ee_us: Array | None) -> Array:
@@ -278,14 +268,16 @@ def stack_sweep(
     height = H - row0 + int(max(0, shift_r.max()))
     pad = tuple(int(np.ceil(margin / s)) + 1 for s in (dz, sy, sx))
     pk, pr, pc = pad
-    padded = np.zeros((n_slices + 2 * pk, height + 2 * pr, width + 2 * pc), dtype=np.int32)
+    padded = np.zeros((n_slices + 2 * pk, height + 2 * pr, width + 2 * pc), dtype=np.int16)
     # "Brighter than the frame mean" for integer grey levels: at least floor(mean) + 1.
     thresholds = np.floor(means).astype(np.int64) + 1
     frame_rows, frame_cols = shift_r - row0, shift_c - col0
     for k, j in enumerate(nearest):
         r0, c0 = frame_rows[j] + pr, frame_cols[j] + pc
-        bright = images[j] >= min(thresholds[j], 256)
-        padded[k + pk, r0 : r0 + H, c0 : c0 + W] = _DARK + (_BRIGHT - _DARK) * bright
+        dst = padded[k + pk, r0 : r0 + H, c0 : c0 + W]
+        np.greater_equal(images[j], min(thresholds[j], 256), out=dst, casting="unsafe")
+        dst *= np.int16(_BRIGHT - _DARK)
+        dst += np.int16(_DARK)
     return SweepVolume(
         padded, pad, (sx, sy, dz), z0, W, row0, col0, images, means, nearest, frame_rows, frame_cols
     )
@@ -302,7 +294,7 @@ def _offsets_vox(vol: SweepVolume, P: Array) -> Array:
     ).astype(np.int64)
 
 
-def _padded_for(vol: SweepVolume, offsets: dict[str, Array]) -> tuple[NDArray[np.int32], tuple]:
+def _padded_for(vol: SweepVolume, offsets: dict[str, Array]) -> tuple[NDArray[np.int16], tuple]:
     """The volume's padded labels, if its margin covers the offsets, else a wider copy."""
     need = np.max([np.abs(o).max(axis=0) for o in offsets.values()], axis=0)
     if np.all(need < np.array(vol.pad)):
@@ -340,8 +332,7 @@ def score_candidates(
         for s in range(0, len(base), 2048):
             block = flat[base[s : s + 2048, None] + rel[None, :]]
             sums[s : s + 2048] = block.sum(axis=1, dtype=np.int64)
-        valid = sums & 0xFFFF
-        bright = sums >> 16
+        valid, bright = sums % _UNIT, sums // _UNIT
         enough = (valid > 0) & (valid >= min_coverage * len(o))
         fractions[name] = np.where(enough, bright / np.maximum(valid, 1), np.nan)
     score = fractions["shell"] - fractions["interior"]
@@ -359,10 +350,10 @@ def score_grid(
 ) -> tuple[Array, Array, Array]:
     """:func:`score_candidates` for a regular grid of candidates, (count) shaped.
 
-    Written for speed: for each sample offset the labels under every candidate form one
-    compact block of a phase-split copy of the volume (:meth:`SweepVolume.phases`), so
-    the counts accumulate block by block with no index arrays (the exhaustive search then
-    costs one small vectorised add per sample).
+    Written for speed: for each sample offset the labels under every candidate form a
+    strided view of the padded volume, so the counts accumulate view by view with no
+    index arrays (the exhaustive search costs one vectorised add per sample; a phase-split
+    copy that makes those views contiguous cost more to build than it saved).
     """
     off = {name: _offsets_vox(vol, P) for name, P in (("shell", shell), ("interior", interior))}
     padded, pad = _padded_for(vol, off)
@@ -383,7 +374,7 @@ def score_grid(
         )
     sk, sr, sc = step
     nk, nr, nc = count
-    phases = vol.phases(sr, sc)
+    labels = vol.padded
     fractions = {}
     for name, o in off.items():
         acc = np.zeros(count, dtype=np.int32)
@@ -391,11 +382,8 @@ def score_grid(
             k0 = start[0] + pad[0] + dk
             r0 = start[1] + pad[1] + dr
             c0 = start[2] + pad[2] + dc
-            block = phases[r0 % sr][c0 % sc]
-            i0, j0 = r0 // sr, c0 // sc
-            acc += block[k0 : k0 + sk * nk : sk, i0 : i0 + nr, j0 : j0 + nc]
-        valid = acc & 0xFFFF
-        bright = acc >> 16
+            acc += labels[k0 : k0 + sk * nk : sk, r0 : r0 + sr * nr : sr, c0 : c0 + sc * nc : sc]
+        valid, bright = acc % _UNIT, acc // _UNIT
         enough = (valid > 0) & (valid >= min_coverage * len(o))
         fractions[name] = np.where(enough, bright / np.maximum(valid, 1), np.nan)
     score = fractions["shell"] - fractions["interior"]
@@ -526,7 +514,7 @@ def radial_profile(
         k, r, c = vol.index(P)
         K, H, W = vol.labels.shape
         inside = (k >= 0) & (k < K) & (r >= 0) & (r < H) & (c >= 0) & (c < W)
-        lab = np.zeros(P.shape[:2], dtype=np.int32)
+        lab = np.zeros(P.shape[:2], dtype=np.int16)
         lab[inside] = vol.labels[k[inside], r[inside], c[inside]]
         valid = (lab > 0).sum(axis=1)
         bright = (lab == _BRIGHT).sum(axis=1)
@@ -578,7 +566,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
     current = seed
     K, H, W = vol.labels.shape
     for _ in range(_REFINE_ROUNDS):
-        y_c = current[1]
+        x_c, y_c, z_c = current
         k0, _, c0 = (int(v) for v in vol.index(current))
         # Cap window: ±R laterally and in elevation, a band of ±R/2 about the cap's depth.
         ks = np.arange(max(k0 - int(radius / dz) - 1, 0), min(k0 + int(radius / dz) + 2, K))
@@ -589,31 +577,33 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         cs = np.arange(max(c0 - int(radius / dx) - 1, 0), min(c0 + int(radius / dx) + 2, W))
         if not (len(ks) and len(rs) and len(cs)):
             break
-        w = np.maximum(vol.intensity(ks, rs, cs), 0.0)
-        P = vol.position(
-            *np.meshgrid(ks.astype(float), rs.astype(float), cs.astype(float), indexing="ij")
+        # Coordinates are separable on the grid: keep them as three axes.
+        zs = vol.z0 + ks * dz
+        ys = (rs + vol.row0) * dy
+        xs = (cs + vol.col0 - (vol.width - 1) / 2) * dx
+        d = np.sqrt(
+            ((zs - z_c) ** 2)[:, None, None]
+            + ((ys - y_c) ** 2)[None, :, None]
+            + ((xs - x_c) ** 2)[None, None, :]
         )
-        d = np.linalg.norm(P - current, axis=-1)
-        w = np.where(np.abs(d - radius) <= 0.5 * radius, w, 0.0)
+        w = np.maximum(vol.intensity(ks, rs, cs), 0.0)
+        w[np.abs(d - radius) > 0.5 * radius] = 0.0
         total = w.sum()
         if total <= 0:
             break
-        x_new = float((w * P[..., 0]).sum() / total)
+        x_new = float(w.sum(axis=(0, 1)) @ xs / total)
+        z_mean = float(w.sum(axis=(1, 2)) @ zs / total)
         # Elevation from the top of the cap only (where the echo stands far above noise).
-        near_top = (np.abs(P[..., 0] - x_new) <= 0.5 * _MM) & (
-            np.abs(P[..., 1] - (y_c - radius)) <= 0.75 * _MM
-        )
-        z_new = _elevation_vertex(
-            np.where(near_top, w, 0.0), P, float((w * P[..., 2]).sum() / total), dz
-        )
+        near_x = np.abs(xs - x_new) <= 0.5 * _MM
+        near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _MM
+        z_new = _elevation_vertex(w[:, near_y][:, :, near_x], zs, z_mean, dz)
         # Top of the cap: the column under (x, z) in the nearest frames.
-        top = (np.abs(P[..., 0] - x_new) <= max(dx, 0.25 * _MM)) & (
-            np.abs(P[..., 2] - z_new) <= 0.75 * dz
-        )
-        wt = np.where(top, w, 0.0)
+        col = np.abs(xs - x_new) <= max(dx, 0.25 * _MM)
+        frames = np.abs(zs - z_new) <= 0.75 * dz
+        wt = w[frames][:, :, col].sum(axis=(0, 2))
         if wt.sum() <= 0:
             break
-        y_top = float((wt * P[..., 1]).sum() / wt.sum())
+        y_top = float(wt @ ys / wt.sum())
         new = np.array([x_new, y_top + radius, z_new])
         moved = np.linalg.norm(new - current)
         current = new
@@ -625,16 +615,19 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
     return current
 
 
-def _elevation_vertex(w: Array, P: Array, z_mean: float, dz: float) -> float:
+def _elevation_vertex(w: Array, zs: Array, z_mean: float, dz: float) -> float:
     """Sub-slice elevation of the cap: the vertex of the parabola through the brightest
-    slice's peak grey level and its two neighbours'.
+    slice's peak grey level and its two neighbours' (``w`` is (slices, ...), ``zs`` the
+    slices' elevations).
 
     Frames sit 1 mm apart while the cap's echo spans about a slice thickness, so a
     weighted mean over slices is biased by where the centre falls between frames; the
     peak grey level per slice is log-compressed (dB), in which a Gaussian beam profile is a
     parabola, so its vertex is unbiased.
     """
-    peaks = w.max(axis=(1, 2))  # per slice (axis 0 of the window)
+    if w.size == 0:
+        return z_mean
+    peaks = w.reshape(len(w), -1).max(axis=1)
     k = int(np.argmax(peaks))
     if k == 0 or k == len(peaks) - 1 or peaks[k] <= 0:
         return z_mean
@@ -643,7 +636,7 @@ def _elevation_vertex(w: Array, P: Array, z_mean: float, dz: float) -> float:
     if denom >= 0:
         return z_mean
     shift = 0.5 * (a - c) / denom  # in slices, within (-0.5, 0.5)
-    return float(P[k, 0, 0, 2] + shift * dz)
+    return float(zs[k] + shift * dz)
 
 
 def localize_sphere(
@@ -668,7 +661,9 @@ def localize_sphere(
     grid = cfg.grid_mm * 1e-3
     shell = fibonacci_hemisphere(cfg.shell_samples) * radius
     interior = half_ball_samples(cfg.interior_samples, radius)
-    vols = [stack_sweep(s, T_ee_us, axial_scale, margin=1.7 * radius) for s in sweeps]
+    # Samples reach at most the outer shell band (≈ 1.2 R); the radial profile and any
+    # wider sample set check bounds themselves.
+    vols = [stack_sweep(s, T_ee_us, axial_scale, margin=1.25 * radius) for s in sweeps]
     results = []
     for vol in vols:
         results.append(_search_grid(vol, radius, grid, shell, interior, cfg.min_coverage))

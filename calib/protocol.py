@@ -197,15 +197,11 @@ def plan_sweeps(
 
 
 def check_plan(robot: Robot, plan: Sequence[PlannedSweep]) -> None:
-    """Reachability and collision checks before any motion.
-
-    Each sweep is a short straight line, so its first, centre and last frame poses are
-    checked; the error names the sweep and frame that fails.
-    """
+    """Reachability and collision checks of every frame pose before any motion; the
+    error names the sweep and frame that fails."""
     for sweep in plan:
-        n = len(sweep.T_base_ee)
-        for j in sorted({0, n // 2, n - 1}):
-            robot.check_pose(sweep.T_base_ee[j], f"{sweep.target} sweep {sweep.pose_id} frame {j}")
+        for j, T in enumerate(sweep.T_base_ee):
+            robot.check_pose(T, f"{sweep.target} sweep {sweep.pose_id} frame {j}")
 
 
 def acquire(

@@ -1,0 +1,74 @@
+"""The acquisition plan and its checks, with the twin's robot."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.errors import CollisionError, UnreachablePoseError
+from calib.protocol import ProtocolConfig, check_plan, facing_pose, plan_sweeps
+from twin.phantoms import PhantomConfig
+from twin.robot import RobotConfig
+from twin.tools import ToolsConfig
+from twin.world import build_twin
+
+MM = 1e-3
+
+
+def twin():
+    r = np.random.default_rng(0).spawn(3)
+    return build_twin(RobotConfig(dh_error_scale=0), ToolsConfig(), PhantomConfig(), *r)
+
+
+def test_plan_is_the_papers_45_sweeps():
+    t = twin()
+    cfg = ProtocolConfig()
+    T_ee_us = t.truth.T_ee_us
+    centre = t.truth.landmarks_base["sphere_1"]
+    taught = facing_pose(centre, 0.02) @ se3.invert(T_ee_us)
+    plan = plan_sweeps("sphere_1", taught, T_ee_us, cfg)
+    assert len(plan) == 45
+    assert {(p.orientation, p.position) for p in plan} == {
+        (k, m) for k in range(9) for m in range(5)
+    }
+    for p in plan:
+        T_us = p.T_base_ee @ T_ee_us
+        assert len(T_us) == 21
+        # 1 mm steps along the image's elevational axis, ±10 mm.
+        steps = np.diff(T_us[:, :3, 3], axis=0)
+        np.testing.assert_allclose(np.linalg.norm(steps, axis=1), 1 * MM, atol=1e-12)
+        np.testing.assert_allclose(steps / MM, np.tile(T_us[0, :3, 2], (20, 1)), atol=1e-9)
+        # The sphere stays on the image plane region near its target depth.
+        p_us = se3.apply(se3.invert(T_us[10]), centre)
+        assert (
+            abs(p_us[2]) < 1e-9 and np.hypot(p_us[0], p_us[1] - 0.02) <= 3 * np.sqrt(2) * MM + 1e-9
+        )
+    # The orientations are the nominal one and the (±10°)³ extrinsic x-y-z corners.
+    corners = [np.zeros(3)] + [10.0 * np.array(s) for s in itertools.product((-1, 1), repeat=3)]
+    expected = sorted(
+        np.degrees(se3.rotation_angle(np.eye(3), se3.matrix_from_euler(np.radians(c))))
+        for c in corners
+    )
+    got = sorted(
+        np.degrees(se3.rotation_angle(plan[0].T_base_ee[10], p.T_base_ee[10]))
+        for p in plan
+        if p.position == 0
+    )
+    np.testing.assert_allclose(got, expected, atol=1e-9)
+
+
+def test_check_plan_names_the_failing_pose():
+    t = twin()
+    T_ee_us = t.truth.T_ee_us
+    centre = t.truth.landmarks_base["sphere_1"]
+    # Taught so deep that the probe would sit inside the sphere.
+    taught = facing_pose(centre, 0.002) @ se3.invert(T_ee_us)
+    cfg = ProtocolConfig(target_depth_mm=2.0)
+    with pytest.raises(CollisionError, match=r"sphere_1 sweep \d+ frame \d+ .* into sphere_1"):
+        check_plan(t.robot, plan_sweeps("sphere_1", taught, T_ee_us, cfg))
+    far = se3.make(np.eye(3), [0.9, 0.0, 0.1]) @ taught
+    with pytest.raises(UnreachablePoseError, match=r"sphere_1 sweep 0 frame 0"):
+        check_plan(t.robot, plan_sweeps("sphere_1", far, T_ee_us, ProtocolConfig()))
