@@ -141,7 +141,6 @@ def run(scenario: Scenario) -> RunResult:
             acq.T_ee_us_coarse,
             cal.max_alternations,
         )
-    t_cal_total = time.perf_counter() - t_start - t_sim
 
     # Localization error of the final single-marker localizations vs the true centres.
     errors, n_sweeps, n_rejected = [], 0, 0
@@ -191,7 +190,6 @@ def run(scenario: Scenario) -> RunResult:
             "total": time.perf_counter() - t_start,
         },
     }
-    del t_cal_total
     if three is not None:
         metrics["calibration"]["three"] = _calibration_metrics(
             scenario, acq, truth, three, targets[:3], targets[3:], radius, scale, loc_cfg
