@@ -304,6 +304,20 @@ def _padded_for(vol: SweepVolume, offsets: dict[str, Array]) -> tuple[NDArray[np
     return wider, tuple(p + e for p, e in zip(vol.pad, extra, strict=True))
 
 
+def _bright_fraction(sums: NDArray[np.integer], n_samples: int, min_coverage: float) -> Array:
+    """Bright share of the valid samples from encoded label sums; NaN where fewer than
+    ``min_coverage`` of the ``n_samples`` (or none) were inside the volume."""
+    valid, bright = sums % _UNIT, sums // _UNIT
+    enough = (valid > 0) & (valid >= min_coverage * n_samples)
+    return np.where(enough, bright / np.maximum(valid, 1), np.nan)
+
+
+def _contrast(fractions: dict[str, Array]) -> tuple[Array, Array, Array]:
+    """(score, f_shell, f_interior): score = f_shell − f_interior, −inf where undefined."""
+    score = fractions["shell"] - fractions["interior"]
+    return np.where(np.isnan(score), -np.inf, score), fractions["shell"], fractions["interior"]
+
+
 def score_candidates(
     vol: SweepVolume,
     candidates: NDArray[np.int64],
@@ -332,11 +346,8 @@ def score_candidates(
         for s in range(0, len(base), 2048):
             block = flat[base[s : s + 2048, None] + rel[None, :]]
             sums[s : s + 2048] = block.sum(axis=1, dtype=np.int64)
-        valid, bright = sums % _UNIT, sums // _UNIT
-        enough = (valid > 0) & (valid >= min_coverage * len(o))
-        fractions[name] = np.where(enough, bright / np.maximum(valid, 1), np.nan)
-    score = fractions["shell"] - fractions["interior"]
-    return np.where(np.isnan(score), -np.inf, score), fractions["shell"], fractions["interior"]
+        fractions[name] = _bright_fraction(sums, len(o), min_coverage)
+    return _contrast(fractions)
 
 
 def score_grid(
@@ -383,11 +394,8 @@ def score_grid(
             r0 = start[1] + pad[1] + dr
             c0 = start[2] + pad[2] + dc
             acc += labels[k0 : k0 + sk * nk : sk, r0 : r0 + sr * nr : sr, c0 : c0 + sc * nc : sc]
-        valid, bright = acc % _UNIT, acc // _UNIT
-        enough = (valid > 0) & (valid >= min_coverage * len(o))
-        fractions[name] = np.where(enough, bright / np.maximum(valid, 1), np.nan)
-    score = fractions["shell"] - fractions["interior"]
-    return np.where(np.isnan(score), -np.inf, score), fractions["shell"], fractions["interior"]
+        fractions[name] = _bright_fraction(acc, len(o), min_coverage)
+    return _contrast(fractions)
 
 
 def score_candidates_reference(
