@@ -274,10 +274,9 @@ def stack_sweep(
     frame_rows, frame_cols = shift_r - row0, shift_c - col0
     for k, j in enumerate(nearest):
         r0, c0 = frame_rows[j] + pr, frame_cols[j] + pc
-        dst = padded[k + pk, r0 : r0 + H, c0 : c0 + W]
-        np.greater_equal(images[j], min(thresholds[j], 256), out=dst, casting="unsafe")
-        dst *= np.int16(_BRIGHT - _DARK)
-        dst += np.int16(_DARK)
+        # One table lookup per pixel: grey level → dark/bright label of this frame.
+        lut = np.where(np.arange(256) >= thresholds[j], _BRIGHT, _DARK).astype(np.int16)
+        np.take(lut, images[j], out=padded[k + pk, r0 : r0 + H, c0 : c0 + W])
     return SweepVolume(
         padded, pad, (sx, sy, dz), z0, W, row0, col0, images, means, nearest, frame_rows, frame_cols
     )
@@ -287,11 +286,13 @@ def stack_sweep(
 
 
 def _offsets_vox(vol: SweepVolume, P: Array) -> Array:
-    """Sample offsets (m, 3) in metres → integer voxel offsets (m, 3) as (k, r, c)."""
+    """Sample offsets (m, 3) in metres → integer voxel offsets (m, 3) as (k, r, c), in
+    memory order (consecutive lookups then touch neighbouring cache lines)."""
     dx, dy, dz = vol.spacing
-    return np.column_stack(
+    o = np.column_stack(
         [np.rint(P[:, 2] / dz), np.rint(P[:, 1] / dy), np.rint(P[:, 0] / dx)]
     ).astype(np.int64)
+    return o[np.lexsort((o[:, 2], o[:, 1], o[:, 0]))]
 
 
 def _padded_for(vol: SweepVolume, offsets: dict[str, Array]) -> tuple[NDArray[np.int16], tuple]:
