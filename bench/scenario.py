@@ -33,6 +33,9 @@ from calib.protocol import ProtocolConfig, facing_pose, orientation_offsets, rot
 from calib.settings import CalibrationConfig, EvaluationConfig, ReconstructionConfig
 from sim_us import MediumConfig, ProbeConfig
 from twin import PhantomConfig, RobotConfig, ToolsConfig
+from twin.ik import solve_ik
+from twin.phantoms import build_phantom, build_tank
+from twin.scene import Scene, SceneModel
 
 __all__ = [
     "SECTIONS",
@@ -376,8 +379,6 @@ def _check_consistency(s: Scenario) -> None:
 
 def _targets(s: Scenario) -> dict[str, np.ndarray]:
     """Imaging targets of the phantom in base (CAD at the true pose)."""
-    from twin.phantoms import build_phantom
-
     phantom = build_phantom(s.phantom)
     marks = phantom.landmarks_in(s.phantom.T_base_phantom)
     keep = {"spheres": "sphere_", "cone": "apex", "prism": "ridge_"}[s.phantom.kind]
@@ -391,10 +392,6 @@ def check_geometry(s: Scenario) -> None:
     every target at the protocol's nine orientations (nominal inverse kinematics within joint
     limits) without the true arm or tool hitting the phantom or tank at the nominal ones.
     """
-    from twin.ik import solve_ik
-    from twin.phantoms import build_phantom, build_tank
-    from twin.scene import Scene, SceneModel
-
     src, p = s.source, s.phantom
     phantom = build_phantom(p)
     tank = build_tank(p)
