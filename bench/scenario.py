@@ -54,7 +54,6 @@ class OutputConfig:
     """Where and what a run writes."""
 
     dir: str = field(default="out", metadata={"doc": "Output directory of a run."})
-    rrd: bool = field(default=True, metadata={"doc": "Write a rerun recording of the run."})
 
 
 #: Scenario sections in file order and the settings class each maps onto.

@@ -85,11 +85,20 @@ class ProtocolConfig:
         },
     )
     touches_per_vertex: int = field(
-        default=6, metadata={"doc": "Stylus touches per cone vertex.", "ge": 1, "le": 50}
+        default=6,
+        metadata={
+            "doc": "Stylus touches per cone vertex (touch stage, to come).",
+            "ge": 1,
+            "le": 50,
+        },
     )
     touch_tilt_deg: float = field(
         default=20.0,
-        metadata={"doc": "Tilt of the stylus from vertical across the touches.", "ge": 0, "le": 60},
+        metadata={
+            "doc": "Tilt of the stylus from vertical across the touches (touch stage, to come).",
+            "ge": 0,
+            "le": 60,
+        },
     )
 
 

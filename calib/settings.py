@@ -36,7 +36,7 @@ class CalibrationConfig:
 
 @dataclass(frozen=True)
 class EvaluationConfig:
-    """Cross-validation of the paper (Tables I and II)."""
+    """Cross-validation of the paper (Tables I and II); read by the evaluation stage (to come)."""
 
     datasets: tuple[str, ...] = field(
         default=("A", "B", "C"), metadata={"doc": "Independent acquisitions (leave-one-out DH)."}
@@ -52,7 +52,7 @@ class EvaluationConfig:
 
 @dataclass(frozen=True)
 class ReconstructionConfig:
-    """Cone and prism reconstruction with ICP (Table III)."""
+    """Cone and prism reconstruction with ICP (Table III); read by a stage to come."""
 
     central_frames: int = field(
         default=10, metadata={"doc": "Central frames of each sweep used.", "ge": 1, "le": 401}

@@ -64,7 +64,10 @@ def write(tmp_path, text):
             r"protocol\.frames_per_sweep = 2\.5: expected "
             r"an integer",
         ),
-        ("output:\n  rrd: 1\n", r"output\.rrd = 1: expected true or false"),
+        (
+            "imaging:\n  sound_speed_correction: 1\n",
+            r"sound_speed_correction = 1: expected true or false",
+        ),
         (
             "tools:\n  stylus_tip_mm: [1, 2]\n",
             r"tools\.stylus_tip_mm = \[1, 2\]: expected 3 "

@@ -60,7 +60,7 @@ class ToolsConfig:
     contact_noise_mm: float = field(
         default=0.2,
         metadata={
-            "doc": "Touch contact noise (1 σ per axis) of the true tip on a vertex.",
+            "doc": "Touch contact noise (1 σ per axis) of the true tip (touch stage, to come).",
             "ge": 0,
             "le": 5,
         },
