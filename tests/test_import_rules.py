@@ -17,8 +17,9 @@ THIRD_PARTY_ONLY_IN = {
     "cv2": {"hw"},
 }
 # calib and sim_us may use only these third-party packages (sim_us also embreex, the
-# Embree binding trimesh itself uses for ray casting).
-SCIENTIFIC = {"numpy", "scipy", "skimage", "trimesh"}
+# Embree binding trimesh itself uses for ray casting; numba compiles the localizer's
+# search kernel).
+SCIENTIFIC = {"numpy", "numba", "scipy", "skimage", "trimesh"}
 # twin and hw may use only these calib modules (pure maths, records, errors).
 CALIB_SHARED = {"calib.se3", "calib.records", "calib.errors", "calib.dh"}
 
