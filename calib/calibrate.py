@@ -225,20 +225,10 @@ def _solve(obs, targets, cad_centres, T0):
         # Phantom pose start: align the CAD centres to the centroids under T0 (Kabsch).
         X0 = reconstruct(obs, T0)
         centroids = np.array([X0[g].mean(axis=0) for g in groups])
-        x0[6:12] = se3.log(_kabsch(C_cad, centroids))
+        x0[6:12] = se3.log(se3.kabsch(C_cad, centroids))
     sol = least_squares(residuals, x0, method="trf", x_scale="jac")
     T_base_phantom = se3.exp(sol.x[6:12]) if multi else None
     return sol, T_base_phantom
-
-
-def _kabsch(P: Array, Q: Array) -> Array:
-    """Rigid transform (4, 4) best mapping points P onto Q (least squares)."""
-    p0, q0 = P.mean(axis=0), Q.mean(axis=0)
-    H = (P - p0).T @ (Q - q0)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.linalg.det(Vt.T @ U.T)])
-    R = Vt.T @ D @ U.T
-    return se3.make(R, q0 - R @ p0)
 
 
 @dataclass(frozen=True, eq=False)

@@ -110,6 +110,16 @@ class LocalizerConfig:
             "le": 1,
         },
     )
+    relocalize_window_mm: float = field(
+        default=3.0,
+        metadata={
+            "doc": "After a calibration update, each sweep is re-stacked and searched ± "
+            "this around its previous centre (the whole grid again when the best "
+            "candidate lies on the window's edge, or the sweep had no centre).",
+            "gt": 0,
+            "le": 20,
+        },
+    )
     min_score: float = field(
         default=0.2,
         metadata={
@@ -593,7 +603,7 @@ def _local_window(
         half = int(np.rint(window / s))
         ax = np.arange(centre - half, centre + half + 1, st)
         ax = ax[(ax >= 0) & (ax < size)]
-        start.append(int(ax[0]))
+        start.append(int(ax[0]) if len(ax) else 0)
         count.append(len(ax))
     return tuple(start), step, tuple(count)
 
@@ -734,12 +744,42 @@ def _elevation_vertex(w: Array, zs: Array, z_mean: float, dz: float) -> float:
     return float(zs[k] + shift * dz)
 
 
+def _on_window_edge(index: tuple[int, ...], start, count, full_start, full_count, step) -> bool:
+    """Whether a window's best candidate lies on an edge of the window that is not also an
+    edge of the whole candidate grid (the peak may then lie outside the window)."""
+    for i, s0, n, fs, fn, st in zip(index, start, count, full_start, full_count, step, strict=True):
+        last = s0 + st * (n - 1)
+        if i == 0 and s0 - st >= fs:
+            return True
+        if i == n - 1 and last + st <= fs + st * (fn - 1):
+            return True
+    return False
+
+
+def _seed_search(vol, radius, grid, shell, interior, cfg, previous):
+    """The exhaustive search, or around a previous centre when there is one."""
+    full_start, step, full_count = _candidate_grid(vol, radius, grid)
+    if previous is not None and previous.accepted:
+        k, r, c = (int(v) for v in vol.index(previous.centre))
+        start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
+        start = tuple(max(s0, fs) for s0, fs in zip(start, full_start, strict=True))
+        if all(n > 0 for n in count):
+            best = _best_on_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
+            index = tuple(int(v) for v in (best[0] - np.array(start)) // np.array(step))
+            if np.isfinite(best[1]) and not _on_window_edge(
+                index, start, count, full_start, full_count, step
+            ):
+                return best
+    return _best_on_grid(vol, full_start, step, full_count, shell, interior, cfg.min_coverage)
+
+
 def localize_sphere(
     sweeps: Sequence[Sweep],
     T_ee_us: Array | None,
     radius: float,
     cfg: LocalizerConfig,
     axial_scale: float = 1.0,
+    previous: Sequence[SweepLocalization] | None = None,
 ) -> list[SweepLocalization]:
     """Localize one sphere in each of its sweeps (centres in each sweep's reference frame).
 
@@ -752,18 +792,23 @@ def localize_sphere(
         The sphere radius: the only geometric prior.
     axial_scale : float
         c_medium / c_assumed (1 when the speed-of-sound correction is off).
+    previous : the sweeps' localizations before this re-stack, if any
+        Each sweep is then searched within ``relocalize_window_mm`` of its previous centre
+        (falling back to the whole grid as described there).
     """
     grid = cfg.grid_mm * 1e-3
     shell = fibonacci_hemisphere(cfg.shell_samples) * radius
     interior = half_ball_samples(cfg.interior_samples, radius)
+    if previous is not None and len(previous) != len(sweeps):
+        raise ValueError(f"{len(previous)} previous localizations for {len(sweeps)} sweeps")
     vols = []
     for s in sweeps:
         column_step = candidate_step((s.spacing[0], s.spacing[1], 1.0), grid)[2]
         vols.append(stack_sweep(s, T_ee_us, axial_scale, column_step))
-    results = []
-    for vol in vols:
-        start, step, count = _candidate_grid(vol, radius, grid)
-        results.append(_best_on_grid(vol, start, step, count, shell, interior, cfg.min_coverage))
+    results = [
+        _seed_search(vol, radius, grid, shell, interior, cfg, previous[i] if previous else None)
+        for i, vol in enumerate(vols)
+    ]
     radii = np.arange(0.0, 1.6 * radius, min(vols[0].spacing[:2]))
     for _ in range(cfg.refinement_passes):
         ok = [i for i, r in enumerate(results) if r[1] >= cfg.min_score]

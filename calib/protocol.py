@@ -1,15 +1,20 @@
-"""Multi-pose sphere acquisition (paper, "Multi-Pose Sphere Acquisition").
+"""Multi-pose sphere acquisition (paper, "Multi-Pose Sphere Acquisition") and touch
+measurements (paper, "Reference Target Localization and Kinematics Refinement").
 
 From a nominal pose facing a sphere, the plan is the nominal orientation plus the eight
 (±10°, ±10°, ±10°) corners about the probe axes (9 orientations), each crossed with the
 nominal and four (±3, ±3) mm in-plane positions (5 positions): 45 poses, each a ±10 mm
 elevational sweep of 21 frames. Rotations turn about the sphere centre so it stays in view.
+
+With the stylus mounted, each cone vertex is touched from several distinct orientations
+(the stylus tilted from vertical at evenly spread azimuths, turned about its own axis by
+turns); the controller's joint angles are recorded at each touch.
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -17,20 +22,24 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import se3
-from .records import RobotReading, Sweep, UsFrame
+from .records import RobotReading, Sweep, Touch, UsFrame
 
 __all__ = [
     "Imager",
     "PlannedSweep",
+    "PlannedTouch",
     "ProtocolConfig",
     "Robot",
+    "TouchGuide",
     "acquire",
+    "acquire_touches",
     "check_plan",
     "facing_pose",
     "in_plane_offsets",
     "orientation_offsets",
     "plan_sweeps",
     "rotated_about_target",
+    "touch_plan",
 ]
 
 Array = NDArray[np.float64]
@@ -87,15 +96,25 @@ class ProtocolConfig:
     touches_per_vertex: int = field(
         default=6,
         metadata={
-            "doc": "Stylus touches per cone vertex (touch stage, to come).",
+            "doc": "Stylus touches per cone vertex, each from its own orientation.",
             "ge": 1,
             "le": 50,
+        },
+    )
+    touch_spin_deg: float = field(
+        default=30.0,
+        metadata={
+            "doc": "Turn of the stylus about its own axis between touches (−, 0, +, …): "
+            "varies the wrist joints, which the DH refinement needs.",
+            "ge": 0,
+            "le": 90,
         },
     )
     touch_tilt_deg: float = field(
         default=20.0,
         metadata={
-            "doc": "Tilt of the stylus from vertical across the touches (touch stage, to come).",
+            "doc": "Tilt of the stylus from vertical; the touches of a vertex spread it over "
+            "evenly spaced azimuths.",
             "ge": 0,
             "le": 60,
         },
@@ -146,6 +165,19 @@ class Robot(Protocol):
 
     def check_pose(self, T_base_ee: NDArray[np.float64], pose_label: str = "") -> None:
         """Raise UnreachablePoseError / CollisionError if the pose cannot be reached safely."""
+        ...
+
+    def read(self) -> RobotReading:
+        """The controller's current joint angles and flange pose (no motion)."""
+        ...
+
+
+class TouchGuide(Protocol):
+    """Who brings the stylus tip onto a vertex: an operator hand-guiding the real arm, or
+    the twin's emulation of one (which places the true tip on the true vertex)."""
+
+    def place(self, vertex: str, index: int, R_base_ee: NDArray[np.float64]) -> None:
+        """Put the tip on ``vertex`` with the flange at (about) orientation ``R_base_ee``."""
         ...
 
 
@@ -211,6 +243,70 @@ def check_plan(robot: Robot, plan: Sequence[PlannedSweep]) -> None:
     for sweep in plan:
         for j, T in enumerate(sweep.T_base_ee):
             robot.check_pose(T, f"{sweep.target} sweep {sweep.pose_id} frame {j}")
+
+
+@dataclass(frozen=True)
+class PlannedTouch:
+    """One touch of the plan: a vertex and the flange orientation to touch it from."""
+
+    vertex: str
+    index: int
+    R_base_ee: NDArray[np.float64]  # (3, 3)
+
+
+def touch_plan(
+    vertices: Sequence[str],
+    cfg: ProtocolConfig,
+    lean: Mapping[str, ArrayLike] | None = None,
+) -> list[PlannedTouch]:
+    """``touches_per_vertex`` orientations per vertex.
+
+    The flange points down (its z axis, along which the stylus runs, along −z of base),
+    tilted by ``touch_tilt_deg`` so the top of the stylus leans towards evenly spread
+    horizontal directions, and turned about its own axis by −spin, 0, +spin in turn. The
+    heading stays, so the wrist does not wind up. ``lean[vertex]`` (a horizontal direction
+    in base, e.g. towards the phantom's middle, away from the tank walls) keeps the lean
+    directions within ±90° of it; without it they go all round.
+    """
+    n = cfg.touches_per_vertex
+    R_down = np.diag([1.0, -1.0, -1.0])
+    tilt = np.radians(cfg.touch_tilt_deg)
+    plan = []
+    for vertex in vertices:
+        if lean is not None and vertex in lean:
+            d = np.asarray(lean[vertex], dtype=float)
+            centre = np.arctan2(d[1], d[0])
+            azimuths = centre + np.pi * (np.arange(n) / max(n - 1, 1) - 0.5)
+        else:
+            azimuths = 2 * np.pi * np.arange(n) / n
+        for k, azimuth in enumerate(azimuths):
+            towards = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+            spin = np.radians(cfg.touch_spin_deg) * ((k % 3) - 1)
+            R = (
+                se3.matrix_from_rotvec(tilt * np.cross([0.0, 0.0, 1.0], towards))
+                @ R_down
+                @ se3.matrix_from_euler(np.array([0.0, 0.0, spin]))
+            )
+            plan.append(PlannedTouch(vertex, k, R))
+    return plan
+
+
+def acquire_touches(
+    robot: Robot,
+    guide: TouchGuide,
+    plan: Sequence[PlannedTouch],
+    on_touch: Callable[[PlannedTouch], None] | None = None,
+) -> list[Touch]:
+    """For each planned touch: the guide brings the tip onto the vertex, then the
+    controller's joint angles and flange pose are recorded."""
+    touches = []
+    for planned in plan:
+        guide.place(planned.vertex, planned.index, planned.R_base_ee)
+        reading = robot.read()
+        touches.append(Touch(planned.vertex, planned.index, reading.q, reading.T_base_ee))
+        if on_touch is not None:
+            on_touch(planned)
+    return touches
 
 
 def acquire(

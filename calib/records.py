@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Dataset", "RobotReading", "Sweep", "UsFrame"]
+__all__ = ["Dataset", "RobotReading", "Sweep", "Touch", "UsFrame"]
 
 Array = NDArray[np.float64]
 
@@ -84,6 +84,28 @@ class Sweep:
 
 
 @dataclass(frozen=True, eq=False)
+class Touch:
+    """One stylus touch of a cone vertex, as the controller reports it.
+
+    Attributes
+    ----------
+    vertex : str
+        The touched vertex (``vertex_1`` …).
+    index : int
+        Touch number at that vertex (its orientation in the touch plan).
+    q : (6,) float, radians
+        Reported joint angles with the tip on the vertex.
+    T_base_ee : (4, 4) float
+        Reported flange pose (controller's model).
+    """
+
+    vertex: str
+    index: int
+    q: Array
+    T_base_ee: Array
+
+
+@dataclass(frozen=True, eq=False)
 class Dataset:
     """Everything one acquisition produced.
 
@@ -91,6 +113,8 @@ class Dataset:
     ----------
     name : str
     sweeps : tuple of Sweep
+    touches : tuple of Touch
+        Stylus touches of the phantom's cone vertices (empty when none were taken).
     meta : dict
         Acquisition settings a reader needs (probe, medium temperature, ...).
     """
@@ -98,6 +122,7 @@ class Dataset:
     name: str
     sweeps: tuple[Sweep, ...]
     meta: dict[str, object] = field(default_factory=dict)
+    touches: tuple[Touch, ...] = ()
 
     def targets(self) -> list[str]:
         """Targets in order of first appearance."""

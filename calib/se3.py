@@ -22,6 +22,7 @@ __all__ = [
     "exp",
     "identity",
     "invert",
+    "kabsch",
     "log",
     "make",
     "matrix_from_euler",
@@ -221,3 +222,15 @@ def translation_distance(T_a: ArrayLike, T_b: ArrayLike) -> Array | float:
     T_b = np.asarray(T_b, dtype=float)
     dist = np.linalg.norm(T_a[..., :3, 3] - T_b[..., :3, 3], axis=-1)
     return float(dist) if dist.ndim == 0 else dist
+
+
+def kabsch(P: ArrayLike, Q: ArrayLike) -> Array:
+    """Rigid transform (4, 4) best mapping points P (n, 3) onto Q (n, 3) in least squares
+    (Kabsch: SVD of the cross-covariance, reflection excluded)."""
+    P = np.asarray(P, dtype=float)
+    Q = np.asarray(Q, dtype=float)
+    p0, q0 = P.mean(axis=0), Q.mean(axis=0)
+    U, _, Vt = np.linalg.svd((P - p0).T @ (Q - q0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return make(R, q0 - R @ p0)

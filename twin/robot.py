@@ -159,10 +159,15 @@ class SimRobot:
         self._q_true = np.radians(np.asarray(cfg.home_deg, dtype=float))
         self._q_reported = self._q_true.copy()
 
-    def _settle(self, q_cmd: Array, label: str) -> RobotReading:
+    def mount(self, scene: SceneModel) -> None:
+        """Change the tool: from now on collisions are checked in ``scene`` (the same arm
+        with another tool on the flange)."""
+        self.scene = scene
+
+    def _settle(self, q_cmd: Array, label: str, ignore: tuple[str, ...] = ()) -> RobotReading:
         q_true = q_cmd + self._rng.normal(0.0, 1.0, 6) * self._repeat
         if self.check_collisions:
-            contacts = self.scene.collisions(q_true)
+            contacts = self.scene.collisions(q_true, ignore)
             if contacts:
                 c = contacts[0]
                 raise CollisionError(
@@ -208,15 +213,34 @@ class SimRobot:
         Solves the inverse kinematics of the true arm; the controller then reports its own
         (nominal) view of where it is, which is what a taught pose records.
         """
-        q = solve_ik(
-            self.scene.scene.table, T_base_ee_true, self._q_reported, pose_label=pose_label
-        )
-        return self.move_joints(q)
+        return self.place_tool(T_base_ee_true, pose_label)
 
-    def move_joints(self, q: ArrayLike) -> RobotReading:
-        """Joint move to commanded angles ``q`` (6,), radians."""
+    def move_joints(self, q: ArrayLike, ignore: tuple[str, ...] = ()) -> RobotReading:
+        """Joint move to commanded angles ``q`` (6,), radians; contacts of the geoms named in
+        ``ignore`` are intended (a stylus tip on a vertex)."""
         q_cmd = np.asarray(q, dtype=float)
-        return self._settle(q_cmd, f"joints {np.round(np.degrees(q_cmd), 1).tolist()} deg")
+        return self._settle(
+            q_cmd, f"joints {np.round(np.degrees(q_cmd), 1).tolist()} deg", ignore
+        )
+
+    def place_tool(
+        self,
+        T_base_ee_true: ArrayLike,
+        pose_label: str = "",
+        ignore: tuple[str, ...] = (),
+        q_near: ArrayLike | None = None,
+    ) -> RobotReading:
+        """Emulate hand-guiding the arm until the *true* flange sits at a pose (inverse
+        kinematics of the true arm, on the branch nearest ``q_near``, default the current
+        configuration); the controller reports its own view of it."""
+        near = self._q_reported if q_near is None else np.asarray(q_near, dtype=float)
+        q = solve_ik(self.scene.scene.table, T_base_ee_true, near, pose_label=pose_label)
+        return self.move_joints(q, ignore)
+
+    @property
+    def home(self) -> Array:
+        """The start configuration (radians)."""
+        return np.radians(np.asarray(self.cfg.home_deg, dtype=float))
 
     def read(self) -> RobotReading:
         """Reported joint angles and the controller's (nominal-FK) flange pose."""

@@ -52,7 +52,11 @@ class ToolsConfig:
         metadata={"doc": "Radius of the holder between flange and probe.", "gt": 1, "le": 100},
     )
     stylus_tip_mm: tuple[float, float, float] = field(
-        default=(0.5, -0.3, 120.0), metadata={"doc": "True stylus tip offset in ee."}
+        default=(0.5, -0.3, 165.0),
+        metadata={
+            "doc": "True stylus tip offset in ee (about as long as the probe, so the arm "
+            "clears the tank walls)."
+        },
     )
     stylus_radius_mm: float = field(
         default=4.0, metadata={"doc": "Stylus shaft radius.", "gt": 0.5, "le": 30}
@@ -60,7 +64,7 @@ class ToolsConfig:
     contact_noise_mm: float = field(
         default=0.2,
         metadata={
-            "doc": "Touch contact noise (1 σ per axis) of the true tip (touch stage, to come).",
+            "doc": "Touch contact noise: 1 σ per axis of the true tip about the true vertex.",
             "ge": 0,
             "le": 5,
         },

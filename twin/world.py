@@ -6,7 +6,8 @@ and calibration never receive it; only evaluation compares estimates with it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,6 +63,20 @@ class Twin:
     robot: SimRobot
     phantom_cad: Phantom
     truth: GroundTruth
+    _scenes: dict[str, SceneModel] = field(default_factory=dict, repr=False)
+
+    def mount(self, tool: Literal["probe", "stylus"]) -> None:
+        """Put ``tool`` on the flange: the robot's collision checks use a scene with it
+        (built once per tool). The imager needs no change (it looks through the true
+        probe mount whenever the probe is on)."""
+        if not self._scenes:
+            self._scenes[self.scene.scene.tools.mounted] = self.scene
+        if tool not in self._scenes:
+            base = self.scene.scene
+            self._scenes[tool] = SceneModel(
+                replace(base, tools=replace(base.tools, mounted=tool))
+            )
+        self.robot.mount(self._scenes[tool])
 
 
 def build_twin(
