@@ -2,27 +2,47 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.protocol import PlannedSweep, acquire, check_plan, facing_pose, plan_sweeps
-from calib.records import Dataset, Sweep
+from calib.image import pixel_to_us
+from calib.protocol import (
+    PlannedSweep,
+    PlannedTouch,
+    acquire,
+    acquire_touches,
+    check_plan,
+    facing_pose,
+    plan_sweeps,
+    touch_plan,
+)
+from calib.records import Dataset, Sweep, Touch
 from calib.settings import CalibrationConfig
+from sim_us.materials import water_speed_m_s
 from twin.imager import SimImager
+from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
 from .scenario import Scenario
 
 __all__ = [
+    "DATASET_STREAMS",
     "RNG_STREAMS",
     "SimulatedAcquisition",
+    "axial_scale",
     "coarse_estimate",
+    "dataset_rngs",
+    "dataset_scenario",
+    "image_error_mm",
+    "image_points",
     "make_imager",
     "make_twin",
     "simulate_acquisition",
+    "simulate_touches",
     "stage_rngs",
 ]
 
@@ -36,8 +56,38 @@ def stage_rngs(scenario: Scenario) -> dict[str, np.random.Generator]:
     return dict(zip(RNG_STREAMS, scenario.rngs(len(RNG_STREAMS)), strict=True))
 
 
-def make_twin(scenario: Scenario) -> Twin:
-    """Build the twin of a scenario: truth drawn from its seed."""
+#: Streams of each dataset of the evaluation (new session: new joint, imaging, teaching
+#: and touch noise, new phantom placement; same robot, phantom print and probe mount).
+DATASET_STREAMS = ("joints", "imaging", "protocol", "touch_joints", "touch_contact", "placement")
+
+
+def dataset_rngs(scenario: Scenario, index: int) -> dict[str, np.random.Generator]:
+    """Per-dataset generators of the evaluation's ``index``-th dataset (independent of the
+    scenario's stage streams and of each other)."""
+    seq = np.random.SeedSequence(scenario.seed, spawn_key=(100 + index,))
+    return dict(zip(DATASET_STREAMS, np.random.default_rng(seq).spawn(6), strict=True))
+
+
+def dataset_scenario(scenario: Scenario, index: int) -> Scenario:
+    """The scenario of the evaluation's ``index``-th dataset: the first keeps the
+    phantom placement, later ones put it back up to ± ``placement_shift_mm`` off in x and
+    y and turned up to ± ``placement_rotation_deg`` about the vertical."""
+    if index == 0:
+        return scenario
+    ev = scenario.evaluation
+    rng = dataset_rngs(scenario, index)["placement"]
+    dx, dy = rng.uniform(-1, 1, 2) * ev.placement_shift_mm
+    dz_rot = rng.uniform(-1, 1) * ev.placement_rotation_deg
+    ph = scenario.phantom
+    x, y, z = ph.position_mm
+    rx, ry, rz = ph.rotation_deg
+    phantom = replace(ph, position_mm=(x + dx, y + dy, z), rotation_deg=(rx, ry, rz + dz_rot))
+    return replace(scenario, phantom=phantom)
+
+
+def make_twin(scenario: Scenario, joints_rng: np.random.Generator | None = None) -> Twin:
+    """Build the twin of a scenario: truth drawn from its seed (``joints_rng`` replaces
+    the joint-noise stream, e.g. for another dataset of the same robot)."""
     rngs = stage_rngs(scenario)
     return build_twin(
         scenario.robot,
@@ -45,18 +95,20 @@ def make_twin(scenario: Scenario) -> Twin:
         scenario.phantom,
         rngs["dh"],
         rngs["phantom"],
-        rngs["joints"],
+        rngs["joints"] if joints_rng is None else joints_rng,
     )
 
 
-def make_imager(scenario: Scenario, twin: Twin) -> SimImager:
+def make_imager(
+    scenario: Scenario, twin: Twin, rng: np.random.Generator | None = None
+) -> SimImager:
     """The simulated scanner of a scenario, looking through the twin's true probe mount."""
     return SimImager(
         twin.robot,
         twin.truth.T_ee_us,
         scenario.imaging,
         scenario.medium,
-        stage_rngs(scenario)["imaging"],
+        stage_rngs(scenario)["imaging"] if rng is None else rng,
     )
 
 
@@ -82,16 +134,49 @@ def coarse_estimate(
     return T_ee_us_true @ se3.make(se3.matrix_from_euler(dr), dt)
 
 
+def simulate_touches(
+    scenario: Scenario,
+    twin: Twin,
+    contact_rng: np.random.Generator,
+    on_touch: Callable[[PlannedTouch], None] | None = None,
+) -> list[Touch]:
+    """Mount the stylus and touch each cone vertex from the protocol's orientations.
+
+    The emulated operator leans the stylus towards the middle of the phantom (away from
+    the tank walls) and places the true tip on the true vertex, with contact noise.
+    """
+    vertices = {k: v for k, v in twin.truth.landmarks_base.items() if k.startswith("vertex_")}
+    middle = np.mean(list(vertices.values()), axis=0)
+    lean = {k: (middle - v) * np.array([1.0, 1.0, 0.0]) for k, v in vertices.items()}
+    plan = touch_plan(sorted(vertices), scenario.protocol, lean)
+    guide = SimTouchGuide(
+        twin.robot, vertices, twin.truth.p_ee_tip, scenario.tools.contact_noise_mm, contact_rng
+    )
+    twin.mount("stylus")
+    try:
+        return acquire_touches(twin.robot, guide, plan, on_touch)
+    finally:
+        twin.mount("probe")
+
+
 def simulate_acquisition(
-    scenario: Scenario, twin: Twin, imager: SimImager, name: str = "sim"
+    scenario: Scenario,
+    twin: Twin,
+    imager: SimImager,
+    name: str = "sim",
+    protocol_rng: np.random.Generator | None = None,
+    touches: Sequence[Touch] = (),
 ) -> SimulatedAcquisition:
     """Teach, plan, check and acquire the scenario's spheres with the twin.
 
     Teaching is emulated from the true scene: the true probe faces the sphere at the
     protocol's target depth, off by the teaching error; the robot records what its
-    controller reports there.
+    controller reports there. ``protocol_rng`` replaces the teaching-error stream;
+    ``touches`` go into the dataset as they are.
     """
     rngs = stage_rngs(scenario)
+    if protocol_rng is not None:
+        rngs["protocol"] = protocol_rng
     proto = scenario.protocol
     T_ee_us = twin.truth.T_ee_us
     coarse = coarse_estimate(T_ee_us, scenario.calibration, rngs["calibration"])
@@ -119,7 +204,37 @@ def simulate_acquisition(
         "sphere_radius_mm": scenario.phantom.sphere_radius_mm,
     }
     return SimulatedAcquisition(
-        Dataset(name, tuple(sweeps), meta),
+        Dataset(name, tuple(sweeps), meta, tuple(touches)),
         coarse,
         {k: np.array(v) for k, v in truth.items()},
     )
+
+
+def axial_scale(scenario: Scenario) -> float:
+    """c_medium / c_assumed when the speed-of-sound correction is on (the pipeline knows
+    the water temperature a user reads off a thermometer), else 1."""
+    if not scenario.imaging.sound_speed_correction:
+        return 1.0
+    if scenario.medium.kind == "water":
+        c = water_speed_m_s(scenario.medium.temperature_c)
+    else:
+        c = 1540.0
+    return c / scenario.imaging.assumed_speed_m_s
+
+
+def image_points(scenario: Scenario, n: int = 21) -> NDArray[np.float64]:
+    """An n × n grid of points (n², 3) covering the image, metres in the ``us`` frame."""
+    probe = scenario.imaging
+    spacing = (probe.width_mm * 1e-3 / (n - 1), probe.depth_mm * 1e-3 / (n - 1))
+    P = pixel_to_us(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), n, spacing)
+    return P.reshape(-1, 3)
+
+
+def image_error_mm(
+    scenario: Scenario, T_est: NDArray[np.float64], T_true: NDArray[np.float64]
+) -> float:
+    """Mean distance (mm) over a grid covering the image between each image point mapped
+    with the true and with the estimated ``T_ee_us``: the error a user sees."""
+    P = image_points(scenario)
+    d = np.linalg.norm(se3.apply(T_est, P) - se3.apply(T_true, P), axis=1)
+    return float(np.mean(d)) * 1e3

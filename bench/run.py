@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -12,49 +13,34 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibrate import AlternationResult, alternate, reconstruct
-from calib.image import pixel_to_us
 from calib.localize import localize_sphere
-from sim_us.materials import water_speed_m_s
 
-from .experiment import SimulatedAcquisition, make_imager, make_twin, simulate_acquisition
+from .evaluation import EvaluationResult, run_evaluation
+from .experiment import (
+    SimulatedAcquisition,
+    axial_scale,
+    image_error_mm,
+    make_imager,
+    make_twin,
+    simulate_acquisition,
+)
 from .scenario import Scenario
 
-__all__ = ["RunResult", "image_error_mm", "run"]
+__all__ = ["RunResult", "run"]
 
 Array = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)
 class RunResult:
-    """Metrics (the ``metrics.json`` content) and the objects they came from."""
+    """Metrics (the ``metrics.json`` content) and the objects they came from: one
+    acquisition with the controller's kinematics, or the paper's evaluation."""
 
     metrics: dict[str, Any]
-    acquisition: SimulatedAcquisition
-    single: AlternationResult
-    three: AlternationResult | None
-
-
-def axial_scale(scenario: Scenario) -> float:
-    """c_medium / c_assumed when the speed-of-sound correction is on (the pipeline knows
-    the water temperature a user reads off a thermometer), else 1."""
-    if not scenario.imaging.sound_speed_correction:
-        return 1.0
-    if scenario.medium.kind == "water":
-        c = water_speed_m_s(scenario.medium.temperature_c)
-    else:
-        c = 1540.0
-    return c / scenario.imaging.assumed_speed_m_s
-
-
-def image_error_mm(scenario: Scenario, T_est: Array, T_true: Array) -> float:
-    """Mean distance (mm) over a grid covering the image between each image point mapped
-    with the true and with the estimated ``T_ee_us``: the error a user sees."""
-    W = 21
-    probe = scenario.imaging
-    spacing = (probe.width_mm * 1e-3 / (W - 1), probe.depth_mm * 1e-3 / (W - 1))
-    P = pixel_to_us(*np.meshgrid(np.arange(W), np.arange(W), indexing="ij"), W, spacing)
-    P = P.reshape(-1, 3)
-    return float(np.mean(np.linalg.norm(se3.apply(T_est, P) - se3.apply(T_true, P), axis=1))) * 1e3
+    acquisition: SimulatedAcquisition | None = None
+    single: AlternationResult | None = None
+    three: AlternationResult | None = None
+    evaluation: EvaluationResult | None = None
 
 
 def _true_centre_in_sweep(acq, truth, target, sweep) -> Array:
@@ -105,8 +91,16 @@ def _calibration_metrics(
     }
 
 
-def run(scenario: Scenario) -> RunResult:
-    """The whole experiment of a scenario; returns metrics against ground truth."""
+def run(scenario: Scenario, progress: Callable[[str], None] | None = None) -> RunResult:
+    """The whole experiment of a scenario; returns metrics against ground truth.
+
+    With two or more ``evaluation.datasets`` this is the paper's experiment (touches,
+    leave-one-dataset-out DH refinement, folds, Tables I and II); otherwise one
+    acquisition calibrated with the controller's kinematics.
+    """
+    if len(scenario.evaluation.datasets) >= 2:
+        ev = run_evaluation(scenario, progress)
+        return RunResult(ev.metrics, evaluation=ev)
     t_start = time.perf_counter()
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)

@@ -24,8 +24,12 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench.experiment import make_imager, make_twin, simulate_acquisition  # noqa: E402
-from bench.run import axial_scale  # noqa: E402
+from bench.experiment import (  # noqa: E402
+    axial_scale,
+    make_imager,
+    make_twin,
+    simulate_acquisition,
+)
 from bench.scenario import load_scenario  # noqa: E402
 from calib.localize import (  # noqa: E402
     LocalizerConfig,

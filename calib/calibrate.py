@@ -35,7 +35,9 @@ __all__ = [
     "alternate",
     "calibrate",
     "linear_initialisation",
+    "outlier_limit",
     "reconstruct",
+    "robust_inliers",
 ]
 
 Array = NDArray[np.float64]
@@ -118,6 +120,29 @@ def linear_initialisation(obs: Sequence[Observation]) -> Array:
     return se3.make(R_X, sol2[:3])
 
 
+def outlier_limit(dist_mm: Array, floor_mm: float) -> float:
+    """Distance from the centroid beyond which a centre is an outlier:
+    ``max(floor_mm, 3 · 1.4826 · MAD)`` of the distances (a robust 3σ)."""
+    mad = float(np.median(np.abs(dist_mm - np.median(dist_mm)))) if len(dist_mm) else 0.0
+    return max(floor_mm, 3.0 * 1.4826 * mad)
+
+
+def robust_inliers(points: Array, floor_mm: float = 2.0) -> NDArray[np.bool_]:
+    """Centres (n, 3, metres) of one sphere that agree with their centroid: the outlier
+    test of :func:`calibrate`, repeated with the centroid of the retained ones until the
+    retained set settles."""
+    keep = np.ones(len(points), dtype=bool)
+    for _ in range(10):
+        if not keep.any():
+            break
+        d = np.linalg.norm(points - points[keep].mean(axis=0), axis=1) * _MM
+        new = d <= outlier_limit(d[keep], floor_mm)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return keep
+
+
 def _params_to_T(x: Array, T0: Array) -> Array:
     return se3.exp(x) @ T0
 
@@ -166,8 +191,7 @@ def calibrate(
             idx = np.array([i for i, o in enumerate(obs) if o.target == s])
             centroid = X[idx[keep[idx]]].mean(axis=0) if keep[idx].any() else X[idx].mean(axis=0)
             dist[idx] = np.linalg.norm(X[idx] - centroid, axis=1) * _MM
-        kept = dist[keep]
-        limit = max(outlier_mm, 3.0 * 1.4826 * float(np.median(np.abs(kept - np.median(kept)))))
+        limit = outlier_limit(dist[keep], outlier_mm)
         new_keep = dist <= limit
         for i in np.flatnonzero(keep & ~new_keep):
             reasons[f"{obs[i].target}/{obs[i].pose_id}"] = (
@@ -270,24 +294,34 @@ def alternate(
     max_iterations: int = 5,
     tol_mm: float = 0.01,
     tol_deg: float = 0.01,
+    initial: Mapping[str, Sequence[SweepLocalization]] | None = None,
 ) -> AlternationResult:
     """Localize → calibrate → re-stack with the new ``T_ee_us`` → re-localize, until the
     estimate changes by less than ``tol_mm`` and ``tol_deg`` or ``max_iterations``.
 
-    The first localization stacks at the robot-measured spacing and the first calibration
-    starts from the closed-form initialisation; ``T_coarse`` (the holder's CAD) is only a
-    fallback check: if the closed form lands far from it, a start from the coarse
-    estimate is tried too and the lower loss wins.
+    The first localization stacks at the robot-measured spacing (``initial`` may hand it
+    in, e.g. shared by several folds) and the first calibration starts from the
+    closed-form initialisation; ``T_coarse`` (the holder's CAD) is only a fallback check:
+    if the closed form lands far from it, a start from the coarse estimate is tried too
+    and the lower loss wins. Each re-localization searches around the previous centres.
     """
 
-    def localize_all(T: Array | None) -> tuple[dict[str, list[SweepLocalization]], float]:
+    def localize_all(
+        T: Array | None, previous: Mapping[str, Sequence[SweepLocalization | None]] | None
+    ) -> tuple[dict[str, list[SweepLocalization]], float]:
         t0 = time.perf_counter()
         out = {
-            t: localize_sphere(ss, T, radius, localizer, axial_scale) for t, ss in sweeps.items()
+            t: localize_sphere(
+                ss, T, radius, localizer, axial_scale, previous[t] if previous else None
+            )
+            for t, ss in sweeps.items()
         }
         return out, time.perf_counter() - t0
 
-    locs, t_localize = localize_all(None)
+    if initial is not None:
+        locs, t_localize = {t: list(initial[t]) for t in sweeps}, 0.0
+    else:
+        locs, t_localize = localize_all(None, None)
     history: list[dict[str, float]] = []
     T_prev: Array | None = None
     result = None
@@ -325,6 +359,18 @@ def alternate(
         if change_mm < tol_mm and change_deg < tol_deg:
             break
         T_prev = result.T_ee_us
-        locs, t_localize = localize_all(T_prev)
+        # Re-localize around the previous centres, except for sweeps the calibration
+        # rejected: their centre may be a false detection, so they get the whole grid.
+        rejected = {
+            (o.target, o.pose_id) for o, k in zip(obs, result.retained, strict=True) if not k
+        }
+        seeds = {
+            t: [
+                None if (t, s.pose_id) in rejected else loc
+                for s, loc in zip(sweeps[t], ls, strict=True)
+            ]
+            for t, ls in locs.items()
+        }
+        locs, t_localize = localize_all(T_prev, seeds)
     assert result is not None
     return AlternationResult(result, obs, used, history)

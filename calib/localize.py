@@ -212,14 +212,15 @@ class SweepVolume:
 
     def label_at(self, k: NDArray[np.int64], r: NDArray[np.int64], c: NDArray[np.int64]):
         """Labels of voxels (any shape of integer indices); 0 (outside) past the volume."""
-        K, H, W = self.shape
         k, r, c = np.broadcast_arrays(k, r, c)
-        inside = (k >= 0) & (k < K) & (r >= 0) & (r < H) & (c >= 0) & (c < W)
-        out = np.zeros(k.shape, dtype=self.split.dtype)
-        sc = self.column_step
-        ci = c[inside]
-        out[inside] = self.split[ci % sc, k[inside], r[inside], ci // sc]
-        return out
+        out = _gather_labels(
+            self.split,
+            np.ascontiguousarray(k, dtype=np.int64).ravel(),
+            np.ascontiguousarray(r, dtype=np.int64).ravel(),
+            np.ascontiguousarray(c, dtype=np.int64).ravel(),
+            self.shape[2],
+        )
+        return out.reshape(k.shape)
 
     def with_column_step(self, step: int) -> SweepVolume:
         """The same labels split for a different candidate column step."""
@@ -292,6 +293,18 @@ def candidate_step(spacing: tuple[float, float, float], grid: float) -> tuple[in
     """Candidate-grid step in voxels (k, r, c) for a grid spacing in metres."""
     dx, dy, dz = spacing
     return tuple(max(1, int(np.rint(grid / s))) for s in (dz, dy, dx))
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _gather_labels(split, k, r, c, width):  # pragma: no cover - compiled
+    """Labels at voxel indices (flat arrays) of a column-split volume, 0 outside."""
+    sc, K, H, _ = split.shape
+    out = np.zeros(k.shape[0], split.dtype)
+    for i in range(k.shape[0]):
+        ki, ri, ci = k[i], r[i], c[i]
+        if 0 <= ki < K and 0 <= ri < H and 0 <= ci < width:
+            out[i] = split[ci % sc, ki, ri, ci // sc]
+    return out
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -779,7 +792,7 @@ def localize_sphere(
     radius: float,
     cfg: LocalizerConfig,
     axial_scale: float = 1.0,
-    previous: Sequence[SweepLocalization] | None = None,
+    previous: Sequence[SweepLocalization | None] | None = None,
 ) -> list[SweepLocalization]:
     """Localize one sphere in each of its sweeps (centres in each sweep's reference frame).
 
@@ -793,8 +806,9 @@ def localize_sphere(
     axial_scale : float
         c_medium / c_assumed (1 when the speed-of-sound correction is off).
     previous : the sweeps' localizations before this re-stack, if any
-        Each sweep is then searched within ``relocalize_window_mm`` of its previous centre
-        (falling back to the whole grid as described there).
+        Each sweep with one is then searched within ``relocalize_window_mm`` of its
+        previous centre (falling back to the whole grid as described there); None entries
+        get the whole grid.
     """
     grid = cfg.grid_mm * 1e-3
     shell = fibonacci_hemisphere(cfg.shell_samples) * radius

@@ -36,10 +36,15 @@ class CalibrationConfig:
 
 @dataclass(frozen=True)
 class EvaluationConfig:
-    """Cross-validation of the paper (Tables I and II); read by the evaluation stage (to come)."""
+    """Touch reference, DH refinement and the paper's cross-validation (Tables I, II)."""
 
     datasets: tuple[str, ...] = field(
-        default=("A", "B", "C"), metadata={"doc": "Independent acquisitions (leave-one-out DH)."}
+        default=("A", "B", "C"),
+        metadata={
+            "doc": "Independent acquisitions (touches + sweeps, new phantom placement "
+            "each); each uses the DH model refined from the others' touches. Fewer than "
+            "two: no touches and no evaluation, the controller's kinematics are used."
+        },
     )
     dh_regularizer: float = field(
         default=0.01, metadata={"doc": "Weight of ‖z‖² in the touch loss.", "ge": 0, "le": 100}
@@ -47,6 +52,47 @@ class EvaluationConfig:
     initialisations: int = field(
         default=12,
         metadata={"doc": "Deterministic initialisations of the DH fit.", "ge": 1, "le": 100},
+    )
+    dh_bound: float = field(
+        default=10.0,
+        metadata={
+            "doc": "Bound of each scaled DH correction (° for Δθ, Δα; mm for Δd, Δa).",
+            "gt": 0,
+            "le": 90,
+        },
+    )
+    stylus_tip_cad_mm: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 165.0),
+        metadata={
+            "doc": "Stylus tip offset in ee from the stylus drawing: the fit's start value "
+            "(the fit estimates the true one)."
+        },
+    )
+    placement_shift_mm: float = field(
+        default=10.0,
+        metadata={
+            "doc": "Simulation: the phantom of each dataset after the first is put back "
+            "up to ± this off (x, y) from the scenario's placement.",
+            "ge": 0,
+            "le": 50,
+        },
+    )
+    placement_rotation_deg: float = field(
+        default=10.0,
+        metadata={
+            "doc": "Simulation: and turned up to ± this about the vertical.",
+            "ge": 0,
+            "le": 45,
+        },
+    )
+    workers: int = field(
+        default=0,
+        metadata={
+            "doc": "Processes running the datasets in parallel (0: one per core, at most "
+            "one per dataset).",
+            "ge": 0,
+            "le": 64,
+        },
     )
 
 

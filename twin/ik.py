@@ -15,11 +15,13 @@ kinematics for the Universal Robots UR-5/UR-10 arms" (2013).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calib import se3
-from calib.dh import DHTable, forward_kinematics, link_transform
+from calib.dh import DHTable, forward_kinematics
 from calib.errors import UnreachablePoseError
 
 __all__ = [
@@ -53,6 +55,7 @@ def describe_pose(T: ArrayLike) -> str:
     return f"(xyz [{xyz}] mm, rotvec [{rv}] deg)"
 
 
+@functools.lru_cache(maxsize=64)
 def is_ur_structured(table: DHTable, tol: float = 1e-12) -> bool:
     """True when the table has the UR geometry the closed form assumes."""
     p = table.as_array()
@@ -64,6 +67,34 @@ def is_ur_structured(table: DHTable, tol: float = 1e-12) -> bool:
     )
 
 
+@functools.lru_cache(maxsize=64)
+def _as_array(table: DHTable) -> Array:
+    return table.as_array()
+
+
+def _link(theta: float, d: float, a: float, alpha: float) -> Array:
+    """One DH link transform for scalars (the closed form calls it 28 times per pose;
+    :func:`calib.dh.link_transform` broadcasts arrays and costs ~10× more per call)."""
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    return np.array(
+        [
+            [ct, -st * ca, st * sa, a * ct],
+            [st, ct * ca, -ct * sa, a * st],
+            [0.0, sa, ca, d],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def _invert(T: Array) -> Array:
+    """Inverse of one rigid transform."""
+    out = np.eye(4)
+    R = T[:3, :3]
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
 def _closed_form(table: DHTable, T: Array, slack: float = 1e-12) -> tuple[Array, list[str]]:
     """All closed-form branches (k, 6) for a UR-structured reading of ``table``.
 
@@ -72,7 +103,7 @@ def _closed_form(table: DHTable, T: Array, slack: float = 1e-12) -> tuple[Array,
     cosine exceed 1 by that much and be clipped: seeds for a perturbed table may sit just
     outside the structured table's workspace while the true one reaches them.
     """
-    p = table.as_array()
+    p = _as_array(table)
     d1, d4, d5, d6 = p[0, 1], p[3, 1], p[4, 1], p[5, 1]
     a2, a3 = p[1, 2], p[2, 2]
     reasons: list[str] = []
@@ -87,7 +118,7 @@ def _closed_form(table: DHTable, T: Array, slack: float = 1e-12) -> tuple[Array,
         ]
     phi = np.arctan2(p05[1], p05[0])
     psi = np.arccos(np.clip(d4 / max(r05, abs(d4)), -1.0, 1.0))
-    T_inv = se3.invert(T)
+    T_inv = _invert(T)
     for th1 in (phi + psi + np.pi / 2, phi - psi + np.pi / 2):
         s1, c1 = np.sin(th1), np.cos(th1)
         c5 = (T[0, 3] * s1 - T[1, 3] * c1 - d4) / d6
@@ -102,10 +133,10 @@ def _closed_form(table: DHTable, T: Array, slack: float = 1e-12) -> tuple[Array,
             else:
                 X, Y = T_inv[:3, 0], T_inv[:3, 1]
                 th6 = np.arctan2((-X[1] * s1 + Y[1] * c1) / s5, (X[0] * s1 - Y[0] * c1) / s5)
-            A1 = link_transform(th1, d1, 0.0, np.pi / 2)
-            A5 = link_transform(th5, d5, 0.0, -np.pi / 2)
-            A6 = link_transform(th6, d6, 0.0, 0.0)
-            T14 = se3.invert(A1) @ T @ se3.invert(A5 @ A6)
+            A1 = _link(th1, d1, 0.0, np.pi / 2)
+            A5 = _link(th5, d5, 0.0, -np.pi / 2)
+            A6 = _link(th6, d6, 0.0, 0.0)
+            T14 = _invert(A1) @ T @ _invert(A5 @ A6)
             # Joints 2 and 3 rotate about z1: a planar two-link arm in the x1-y1 plane
             # (the d4 offset lies along z1 and drops out).
             px, py = T14[0, 3], T14[1, 3]
@@ -120,9 +151,9 @@ def _closed_form(table: DHTable, T: Array, slack: float = 1e-12) -> tuple[Array,
             th3_base = np.arccos(np.clip(c3, -1.0, 1.0))
             for th3 in (th3_base, -th3_base):
                 th2 = np.arctan2(py, px) - np.arctan2(a3 * np.sin(th3), a2 + a3 * np.cos(th3))
-                A2 = link_transform(th2, 0.0, a2, 0.0)
-                A3 = link_transform(th3, 0.0, a3, 0.0)
-                T34 = se3.invert(A2 @ A3) @ T14
+                A2 = _link(th2, 0.0, a2, 0.0)
+                A3 = _link(th3, 0.0, a3, 0.0)
+                T34 = _invert(A2 @ A3) @ T14
                 th4 = np.arctan2(T34[1, 0], T34[0, 0])
                 solutions.append(np.array([th1, th2, th3, th4, th5, th6]) - p[:, 0])
     return _wrap(np.array(solutions).reshape(-1, 6)), reasons

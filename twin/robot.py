@@ -219,9 +219,7 @@ class SimRobot:
         """Joint move to commanded angles ``q`` (6,), radians; contacts of the geoms named in
         ``ignore`` are intended (a stylus tip on a vertex)."""
         q_cmd = np.asarray(q, dtype=float)
-        return self._settle(
-            q_cmd, f"joints {np.round(np.degrees(q_cmd), 1).tolist()} deg", ignore
-        )
+        return self._settle(q_cmd, f"joints {np.round(np.degrees(q_cmd), 1).tolist()} deg", ignore)
 
     def place_tool(
         self,

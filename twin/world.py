@@ -73,9 +73,7 @@ class Twin:
             self._scenes[self.scene.scene.tools.mounted] = self.scene
         if tool not in self._scenes:
             base = self.scene.scene
-            self._scenes[tool] = SceneModel(
-                replace(base, tools=replace(base.tools, mounted=tool))
-            )
+            self._scenes[tool] = SceneModel(replace(base, tools=replace(base.tools, mounted=tool)))
         self.robot.mount(self._scenes[tool])
 
 
