@@ -29,6 +29,7 @@ rotation between frames of a sweep is the robot's repeatability, micro-radians).
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -157,20 +158,24 @@ def half_ball_samples(n: int, radius: float, inner: float = 0.0) -> Array:
 
 
 class SweepVolume:
-    """A sweep stacked in its reference frame on a regular grid of labels.
+    """A sweep stacked in its reference frame: a regular grid of labels.
 
     Label (k, r, c) is 0 outside the acquired volume, else dark/bright versus the frame it
     came from; voxel (k, r, c) sits at ``x = (c + col0 − (W − 1)/2)·dx, y = (r + row0)·dy,
     z = z0 + k·dz`` (metres, reference frame); ``shape`` is (K, H, W).
 
-    Storage is split by column phase for the grid search: ``split[d, k, r, C]`` holds
-    column ``c = C·column_step + d`` (zero past W), so the labels under a row of candidates
-    ``column_step`` voxels apart are contiguous in memory. :meth:`label_at` reads any voxel.
+    The stack is virtual: slice k *is* frame ``nearest[k]`` placed at its integer in-plane
+    shift (``frame_rows``, ``frame_cols``), so a re-stack under a new ``T_ee_us`` changes
+    only those numbers, never copies pixels. The labels themselves are the frames' bright
+    bits (:func:`frame_bits`, which depend on the frames alone and are computed once per
+    sweep), split by column phase for the grid search: ``bits[j, d, row, :]`` holds frame
+    j's columns ``d, d + column_step, …`` as one bit each, so the labels under a row of
+    candidates ``column_step`` voxels apart sit in one or two machine words.
     """
 
     def __init__(
         self,
-        split: NDArray[np.int16],
+        bits: NDArray[np.uint64],
         shape: tuple[int, int, int],
         spacing: tuple[float, float, float],
         z0: float,
@@ -183,8 +188,8 @@ class SweepVolume:
         frame_rows: NDArray[np.int64],
         frame_cols: NDArray[np.int64],
     ) -> None:
-        self.split = split
-        self.column_step = split.shape[0]
+        self.bits = bits
+        self.column_step = bits.shape[1]
         self.shape = shape
         self.spacing = spacing
         self.z0 = z0
@@ -210,29 +215,36 @@ class SweepVolume:
         k = np.rint((P[..., 2] - self.z0) / dz).astype(np.int64)
         return k, r, c
 
+    def _geometry(self) -> tuple:
+        return (self.bits, self._nearest, self._frame_rows, self._frame_cols, self._frames.shape)
+
     def label_at(self, k: NDArray[np.int64], r: NDArray[np.int64], c: NDArray[np.int64]):
         """Labels of voxels (any shape of integer indices); 0 (outside) past the volume."""
         k, r, c = np.broadcast_arrays(k, r, c)
         out = _gather_labels(
-            self.split,
+            self.bits,
+            self._nearest,
+            self._frame_rows,
+            self._frame_cols,
+            self._frames.shape[1],
+            self._frames.shape[2],
             np.ascontiguousarray(k, dtype=np.int64).ravel(),
             np.ascontiguousarray(r, dtype=np.int64).ravel(),
             np.ascontiguousarray(c, dtype=np.int64).ravel(),
-            self.shape[2],
         )
         return out.reshape(k.shape)
 
-    def with_column_step(self, step: int) -> SweepVolume:
-        """The same labels split for a different candidate column step."""
-        old = self.split
+    @property
+    def labels(self) -> NDArray[np.int16]:
+        """The whole label grid (K, H, W), materialised (for inspection and tests)."""
         K, H, W = self.shape
-        full = old.transpose(1, 2, 3, 0).reshape(K, H, -1)[:, :, :W]
-        n = -(-W // step)
-        wide = np.zeros((K, H, n * step), dtype=old.dtype)
-        wide[:, :, :W] = full
-        split = np.ascontiguousarray(wide.reshape(K, H, n, step).transpose(3, 0, 1, 2))
+        k, r, c = np.meshgrid(np.arange(K), np.arange(H), np.arange(W), indexing="ij")
+        return self.label_at(k, r, c)
+
+    def with_column_step(self, step: int) -> SweepVolume:
+        """The same volume with its bits split for another candidate column step."""
         return SweepVolume(
-            split,
+            frame_bits(self._frames, self._means, step),
             self.shape,
             self.spacing,
             self.z0,
@@ -295,16 +307,8 @@ def candidate_step(spacing: tuple[float, float, float], grid: float) -> tuple[in
     return tuple(max(1, int(np.rint(grid / s))) for s in (dz, dy, dx))
 
 
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def _gather_labels(split, k, r, c, width):  # pragma: no cover - compiled
-    """Labels at voxel indices (flat arrays) of a column-split volume, 0 outside."""
-    sc, K, H, _ = split.shape
-    out = np.zeros(k.shape[0], split.dtype)
-    for i in range(k.shape[0]):
-        ki, ri, ci = k[i], r[i], c[i]
-        if 0 <= ki < K and 0 <= ri < H and 0 <= ci < width:
-            out[i] = split[ci % sc, ki, ri, ci // sc]
-    return out
+# ----------------------------------------------------------------------------- kernels
+# Written by hand and compiled with numba: they are the localizer's whole cost.
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -322,28 +326,110 @@ def _frame_sums(images):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def _stack_labels(images, nearest, thresholds, frame_rows, frame_cols, split):  # pragma: no cover
-    """Write each slice's labels (its nearest frame compared with that frame's threshold,
-    at the frame's in-plane shift) into the column-split volume. Compiled: the comparison
-    and the phase-split scatter per pixel run ≈ 3× faster than the equivalent strided
-    NumPy table lookups."""
-    sc = split.shape[0]
+def _pack_bits(images, thresholds, sc, out):  # pragma: no cover - compiled
+    """out[j, d, r, w] bit b = pixel (r, d + (64 w + b)·sc) of frame j ≥ its threshold."""
     H, W = images.shape[1], images.shape[2]
-    dark = np.int16(_DARK)
-    unit = np.int16(_UNIT)
-    for k in range(nearest.shape[0]):
-        j = nearest[k]
+    for j in range(images.shape[0]):
         t = thresholds[j]
-        r0 = frame_rows[j]
-        c0 = frame_cols[j]
-        for d in range(sc):
-            s = (d - c0) % sc  # first frame column landing in phase d
-            C = (s + c0) // sc
-            for r in range(H):
-                src = images[j, r]
-                dst = split[d, k, r0 + r, C:]
-                for i in range((W - s + sc - 1) // sc):
-                    dst[i] = dark + unit * np.int16(src[s + i * sc] >= t)
+        for r in range(H):
+            src = images[j, r]
+            for d in range(sc):
+                dst = out[j, d, r]
+                for i in range((W - d + sc - 1) // sc):
+                    if src[d + i * sc] >= t:
+                        dst[i >> 6] |= np.uint64(1) << np.uint64(i & 63)
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _gather_labels(bits, nearest, frame_rows, frame_cols, H, W, k, r, c):  # pragma: no cover
+    """Labels at voxel indices (flat arrays) of a virtual stack, 0 outside."""
+    sc = bits.shape[1]
+    K = nearest.shape[0]
+    out = np.zeros(k.shape[0], np.int16)
+    for i in range(k.shape[0]):
+        ki = k[i]
+        if ki < 0 or ki >= K:
+            continue
+        j = nearest[ki]
+        fr = r[i] - frame_rows[j]
+        fc = c[i] - frame_cols[j]
+        if 0 <= fr < H and 0 <= fc < W:
+            q = fc // sc
+            bit = (bits[j, fc % sc, fr, q >> 6] >> np.uint64(q & 63)) & np.uint64(1)
+            out[i] = 1 + 512 * np.int16(bit)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _grid_sums(
+    bits, nearest, frame_rows, frame_cols, H, W, start, step, count, offsets
+):  # pragma: no cover - compiled
+    """Encoded label sums (valid + _UNIT · bright) of every grid candidate.
+
+    Per (slice, sample offset) the slice's frame and shift are fixed, so for each row of
+    candidates the samples read one bit-row of one column phase of that frame, and the
+    candidates whose sample lands inside the frame form one run, found once. Samples past
+    the acquired volume count as outside. The grid's column step must be the bits' phase
+    count (:meth:`SweepVolume.with_column_step` re-splits otherwise).
+    """
+    sc = bits.shape[1]
+    K = nearest.shape[0]
+    nk, nr, nc = count[0], count[1], count[2]
+    out = np.zeros((nk, nr, nc), np.int32)
+    one = np.uint64(1)
+    for i in range(nk):
+        for m in range(offsets.shape[0]):
+            k = start[0] + i * step[0] + offsets[m, 0]
+            if k < 0 or k >= K:
+                continue
+            j = nearest[k]
+            fc0 = start[2] + offsets[m, 2] - frame_cols[j]  # frame column of candidate 0
+            d = fc0 % sc
+            q0 = fc0 // sc
+            n_cols = (W - d + sc - 1) // sc  # columns of phase d inside the frame
+            lo = max(0, -q0)
+            hi = min(nc, n_cols - q0)
+            if hi <= lo:
+                continue
+            for jj in range(nr):
+                fr = start[1] + jj * step[1] + offsets[m, 1] - frame_rows[j]
+                if fr < 0 or fr >= H:
+                    continue
+                row = bits[j, d, fr]
+                dst = out[i, jj]
+                for q in range(lo, hi):
+                    b = q0 + q
+                    bright = np.int32((row[b >> 6] >> np.uint64(b & 63)) & one)
+                    dst[q] += 1 + 512 * bright
+    return out
+
+
+_BITS_CACHE: dict[tuple[int, int], NDArray[np.uint64]] = {}
+
+
+def frame_bits(images: NDArray[np.uint8], means: Array, column_step: int) -> NDArray[np.uint64]:
+    """Bright bits of every frame (grey level above its own mean), split by column phase:
+    (n, column_step, H, words) uint64 (see :class:`SweepVolume`).
+
+    They depend on the frames alone, so they are memoised for as long as the frames array
+    lives (a sweep is re-stacked many times while localization and calibration
+    alternate; the bits are 1/8 of the frames' size).
+    """
+    key = (id(images), int(column_step))
+    cached = _BITS_CACHE.get(key)
+    if cached is not None:
+        return cached
+    n, H, W = images.shape
+    sc = int(column_step)
+    per_phase = -(-W // sc)  # columns of phase 0, the longest
+    words = max(1, -(-per_phase // 64))
+    bits = np.zeros((n, sc, H, words), dtype=np.uint64)
+    # "Brighter than the frame mean" for integer grey levels: at least floor(mean) + 1.
+    thresholds = np.floor(means).astype(np.int64) + 1
+    _pack_bits(np.ascontiguousarray(images), thresholds, sc, bits)
+    _BITS_CACHE[key] = bits
+    weakref.finalize(images, _BITS_CACHE.pop, key, None)
+    return bits
 
 
 def stack_sweep(
@@ -353,7 +439,7 @@ def stack_sweep(
 
     ``axial_scale`` corrects the displayed axial spacing for the medium's true speed of
     sound (c_medium / c_assumed); ``column_step`` is the candidate grid's column step the
-    storage is split for (see :class:`SweepVolume`; any step works, a matching one is fast).
+    labels are split for (see :class:`SweepVolume`; any step works, a matching one is fast).
     """
     images = sweep.images
     n, H, W = images.shape
@@ -370,7 +456,7 @@ def stack_sweep(
     # Nearest frame of each slice.
     slice_z = z0 + np.arange(n_slices) * dz
     nearest = order[np.argmin(np.abs(slice_z[:, None] - z[order][None, :]), axis=1)]
-    means = _frame_sums(images) / (H * W)
+    means = _frame_sums(np.ascontiguousarray(images)) / (H * W)
     # Integer pixel shift of each frame's in-plane offset (nearest voxel); the grid spans
     # every shifted frame.
     shift_c = np.rint(offsets[:, 0] / sx).astype(np.int64)
@@ -378,14 +464,8 @@ def stack_sweep(
     col0, row0 = int(min(0, shift_c.min())), int(min(0, shift_r.min()))
     width = W - col0 + int(max(0, shift_c.max()))
     height = H - row0 + int(max(0, shift_r.max()))
-    sc = int(column_step)
-    split = np.zeros((sc, n_slices, height, -(-width // sc)), dtype=np.int16)
-    # "Brighter than the frame mean" for integer grey levels: at least floor(mean) + 1.
-    thresholds = np.floor(means).astype(np.int64) + 1
-    frame_rows, frame_cols = shift_r - row0, shift_c - col0
-    _stack_labels(images, nearest, thresholds, frame_rows, frame_cols, split)
     return SweepVolume(
-        split,
+        frame_bits(images, means, column_step),
         (n_slices, height, width),
         (sx, sy, dz),
         z0,
@@ -394,9 +474,9 @@ def stack_sweep(
         col0,
         images,
         means,
-        nearest,
-        frame_rows,
-        frame_cols,
+        nearest.astype(np.int64),
+        (shift_r - row0).astype(np.int64),
+        (shift_c - col0).astype(np.int64),
     )
 
 
@@ -445,48 +525,12 @@ def score_candidates(
     for name, P in (("shell", shell), ("interior", interior)):
         o = _offsets_vox(vol, P)
         sums = np.empty(len(candidates), dtype=np.int64)
-        # Chunks keep the gathered block in cache.
         for s in range(0, len(candidates), 2048):
             idx = candidates[s : s + 2048, None, :] + o[None, :, :]
             block = vol.label_at(idx[..., 0], idx[..., 1], idx[..., 2])
             sums[s : s + 2048] = block.sum(axis=1, dtype=np.int64)
         fractions[name] = _bright_fraction(sums, len(o), min_coverage)
     return _contrast(fractions)
-
-
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def _grid_sums(split, start, step, count, offsets):  # pragma: no cover - compiled
-    """Encoded label sums of every grid candidate over the sample offsets.
-
-    Written by hand (compiled with numba) because it is the search's whole cost: per
-    (slice, offset, row) the labels under a row of candidates are one contiguous run of
-    the column-split volume, so the inner loop vectorises; samples past the volume are
-    skipped (they count as outside). ≈ 7× faster than accumulating strided NumPy views.
-    """
-    sc, K, H, Wq = split.shape
-    nk, nr, nc = count[0], count[1], count[2]
-    out = np.zeros((nk, nr, nc), np.int32)
-    for i in range(nk):
-        for m in range(offsets.shape[0]):
-            k = start[0] + i * step[0] + offsets[m, 0]
-            if k < 0 or k >= K:
-                continue
-            c = start[2] + offsets[m, 2]
-            d = c % sc
-            C0 = c // sc
-            lo = max(0, -C0)
-            hi = min(nc, Wq - C0)
-            if hi <= lo:
-                continue
-            for j in range(nr):
-                r = start[1] + j * step[1] + offsets[m, 1]
-                if r < 0 or r >= H:
-                    continue
-                src = split[d, k, r, C0 + lo : C0 + hi]
-                dst = out[i, j, lo:hi]
-                for q in range(hi - lo):
-                    dst[q] += src[q]
-    return out
 
 
 def score_grid(
@@ -501,11 +545,17 @@ def score_grid(
     """:func:`score_candidates` for a regular grid of candidates, (count) shaped."""
     if step[2] != vol.column_step:
         vol = vol.with_column_step(step[2])
+    H, W = vol._frames.shape[1:]
     fractions = {}
     for name, P in (("shell", shell), ("interior", interior)):
         o = _offsets_vox(vol, P)
         sums = _grid_sums(
-            vol.split,
+            vol.bits,
+            vol._nearest,
+            vol._frame_rows,
+            vol._frame_cols,
+            H,
+            W,
             np.asarray(start, dtype=np.int64),
             np.asarray(step, dtype=np.int64),
             np.asarray(count, dtype=np.int64),
