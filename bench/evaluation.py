@@ -140,8 +140,8 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
 
     # ---- against the truth (beyond the paper)
     t0 = time.perf_counter()
-    q_frames = np.concatenate([s.q[::5] for ss in sweeps.values() for s in ss])
-    tool_points = se3.apply(truth.T_ee_us, image_points(scenario, 5))
+    q_frames = np.concatenate([s.q[::10] for ss in sweeps.values() for s in ss])
+    tool_points = se3.apply(truth.T_ee_us, image_points(scenario, 3))
     gauge = kinematic_gauge(task.table, truth.dh_table, q_frames, tool_points)
     gauge_nominal = kinematic_gauge(
         scenario.robot.nominal_table, truth.dh_table, q_frames, tool_points

@@ -93,6 +93,15 @@ class LocalizerConfig:
     refinement_passes: int = field(
         default=2, metadata={"doc": "Radial-band refinement passes.", "ge": 0, "le": 10}
     )
+    profile_directions: int = field(
+        default=64,
+        metadata={
+            "doc": "Fibonacci directions per trial radius of the radial brightness profile "
+            "(averaged over all sweeps of the sphere, so a few dozen suffice).",
+            "ge": 8,
+            "le": 4096,
+        },
+    )
     refine_window_mm: float = field(
         default=2.0,
         metadata={
@@ -749,13 +758,15 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         zs = vol.z0 + ks * dz
         ys = (rs + vol.row0) * dy
         xs = (cs + vol.col0 - (vol.width - 1) / 2) * dx
-        d = np.sqrt(
+        d2 = (
             ((zs - z_c) ** 2)[:, None, None]
             + ((ys - y_c) ** 2)[None, :, None]
             + ((xs - x_c) ** 2)[None, None, :]
         )
-        w = np.maximum(vol.intensity(ks, rs, cs), 0.0)
-        w[np.abs(d - radius) > 0.5 * radius] = 0.0
+        w = vol.intensity(ks, rs, cs)
+        np.maximum(w, 0.0, out=w)
+        # Keep the shell band |d − R| ≤ R/2, compared squared (no square root).
+        w *= (d2 >= (0.5 * radius) ** 2) & (d2 <= (1.5 * radius) ** 2)
         total = w.sum()
         if total <= 0:
             break
@@ -879,7 +890,7 @@ def localize_sphere(
         if not ok:
             break
         profile = radial_profile(
-            [vols[i] for i in ok], [results[i][0] for i in ok], radii, cfg.shell_samples
+            [vols[i] for i in ok], [results[i][0] for i in ok], radii, cfg.profile_directions
         )
         inner, rise, fall = profile_bands(radii, profile, radius)
         shell_p = half_ball_samples(cfg.shell_samples, fall, rise)

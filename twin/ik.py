@@ -227,6 +227,15 @@ def ik_solutions(table: DHTable, T_base_ee: ArrayLike, pose_label: str = "") -> 
     return seeds
 
 
+@functools.lru_cache(maxsize=4096)
+def _cached_solutions(table: DHTable, T_bytes: bytes, pose_label: str) -> Array:
+    """:func:`ik_solutions` of a pose given as bytes, memoised: a plan checks every frame
+    pose before moving to the same poses (the controller's branch choice stays per call)."""
+    out = ik_solutions(table, np.frombuffer(T_bytes).reshape(4, 4), pose_label)
+    out.setflags(write=False)
+    return out
+
+
 def solve_ik(
     table: DHTable,
     T_base_ee: ArrayLike,
@@ -247,7 +256,7 @@ def solve_ik(
     T = np.asarray(T_base_ee, dtype=float)
     label = f"{pose_label} " if pose_label else ""
     if is_ur_structured(table):
-        candidates = ik_solutions(table, T, pose_label)
+        candidates = _cached_solutions(table, T.tobytes(), pose_label)
     else:
         # A controller needs only the nearest branch that lands: refine seeds in order of
         # distance instead of all eight.
