@@ -31,8 +31,8 @@ from . import se3
 
 __all__ = [
     "Observability",
-    "jacobians",
     "information",
+    "jacobians",
     "observability",
     "planned_observations",
 ]
