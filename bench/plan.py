@@ -1,0 +1,73 @@
+"""``uscal plan``: a scenario's acquisition plan checked and scored before anything moves.
+
+For every sphere: teach (emulated), plan the sweeps, check every frame pose for reach and
+collisions, and score the plan's information about ``T_ee_us`` for a sphere (point)
+constraint and for a wire (line) constraint through the same poses (paper, "Geometric
+Analysis of Calibration Targets"). Nothing is imaged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib import se3
+from calib.observability import (
+    Observability,
+    information,
+    jacobians,
+    observability,
+    planned_observations,
+)
+from calib.protocol import check_plan, facing_pose, plan_sweeps
+
+from .experiment import coarse_estimate, make_twin, stage_rngs
+from .scenario import Scenario
+
+__all__ = ["PlanReport", "plan_report"]
+
+
+@dataclass(frozen=True, eq=False)
+class PlanReport:
+    """Per sphere: the number of frame poses checked, and the sphere and wire scores."""
+
+    sphere: str
+    n_sweeps: int
+    n_poses: int
+    point: Observability
+    wire: Observability
+    wire_direction: np.ndarray
+
+
+def plan_report(scenario: Scenario, noise_mm: float = 0.1) -> list[PlanReport]:
+    """Plan, check and score the scenario's sphere acquisitions (see the module doc)."""
+    rngs = stage_rngs(scenario)
+    twin = make_twin(scenario)
+    proto = scenario.protocol
+    coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
+    depth = proto.target_depth_mm * 1e-3
+    out = []
+    for index in proto.spheres:
+        name = f"sphere_{index}"
+        T_face = facing_pose(twin.truth.landmarks_base[name], depth)
+        taught = twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), f"taught at {name}")
+        plan = plan_sweeps(name, taught.T_base_ee, coarse, proto)
+        check_plan(twin.robot, plan)
+        # The plan as the pipeline sees it: the sphere where the coarse estimate puts it.
+        T_ref = np.array([p.T_base_ee[len(p.T_base_ee) // 2] for p in plan])
+        target = se3.apply(taught.T_base_ee @ coarse, np.array([0.0, depth, 0.0]))
+        P = planned_observations(T_ref, coarse, target)
+        G = jacobians(T_ref, coarse, P)
+        wire = (taught.T_base_ee @ coarse)[:3, 2]  # perpendicular to the nominal image
+        out.append(
+            PlanReport(
+                name,
+                len(plan),
+                sum(len(p.T_base_ee) for p in plan),
+                observability(information(G), noise_mm),
+                observability(information(G, wire), noise_mm),
+                wire,
+            )
+        )
+    return out
