@@ -65,6 +65,7 @@ _OUTSIDE, _DARK, _BRIGHT = 0, 1, 1 + _UNIT
 MAX_SAMPLES = _UNIT - 1
 _GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 _REFINE_ROUNDS = 4
+_REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
 _MM = 1e-3
 
 
@@ -416,6 +417,22 @@ def _grid_sums(
 _BITS_CACHE: dict[tuple[int, int], NDArray[np.uint64]] = {}
 
 
+_MEANS_CACHE: dict[int, Array] = {}
+
+
+def frame_means(images: NDArray[np.uint8]) -> Array:
+    """Mean grey level of each frame (the paper's per-frame brightness cut-off), memoised
+    like :func:`frame_bits` for as long as the frames live."""
+    key = id(images)
+    cached = _MEANS_CACHE.get(key)
+    if cached is None:
+        n, H, W = images.shape
+        cached = _frame_sums(np.ascontiguousarray(images)) / (H * W)
+        _MEANS_CACHE[key] = cached
+        weakref.finalize(images, _MEANS_CACHE.pop, key, None)
+    return cached
+
+
 def frame_bits(images: NDArray[np.uint8], means: Array, column_step: int) -> NDArray[np.uint64]:
     """Bright bits of every frame (grey level above its own mean), split by column phase:
     (n, column_step, H, words) uint64 (see :class:`SweepVolume`).
@@ -465,7 +482,7 @@ def stack_sweep(
     # Nearest frame of each slice.
     slice_z = z0 + np.arange(n_slices) * dz
     nearest = order[np.argmin(np.abs(slice_z[:, None] - z[order][None, :]), axis=1)]
-    means = _frame_sums(np.ascontiguousarray(images)) / (H * W)
+    means = frame_means(images)
     # Integer pixel shift of each frame's in-plane offset (nearest voxel); the grid spans
     # every shifted frame.
     shift_c = np.rint(offsets[:, 0] / sx).astype(np.int64)
@@ -727,6 +744,38 @@ def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, f
     )
 
 
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _cap_weights(
+    frames, means, nearest, frame_rows, frame_cols, ks, rs, cs, dz2, dy2, dx2, lo2, hi2
+):  # pragma: no cover - compiled
+    """Weights (len(ks), len(rs), len(cs)) of the cap refinement: grey level minus the
+    frame mean where positive and the voxel lies in the shell band (squared distances
+    ``lo2 ≤ dz2 + dy2 + dx2 ≤ hi2``), else 0. Compiled: one pass instead of the several
+    full-block NumPy passes it replaces (≈ 4× faster)."""
+    H, W = frames.shape[1], frames.shape[2]
+    out = np.zeros((ks.shape[0], rs.shape[0], cs.shape[0]))
+    for a in range(ks.shape[0]):
+        j = nearest[ks[a]]
+        mean = means[j]
+        for b in range(rs.shape[0]):
+            fr = rs[b] - frame_rows[j]
+            if fr < 0 or fr >= H:
+                continue
+            row = frames[j, fr]
+            dzy = dz2[a] + dy2[b]
+            for c in range(cs.shape[0]):
+                fc = cs[c] - frame_cols[j]
+                if fc < 0 or fc >= W:
+                    continue
+                d2 = dzy + dx2[c]
+                if d2 < lo2 or d2 > hi2:
+                    continue
+                v = row[fc] - mean
+                if v > 0:
+                    out[a, b, c] = v
+    return out
+
+
 def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
     """Sub-voxel centre from the moments of the cap's echo.
 
@@ -758,15 +807,22 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         zs = vol.z0 + ks * dz
         ys = (rs + vol.row0) * dy
         xs = (cs + vol.col0 - (vol.width - 1) / 2) * dx
-        d2 = (
-            ((zs - z_c) ** 2)[:, None, None]
-            + ((ys - y_c) ** 2)[None, :, None]
-            + ((xs - x_c) ** 2)[None, None, :]
+        # Echo above the frame mean, inside the shell band |d − R| ≤ R/2.
+        w = _cap_weights(
+            vol._frames,
+            vol._means,
+            vol._nearest,
+            vol._frame_rows,
+            vol._frame_cols,
+            ks,
+            rs,
+            cs,
+            (zs - z_c) ** 2,
+            (ys - y_c) ** 2,
+            (xs - x_c) ** 2,
+            (0.5 * radius) ** 2,
+            (1.5 * radius) ** 2,
         )
-        w = vol.intensity(ks, rs, cs)
-        np.maximum(w, 0.0, out=w)
-        # Keep the shell band |d − R| ≤ R/2, compared squared (no square root).
-        w *= (d2 >= (0.5 * radius) ** 2) & (d2 <= (1.5 * radius) ** 2)
         total = w.sum()
         if total <= 0:
             break
@@ -786,7 +842,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         new = np.array([x_new, y_top + radius, z_new])
         moved = np.linalg.norm(new - current)
         current = new
-        if moved < 1e-6:
+        if moved < _REFINE_TOL:
             break
     # A refinement that wanders far from the grid seed is not trusted.
     if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _MM):

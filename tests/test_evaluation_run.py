@@ -1,0 +1,91 @@
+"""The paper's experiment end to end on a small twin (two datasets, two spheres, coarser
+images): touches, leave-one-dataset-out DH, folds, Tables I/II files and the ground-truth
+figures, through `uscal run`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bench.experiment import dataset_scenario
+from bench.scenario import load_scenario
+
+from .test_cli import uscal
+
+SMALL = [
+    "evaluation.datasets=[A, B]",
+    "evaluation.initialisations=2",
+    "evaluation.workers=2",
+    "protocol.spheres=[1, 2]",
+    "protocol.frames_per_sweep=11",
+    "imaging.pixel_spacing_mm=[0.2, 0.2]",
+    "imaging.width_mm=30",
+    "imaging.depth_mm=35",
+    "localization.refinement_passes=1",
+]
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval") / "run"
+    args = ["run", "scenarios/paper.yaml", "--out", str(out)]
+    for o in SMALL:
+        args += ["--set", o]
+    code, stdout, stderr = uscal(*args)
+    assert code == 0, stderr
+    return out, json.loads((out / "metrics.json").read_text()), stdout
+
+
+def test_tables_are_written_and_printed(small_run):
+    out, _, stdout = small_run
+    md = (out / "tables.md").read_text()
+    assert "Table I. Single-marker" in md and "Table II. Three-marker" in md
+    assert "| Tool prec. | MAE ± SD |" in md
+    assert (out / "tables.csv").read_text().startswith("table,metric,set,mae_mm")
+    assert "Table I" in stdout and "against ground truth" in stdout
+
+
+def test_evaluation_metrics_have_the_papers_structure(small_run):
+    _, m, _ = small_run
+    ev = m["evaluation"]
+    assert set(ev["single"]) == {"tool_precision_mm", "sphere_precision_mm", "sphere_accuracy_mm"}
+    assert set(ev["three"]) == {"sphere_precision_mm", "sphere_accuracy_mm"}
+    for kind in ("single", "three"):
+        for by_set in ev[kind].values():
+            assert set(by_set) == {"A", "B", "overall"}
+            for v in by_set.values():
+                assert {"mae", "sd", "rmse"} <= set(v)
+    # Two spheres: two folds of each kind per set; the tool: one sample per vertex.
+    assert ev["single"]["sphere_accuracy_mm"]["A"]["n"] == 2
+    assert ev["single"]["sphere_accuracy_mm"]["overall"]["n"] == 4
+    assert ev["single"]["tool_precision_mm"]["A"]["n"] == 4
+    assert len(ev["folds"]) == 8
+
+
+def test_evaluation_against_ground_truth(small_run):
+    _, m, _ = small_run
+    ev = m["evaluation"]
+    # Contact noise 0.2 mm per axis: six touches scatter ≈ 0.3 mm about their centroid.
+    assert 0.05 < ev["single"]["tool_precision_mm"]["overall"]["mae"] < 0.6
+    assert ev["single"]["sphere_precision_mm"]["overall"]["mae"] < 0.5
+    for name, k in m["kinematics"]["datasets"].items():
+        # The refined model is far closer to the true arm than the factory one.
+        assert k["true_error"]["refined_rms"] < k["true_error"]["nominal_rms"] / 3, name
+    for f in ev["folds"]:
+        assert f["true"]["image_mm"] < 1.0, f["fold"]
+        assert f["true"]["accuracy_true_mm"] < 1.0, f["fold"]
+    single = m["calibration"]["single"]
+    assert single["true_error"]["image_mm"] < 1.0
+    assert m["timing_s"]["workers"] == 2
+
+
+def test_each_dataset_puts_the_phantom_somewhere_new():
+    s = load_scenario("scenarios/paper.yaml", check_reach=False)
+    first, second = dataset_scenario(s, 0), dataset_scenario(s, 1)
+    assert first.phantom == s.phantom
+    shift = np.subtract(second.phantom.position_mm, first.phantom.position_mm)
+    assert 0 < np.abs(shift[:2]).max() <= s.evaluation.placement_shift_mm
+    turn = second.phantom.rotation_deg[2] - first.phantom.rotation_deg[2]
+    assert 0 < abs(turn) <= s.evaluation.placement_rotation_deg
