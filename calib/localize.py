@@ -426,7 +426,7 @@ def frame_means(images: NDArray[np.uint8]) -> Array:
     key = id(images)
     cached = _MEANS_CACHE.get(key)
     if cached is None:
-        n, H, W = images.shape
+        _, H, W = images.shape
         cached = _frame_sums(np.ascontiguousarray(images)) / (H * W)
         _MEANS_CACHE[key] = cached
         weakref.finalize(images, _MEANS_CACHE.pop, key, None)
