@@ -2,7 +2,8 @@
 
 Runs ``scenarios/paper.yaml`` (3 datasets × 4 spheres × 45 sweeps × 21 frames of
 401 × 381 px, touches, 24 folds) as ``uscal run`` does, while a thread samples the
-resident memory of this process and all its children (the dataset workers) every 0.2 s.
+memory (proportional set size) of this process and all its children (the dataset
+workers) every 0.2 s.
 Targets: ≤ 180 s wall on 2 cores, ≤ 3 GB peak. The last line is ``total_s=<value>``.
 
 Run: python benchmarks/paper.py [--workers N]
@@ -28,15 +29,17 @@ from bench.scenario import load_scenario  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _tree_rss_bytes(pid: int) -> int:
-    """Resident memory of a process and all its descendants (Linux /proc)."""
+def _tree_pss_bytes(pid: int) -> int:
+    """Memory of a process and all its descendants (Linux /proc): the proportional set
+    size, which counts pages shared between them (libraries) once, not once per process
+    as summing resident sizes would."""
     total = 0
     stack = [pid]
     while stack:
         p = stack.pop()
         try:
-            for line in Path(f"/proc/{p}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
                     total += int(line.split()[1]) * 1024
             children = Path(f"/proc/{p}/task/{p}/children").read_text().split()
         except (FileNotFoundError, ProcessLookupError, PermissionError):
@@ -57,7 +60,7 @@ def main() -> None:
     def sample() -> None:
         nonlocal peak
         while not done.is_set():
-            peak = max(peak, _tree_rss_bytes(os.getpid()))
+            peak = max(peak, _tree_pss_bytes(os.getpid()))
             time.sleep(0.2)
 
     sampler = threading.Thread(target=sample, daemon=True)
@@ -76,7 +79,7 @@ def main() -> None:
             f"localize_initial_s={d['localize_initial']:.1f} folds_s={d['folds']:.1f} "
             f"(alternation localization {d['localize_folds']:.1f}) truth_s={d['truth']:.1f}"
         )
-    print(f"peak_rss_mb={peak / 2**20:.0f}")
+    print(f"peak_pss_mb={peak / 2**20:.0f}")
     print(f"total_s={wall:.1f}")
 
 

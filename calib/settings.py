@@ -88,8 +88,8 @@ class EvaluationConfig:
     workers: int = field(
         default=0,
         metadata={
-            "doc": "Processes running the datasets in parallel (0: one per core, at most "
-            "one per dataset).",
+            "doc": "Processes running the datasets in parallel (0: one per dataset, at "
+            "most twice the cores).",
             "ge": 0,
             "le": 64,
         },
