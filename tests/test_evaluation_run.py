@@ -5,6 +5,7 @@ figures, through `uscal run`."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,8 @@ from bench.experiment import dataset_scenario
 from bench.scenario import load_scenario
 
 from .test_cli import uscal
+
+ROOT = Path(__file__).resolve().parents[1]
 
 SMALL = [
     "evaluation.datasets=[A, B]",
@@ -30,12 +33,12 @@ SMALL = [
 @pytest.fixture(scope="module")
 def small_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("eval") / "run"
-    args = ["run", "scenarios/paper.yaml", "--out", str(out)]
+    args = ["run", str(ROOT / "scenarios" / "paper.yaml"), "--out", str(out)]
     for o in SMALL:
         args += ["--set", o]
-    code, stdout, stderr = uscal(*args)
-    assert code == 0, stderr
-    return out, json.loads((out / "metrics.json").read_text()), stdout
+    r = uscal(*args)
+    assert r.returncode == 0, r.stderr
+    return out, json.loads((out / "metrics.json").read_text()), r.stdout
 
 
 def test_tables_are_written_and_printed(small_run):
@@ -82,7 +85,7 @@ def test_evaluation_against_ground_truth(small_run):
 
 
 def test_each_dataset_puts_the_phantom_somewhere_new():
-    s = load_scenario("scenarios/paper.yaml", check_reach=False)
+    s = load_scenario(ROOT / "scenarios" / "paper.yaml", check_reach=False)
     first, second = dataset_scenario(s, 0), dataset_scenario(s, 1)
     assert first.phantom == s.phantom
     shift = np.subtract(second.phantom.position_mm, first.phantom.position_mm)
