@@ -349,6 +349,11 @@ def _print_evaluation(m: dict, console: Console) -> None:
         "reference centres vs true centres; image/acc: per-fold mean true image error of "
         "T_ee_us and accuracy against the true centres (1: single-, 3: three-marker)."
     )
+    hidden = [k for k, v in kin["unobservable_share"].items() if v >= 0.5]
+    console.print(
+        "touches cannot identify (≥ half in directions they cannot see; the regulariser "
+        f"keeps these at nominal): {', '.join(hidden)}"
+    )
     rms = kin["rms_change_mean"]
     console.print(
         "DH change from nominal, RMS over the leave-one-out models: "

@@ -418,7 +418,7 @@ def _metrics(scenario, names, touches, refinements, references, outcomes, twin) 
     # The paper's figure: RMS over the three leave-one-out models and the six joints.
     rms = np.sqrt(np.mean(np.array([r.rms_change for r in refinements.values()]) ** 2, axis=0))
     true_rms = np.array(truth.dh_deltas.rms()) * [180 / np.pi, _MM, _MM, 180 / np.pi]
-    _, weak = identifiability(
+    ident = identifiability(
         refinements[names[0]], [touches[n] for n in names if n != names[0]], _cad(twin)
     )
     return {
@@ -446,9 +446,9 @@ def _metrics(scenario, names, touches, refinements, references, outcomes, twin) 
             "true_dh_error_rms": dict(
                 zip(("theta_deg", "d_mm", "a_mm", "alpha_deg"), true_rms.tolist(), strict=True)
             ),
+            "unobservable_share": {k: round(v, 4) for k, v in ident.unobservable.items()},
             "weak_directions": [
-                {"singular_value": w.singular_value, "dh": w.dh, "dh_share": w.dh_share}
-                for w in weak
+                {"singular_value": w.singular_value, "dh": w.dh} for w in ident.weak
             ],
         },
         "evaluation": {"datasets": names, "folds": folds_doc},

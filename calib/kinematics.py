@@ -39,6 +39,7 @@ from .records import Sweep, Touch
 __all__ = [
     "DH_COLUMNS",
     "DHRefinement",
+    "Identifiability",
     "KinematicGauge",
     "TouchReference",
     "deltas_from_z",
@@ -399,72 +400,81 @@ def fit_reference(
 class WeakDirection:
     """A direction of the unknowns the touches (nearly) cannot see.
 
-    ``singular_value`` relative to the largest; ``dh`` the direction's DH components
-    (name → weight, largest first, e.g. ``{"Δd2": 0.58, ...}``) and ``dh_share`` the
-    share of the direction lying in the DH corrections (the rest trades against tip
-    offsets and phantom poses).
+    ``singular_value`` relative to the largest; ``dh`` the direction's largest DH
+    components (name → weight of the unit direction, e.g. ``{"Δd2": 0.58, ...}``).
     """
 
     singular_value: float
     dh: dict[str, float]
-    dh_share: float
 
 
-def _jacobian(residuals, x: Array, step: float = 1e-6) -> Array:
-    f0 = residuals(x)
-    J = np.empty((len(f0), len(x)))
-    for i in range(len(x)):
-        dx = np.zeros_like(x)
-        dx[i] = step
-        J[:, i] = (residuals(x + dx) - residuals(x - dx)) / (2 * step)
-    return J
+@dataclass(frozen=True, eq=False)
+class Identifiability:
+    """What the touches of a DH fit can and cannot tell apart.
+
+    Attributes
+    ----------
+    singular_values : (24,) float
+        Of the touch residuals' Jacobian with respect to the DH corrections, after the
+        per-dataset tip offsets and phantom poses have absorbed what they can (relative
+        to the largest, descending).
+    unobservable : dict of float
+        Per DH parameter (``"Δθ1"`` …): the share of it lying in the directions the
+        touches cannot see at all (relative singular value below ``null_threshold``):
+        1 = unidentifiable, 0 = fully determined by the touches.
+    weak : list of WeakDirection
+        Each direction with relative singular value below ``weak_threshold``, named by its
+        largest DH components.
+    """
+
+    singular_values: Array
+    unobservable: dict[str, float]
+    weak: list[WeakDirection]
+    null_space: Array  # (k, 24) unit rows: the directions of z touches cannot see
+
+
+_DH_NAMES = [f"Δ{c}{j + 1}" for j in range(6) for c in ("θ", "d", "a", "α")]
 
 
 def identifiability(
     refinement: DHRefinement,
     touch_sets: Sequence[Sequence[Touch]],
     cad_vertices: Mapping[str, ArrayLike],
-    threshold: float = 1e-4,
-) -> tuple[Array, list[WeakDirection]]:
-    """Singular values (relative, descending) of the touch residuals' Jacobian with
-    respect to (z, tips, phantom poses) at a Step-1 solution, without the regulariser,
-    and the weak directions (relative singular value below ``threshold``), named by their
-    DH components."""
+    weak_threshold: float = 1e-4,
+    null_threshold: float = 1e-6,
+) -> Identifiability:
+    """Identifiability of the DH corrections from the touches at a Step-1 solution
+    (without the regulariser): see :class:`Identifiability`."""
     sets = [_touch_set(t, cad_vertices) for t in touch_sets]
-    base = refinement.table.as_array()
-    n_sets = len(sets)
-    x0 = np.zeros(24 + _PER_SET * n_sets)
-    for r in range(n_sets):
-        x0[24 + _PER_SET * r : 27 + _PER_SET * r] = refinement.tips[r] * _MM
-
-    def residuals(x: Array) -> Array:
-        table = DHTable.from_array(base + x[:24].reshape(6, 4) * _Z_TO_SI)
-        parts = []
-        for r, ts in enumerate(sets):
-            k = 24 + _PER_SET * r
-            parts.append(
-                _set_residuals(table, ts, x[k : k + _PER_SET], refinement.phantom_poses[r])
-            )
-        return np.concatenate(parts)
-
-    J = _jacobian(residuals, x0)
+    rows = []
+    for r, ts in enumerate(sets):
+        x = np.concatenate([refinement.tips[r] * _MM, np.zeros(6)])
+        Jz, Js = _set_jacobian(refinement.table, ts, x, refinement.phantom_poses[r])
+        # The phantom pose moves the model vertices rigidly. Evaluated as if the fit were
+        # exact (vertices at the tips), so directions that only trade against the pose are
+        # exactly degenerate rather than blurred by the fit's small residuals.
+        p = tip_positions(refinement.table, ts.q, refinement.tips[r]) * _MM
+        Js = Js.copy()
+        for k, e in enumerate(np.eye(3)):
+            Js[:, 3 + k] = -np.cross(e, p).ravel()
+        # Eliminate the dataset's own unknowns: keep what they cannot explain.
+        rows.append(Jz - Js @ np.linalg.lstsq(Js, Jz, rcond=None)[0])
+    J = np.vstack(rows)
     _, s, Vt = np.linalg.svd(J, full_matrices=True)
-    s_full = np.zeros(Vt.shape[0])
+    s_full = np.zeros(24)
     s_full[: len(s)] = s
     rel = s_full / s_full[0]
-    names = [f"Δ{c}{j + 1}" for j in range(6) for c in DH_COLUMNS]
+    null = Vt[rel < null_threshold]
+    share = (null**2).sum(axis=0)
     weak = []
-    for k in np.flatnonzero(rel < threshold):
+    for k in np.flatnonzero(rel < weak_threshold):
         v = Vt[k]
-        dz = v[:24]
-        share = float(np.linalg.norm(dz) ** 2)
-        if share < 1e-3:
-            continue  # a pure tip/pose direction (none expected)
-        order = np.argsort(-np.abs(dz))
-        comps = {names[i]: round(float(dz[i] / np.linalg.norm(dz)), 3) for i in order[:4]}
-        comps = {k2: w for k2, w in comps.items() if abs(w) >= 0.05}
-        weak.append(WeakDirection(float(rel[k]), comps, share))
-    return rel, weak
+        order = np.argsort(-np.abs(v))
+        comps = {_DH_NAMES[i]: round(float(v[i]), 3) for i in order[:4] if abs(v[i]) >= 0.05}
+        weak.append(WeakDirection(float(rel[k]), comps))
+    return Identifiability(
+        rel, {n: float(v) for n, v in zip(_DH_NAMES, share, strict=True)}, weak, null
+    )
 
 
 @dataclass(frozen=True, eq=False)
