@@ -1,0 +1,106 @@
+"""Cone/prism reconstruction building blocks (calib/reconstruct.py): boundary extraction
+on synthetic frames with known lines, ICP on a sampled CAD surface, Table III statistics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from calib import se3
+from calib.reconstruct import (
+    distance_stats,
+    extract_boundaries,
+    register_icp,
+    samples_to_base,
+    surface_distances,
+)
+
+
+def lambda_frame(rng, apex=(190.0, 120.0), slope=0.8, H=400, W=380):
+    """A frame like a section of the cone near its apex in water: a bright "Λ" (two lines
+    of ± slope from an apex at (column, row)), the phantom's speckle below it, dark water
+    with faint noise above; returns the image and the true row of each line per column."""
+    c = np.arange(W)
+    left = apex[1] + slope * (apex[0] - c)  # the left side (c ≤ apex column)
+    right = apex[1] + slope * (c - apex[0])
+    surface = np.minimum(
+        np.where(c <= apex[0], left, np.inf), np.where(c >= apex[0], right, np.inf)
+    )
+    r = np.arange(H)[:, None]
+    img = rng.gamma(1.5, 2.0, (H, W))  # water: faint
+    below = r > surface[None, :] + 2
+    img[below] += rng.gamma(2.0, 18.0, below.sum())  # the phantom's speckle
+    for rows, keep in ((left, c <= apex[0]), (right, c >= apex[0])):
+        img[:, keep] += 200 * np.exp(-0.5 * ((r - rows[keep][None, :]) / 1.0) ** 2)
+    return np.clip(img, 0, 255).astype(np.uint8), left, right
+
+
+def test_two_boundaries_of_a_lambda_are_found(rng):
+    img, left, right = lambda_frame(rng)
+    bounds = extract_boundaries(img)
+    assert len(bounds) == 2
+    c = np.arange(img.shape[1])
+    errors = []
+    for b in bounds:
+        slope = b.direction[1] / b.direction[0]
+        assert abs(abs(slope) - 0.8) < 0.02
+        truth = left if slope < 0 else right
+        cols = b.samples[:, 0].astype(int)
+        errors.append(np.abs(b.samples[:, 1] - truth[cols]))
+        # Samples cover that side of the Λ.
+        assert len(cols) > 100
+        assert set(cols) <= set(c)
+    assert np.median(np.concatenate(errors)) <= 1.0
+    assert np.percentile(np.concatenate(errors), 95) <= 2.0
+
+
+def test_a_blank_frame_has_no_boundary():
+    assert extract_boundaries(np.full((50, 40), 7, dtype=np.uint8)) == []
+
+
+def test_samples_map_through_the_image_frame():
+    samples = np.array([[0.0, 0.0], [10.0, 20.0]])  # (column, row)
+    P = samples_to_base(samples, 21, (1e-3, 2e-3), np.eye(4))
+    np.testing.assert_allclose(P, [[-10e-3, 0.0, 0.0], [0.0, 40e-3, 0.0]])
+
+
+@pytest.mark.parametrize("shape", ["cone", "prism"])
+def test_icp_recovers_a_known_rigid_perturbation(shape):
+    if shape == "cone":
+        mesh = trimesh.creation.cone(radius=0.03, height=0.04464, sections=96)
+    else:
+        mesh = trimesh.convex.convex_hull(
+            np.array(
+                [
+                    [-0.06, -0.03, 0],
+                    [0.06, -0.03, 0],
+                    [-0.06, 0.03, 0],
+                    [0.06, 0.03, 0],
+                    [-0.06, 0, 0.04464],
+                    [0.06, 0, 0.04464],
+                ]
+            )
+        )
+    pts, _ = trimesh.sample.sample_surface(mesh, 1500, seed=1)
+    perturb = se3.exp(np.array([1.5e-3, -1.0e-3, 0.8e-3, 0.02, -0.015, 0.01]))
+    moved = se3.apply(perturb, pts)
+    assert surface_distances(mesh, moved).max() > 1e-3  # really off before ICP
+    reg = register_icp(moved, mesh, max_iterations=80, threshold=1e-14)
+    assert reg.distances_mm.max() <= 0.01
+    back = se3.apply(reg.T, moved)
+    if shape == "cone":
+        # A turn about the cone's axis is a symmetry: compare what it leaves unchanged.
+        inv = lambda p: np.column_stack([np.hypot(p[:, 0], p[:, 1]), p[:, 2]])  # noqa: E731
+        assert np.abs(inv(back) - inv(pts)).max() <= 0.01e-3
+    else:
+        # The registration undoes the perturbation: every point back in its place.
+        assert np.abs(back - pts).max() <= 0.01e-3
+
+
+def test_distance_statistics():
+    s = distance_stats([0.1, 0.2, 0.3, 0.4])
+    assert s["mae"] == pytest.approx(0.25)
+    assert s["sd"] == pytest.approx(np.std([0.1, 0.2, 0.3, 0.4], ddof=1))
+    assert s["rmse"] == pytest.approx(np.sqrt(0.075))
+    assert s["max"] == pytest.approx(0.4)
