@@ -37,6 +37,7 @@ __all__ = [
     "facing_pose",
     "in_plane_offsets",
     "orientation_offsets",
+    "plan_parallel_sweeps",
     "plan_sweeps",
     "rotated_about_target",
     "touch_plan",
@@ -234,6 +235,29 @@ def plan_sweeps(
             T_us = T_rot @ se3.make(np.eye(3), [dx, dy, 0.0])
             commands = T_us @ frame_shifts @ T_us_ee
             plan.append(PlannedSweep(target, len(plan), k, m, commands))
+    return plan
+
+
+def plan_parallel_sweeps(
+    target: str,
+    T_base_ee_taught: ArrayLike,
+    T_ee_us_coarse: ArrayLike,
+    cfg: ProtocolConfig,
+    travel: ArrayLike,
+) -> list[PlannedSweep]:
+    """The paper's prism protocol: the same 45 starting poses as :func:`plan_sweeps`
+    (9 orientations about the target × 5 in-plane positions), but every sweep travels
+    along one fixed base-frame direction ``travel`` (the ridge), so the 45 sweeps are
+    mutually parallel whatever the probe's orientation."""
+    d = np.asarray(travel, dtype=float)
+    d = d / np.linalg.norm(d)
+    half = cfg.sweep_half_length_mm * 1e-3
+    steps = np.linspace(-half, half, cfg.frames_per_sweep)
+    shifts = se3.make(np.eye(3), steps[:, None] * d[None, :])  # (n, 4, 4), base frame
+    plan = []
+    for p in plan_sweeps(target, T_base_ee_taught, T_ee_us_coarse, cfg):
+        T_centre = p.T_base_ee[len(p.T_base_ee) // 2]  # the starting pose, mid-sweep
+        plan.append(PlannedSweep(p.target, p.pose_id, p.orientation, p.position, shifts @ T_centre))
     return plan
 
 

@@ -72,3 +72,26 @@ def test_check_plan_names_the_failing_pose():
     far = se3.make(np.eye(3), [0.9, 0.0, 0.1]) @ taught
     with pytest.raises(UnreachablePoseError, match=r"sphere_1 sweep 0 frame 0"):
         check_plan(t.robot, plan_sweeps("sphere_1", far, T_ee_us, ProtocolConfig()))
+
+
+def test_parallel_sweeps_share_one_travel_direction():
+    from calib.protocol import ProtocolConfig, facing_pose, plan_parallel_sweeps, plan_sweeps
+
+    cfg = ProtocolConfig()
+    X = se3.make(se3.matrix_from_euler(np.radians([91.0, -0.8, 1.5])), [0.8e-3, -1.2e-3, 0.158])
+    taught = facing_pose([0.3, 0.0, 0.045], 0.02) @ se3.invert(X)
+    ridge = np.array([1.0, 0.0, 0.0])
+    plan = plan_parallel_sweeps("ridge", taught, X, cfg, ridge)
+    sphere_like = plan_sweeps("ridge", taught, X, cfg)
+    assert len(plan) == 45
+    for p, q in zip(plan, sphere_like, strict=True):
+        t = p.T_base_ee[:, :3, 3]
+        steps = np.diff(t, axis=0)
+        # Every frame step is 1 mm along the ridge, whatever the probe's orientation.
+        np.testing.assert_allclose(steps, np.tile(ridge * 1e-3, (len(steps), 1)), atol=1e-12)
+        # Orientation fixed within a sweep, and the sphere protocol's pose at mid-sweep.
+        np.testing.assert_allclose(p.T_base_ee[:, :3, :3], p.T_base_ee[:1, :3, :3].repeat(21, 0))
+        np.testing.assert_allclose(p.T_base_ee[10], q.T_base_ee[10], atol=1e-12)
+    # The starting poses differ in position and orientation.
+    R = np.array([p.T_base_ee[10][:3, :3] for p in plan])
+    assert len({tuple(np.round(r.ravel(), 6)) for r in R}) == 9
