@@ -225,9 +225,6 @@ class SweepVolume:
         k = np.rint((P[..., 2] - self.z0) / dz).astype(np.int64)
         return k, r, c
 
-    def _geometry(self) -> tuple:
-        return (self.bits, self._nearest, self._frame_rows, self._frame_cols, self._frames.shape)
-
     def label_at(self, k: NDArray[np.int64], r: NDArray[np.int64], c: NDArray[np.int64]):
         """Labels of voxels (any shape of integer indices); 0 (outside) past the volume."""
         k, r, c = np.broadcast_arrays(k, r, c)
@@ -243,13 +240,6 @@ class SweepVolume:
             np.ascontiguousarray(c, dtype=np.int64).ravel(),
         )
         return out.reshape(k.shape)
-
-    @property
-    def labels(self) -> NDArray[np.int16]:
-        """The whole label grid (K, H, W), materialised (for inspection and tests)."""
-        K, H, W = self.shape
-        k, r, c = np.meshgrid(np.arange(K), np.arange(H), np.arange(W), indexing="ij")
-        return self.label_at(k, r, c)
 
     def with_column_step(self, step: int) -> SweepVolume:
         """The same volume with its bits split for another candidate column step."""
