@@ -335,9 +335,13 @@ def _pack_bits(images, thresholds, sc, out):  # pragma: no cover - compiled
             src = images[j, r]
             for d in range(sc):
                 dst = out[j, d, r]
-                for i in range((W - d + sc - 1) // sc):
-                    if src[d + i * sc] >= t:
-                        dst[i >> 6] |= np.uint64(1) << np.uint64(i & 63)
+                n = (W - d + sc - 1) // sc
+                for w in range((n + 63) // 64):
+                    word = np.uint64(0)
+                    for b in range(min(64, n - 64 * w)):
+                        bright = np.uint64(src[d + (64 * w + b) * sc] >= t)
+                        word |= bright << np.uint64(b)
+                    dst[w] = word
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
