@@ -48,7 +48,7 @@ from calib.localize import (  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--sweeps", type=int, default=9)
-    parser.add_argument("--repeats", type=int, default=3, help="best of this many")
+    parser.add_argument("--repeats", type=int, default=5, help="best of this many")
     args = parser.parse_args()
     scenario = load_scenario(
         None, ["protocol.spheres=[1]", "robot.dh_error_scale=0"], check_reach=False
