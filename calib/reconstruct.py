@@ -3,14 +3,14 @@ Reconstruction of Different Phantoms").
 
 Per B-mode frame (the central frames of each sweep):
 
-1. **Otsu threshold** (scikit-image) → binary mask. Otsu picks the threshold that best
-   splits the frame's own grey-level histogram into two classes: like the sphere
-   localizer's per-frame mean, it is derived from the image, never set by hand.
+1. **Otsu threshold** (scikit-image) → binary mask, after a light blur about one speckle
+   grain wide. Otsu picks the threshold that best splits the frame's own grey-level
+   histogram into two classes: like the sphere localizer's per-frame mean, it is derived
+   from the image, never set by hand.
 2. **Two bright boundaries**: a cross-section near the cone's apex or across the prism's
-   ridge shows the two sides of a "Λ". The mask's regions (specks removed) give, per
-   column, the upper edge of the bright region (the surface the beam meets first) as a
-   candidate; lines are fitted robustly (RANSAC, scikit-image) to the candidates, the
-   first line's inliers are removed and the second line is fitted to the rest.
+   ridge shows the two sides of a "Λ". The mask's regions (specks removed) are the
+   candidates; lines are fitted robustly (RANSAC, scikit-image) to their pixels, the first
+   line's inliers are removed and the second line is fitted to the rest.
 3. **Samples**: for each lateral position (image column) along each fitted line, the
    maximum-intensity pixel within a few pixels of the line is the boundary sample.
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 from numpy.typing import ArrayLike, NDArray
-from skimage.filters import threshold_otsu
+from skimage.filters import gaussian, threshold_otsu
 from skimage.measure import LineModelND, ransac
 from skimage.morphology import remove_small_objects
 
@@ -78,6 +78,7 @@ def extract_boundaries(
     residual_px: float = 3.0,
     search_px: int = 4,
     min_region_px: int = 30,
+    smooth_px: float = 2.0,
     seed: int = 0,
 ) -> list[Boundary]:
     """The bright boundaries of one frame (see the module docstring).
@@ -90,21 +91,21 @@ def extract_boundaries(
     search_px : per column, the sample is the brightest pixel within ± this many rows of
         the fitted line
     min_region_px : connected bright regions smaller than this are speckle, not surface
+    smooth_px : Gaussian blur (σ, pixels) before the threshold, about a speckle grain
     seed : RANSAC's random seed (deterministic results)
     """
     img = np.asarray(image)
     H, W = img.shape
     if img.max() == img.min():
         return []
-    mask = img > threshold_otsu(img)
+    # Speckle is grainy at the scale of the resolution cell; a light blur before Otsu keeps
+    # single grains out of the mask (the samples below come from the unblurred frame).
+    smooth = gaussian(img.astype(float), sigma=smooth_px, preserve_range=True)
+    mask = smooth > threshold_otsu(smooth)
     # Isolated specks above the threshold are not surfaces.
     mask = remove_small_objects(mask, max_size=min_region_px - 1)
-    # Candidates: the upper edge of the bright region in each column (the surface the beam
-    # meets first; below it lies the phantom's own speckle).
-    has = mask.any(axis=0)
-    cols = np.flatnonzero(has)
-    top = np.argmax(mask[:, cols], axis=0)
-    points = np.column_stack([cols, top]).astype(float)
+    rows, cols = np.nonzero(mask)
+    points = np.column_stack([cols, rows]).astype(float)
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(n_boundaries):

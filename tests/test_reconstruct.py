@@ -18,21 +18,16 @@ from calib.reconstruct import (
 
 
 def lambda_frame(rng, apex=(190.0, 120.0), slope=0.8, H=400, W=380):
-    """A frame like a section of the cone near its apex in water: a bright "Λ" (two lines
-    of ± slope from an apex at (column, row)), the phantom's speckle below it, dark water
-    with faint noise above; returns the image and the true row of each line per column."""
+    """A frame like the simulator's section of the cone near its apex: a bright "Λ" (two
+    lines of ± slope from an apex at (column, row)) over grainy speckle and noise
+    everywhere; returns the image and the true row of each line per column."""
     c = np.arange(W)
     left = apex[1] + slope * (apex[0] - c)  # the left side (c ≤ apex column)
     right = apex[1] + slope * (c - apex[0])
-    surface = np.minimum(
-        np.where(c <= apex[0], left, np.inf), np.where(c >= apex[0], right, np.inf)
-    )
     r = np.arange(H)[:, None]
-    img = rng.gamma(1.5, 2.0, (H, W))  # water: faint
-    below = r > surface[None, :] + 2
-    img[below] += rng.gamma(2.0, 18.0, below.sum())  # the phantom's speckle
+    img = rng.gamma(1.2, 14.0, (H, W))  # speckle and noise: grainy, up to ≈ 100
     for rows, keep in ((left, c <= apex[0]), (right, c >= apex[0])):
-        img[:, keep] += 200 * np.exp(-0.5 * ((r - rows[keep][None, :]) / 1.0) ** 2)
+        img[:, keep] += 180 * np.exp(-0.5 * ((r - rows[keep][None, :]) / 1.5) ** 2)
     return np.clip(img, 0, 255).astype(np.uint8), left, right
 
 
@@ -104,3 +99,33 @@ def test_distance_statistics():
     assert s["sd"] == pytest.approx(np.std([0.1, 0.2, 0.3, 0.4], ddof=1))
     assert s["rmse"] == pytest.approx(np.sqrt(0.075))
     assert s["max"] == pytest.approx(0.4)
+
+
+def test_boundaries_of_a_rendered_cone_lie_on_its_surface():
+    """A frame the twin renders over the cone's apex: the extracted samples, mapped with
+    the true kinematics and probe mount, lie on the true (printed) cone surface."""
+    from bench.experiment import make_imager, make_twin
+    from bench.scenario import load_scenario
+    from calib.protocol import facing_pose
+
+    s = load_scenario(None, ["robot.dh_error_scale=0", "phantom.kind=cone"], check_reach=False)
+    twin = make_twin(s)
+    imager = make_imager(s, twin)
+    truth = twin.truth
+    T_face = facing_pose(truth.landmarks_base["apex"], 20e-3)
+    twin.robot.teach(T_face @ se3.invert(truth.T_ee_us))
+    frame = imager.grab()
+    bounds = extract_boundaries(frame.image)
+    assert len(bounds) == 2
+    T_base_us = twin.robot.truth.T_base_ee @ truth.T_ee_us
+    W = frame.image.shape[1]
+    sx, sy = frame.spacing
+    from bench.experiment import axial_scale
+
+    spacing = (sx, sy * axial_scale(s))
+    P = np.concatenate([samples_to_base(b.samples, W, spacing, T_base_us) for b in bounds])
+    printed = twin.scene.scene.phantom.mesh()
+    d = surface_distances(printed, se3.apply(se3.invert(truth.T_base_phantom), P)) * 1e3
+    assert len(P) > 150
+    assert np.median(d) <= 0.3
+    assert np.percentile(d, 95) <= 0.6
