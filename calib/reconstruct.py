@@ -161,24 +161,45 @@ def register_icp(
     mesh: trimesh.Trimesh,
     initial: ArrayLike | None = None,
     max_iterations: int = 50,
-    threshold: float = 1e-9,
+    threshold: float = 1e-12,
+    refine_iterations: int = 5,
+    surface_samples: int = 100_000,
 ) -> Registration:
     """Point-to-point ICP (Besl & McKay) of points (metres) onto a mesh surface, from
-    ``initial`` (e.g. the nominal placement; identity by default); trimesh's
-    implementation (closest surface points, Kabsch step, until the cost changes less than
-    ``threshold``)."""
+    ``initial`` (e.g. the nominal placement; identity by default), with trimesh's
+    implementation.
+
+    The iterations run first against a dense, even sample of the surface (nearest
+    neighbours from a KD-tree: trimesh's exact closest-point query on the mesh costs ≈ 30×
+    more per iteration), then ``refine_iterations`` more against the exact surface, which
+    removes the sampling's small bias. Distances are point-to-surface.
+    """
     P = np.asarray(points, dtype=float)
     T0 = np.eye(4) if initial is None else np.asarray(initial, dtype=float)
-    T, moved, _ = trimesh.registration.icp(
+    cloud, _ = trimesh.sample.sample_surface_even(mesh, surface_samples, seed=0)
+    T, _, _ = trimesh.registration.icp(
         P,
-        mesh,
+        cloud,
         initial=T0,
         threshold=threshold,
         max_iterations=max_iterations,
         reflection=False,
         scale=False,
     )
-    return Registration(np.asarray(T), surface_distances(mesh, moved) * 1e3, max_iterations)
+    moved = se3.apply(T, P)
+    if refine_iterations > 0:
+        T, moved, _ = trimesh.registration.icp(
+            P,
+            mesh,
+            initial=T,
+            threshold=threshold,
+            max_iterations=refine_iterations,
+            reflection=False,
+            scale=False,
+        )
+    return Registration(
+        np.asarray(T), surface_distances(mesh, moved) * 1e3, max_iterations + refine_iterations
+    )
 
 
 def distance_stats(distances_mm: ArrayLike) -> dict[str, float]:
