@@ -12,7 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.calibrate import AlternationResult, alternate, reconstruct
+from calib.calibrate import AlternationResult, alternate
+from calib.evaluate import training_precision
 from calib.localize import localize_sphere
 
 from .evaluation import EvaluationResult, run_evaluation
@@ -52,13 +53,8 @@ def _calibration_metrics(
     scenario, acq, truth, alt: AlternationResult, train, test, radius, scale, localizer
 ) -> dict[str, Any]:
     T_est = alt.result.T_ee_us
-    X = reconstruct(alt.observations, T_est)
     keep = alt.result.retained
-    precision = []
-    for target in train:
-        idx = [i for i, o in enumerate(alt.observations) if o.target == target and keep[i]]
-        c = X[idx].mean(axis=0)
-        precision.append(np.mean(np.linalg.norm(X[idx] - c, axis=1)))
+    precision = training_precision(alt)
     # Accuracy on spheres not used for calibration (re-localized with this estimate);
     # on the training spheres when there are none.
     accuracy = []
@@ -78,7 +74,7 @@ def _calibration_metrics(
             "translation_mm": 1e3 * float(se3.translation_distance(T_est, truth.T_ee_us)),
             "image_mm": image_error_mm(scenario, T_est, truth.T_ee_us),
         },
-        "precision_mm": 1e3 * float(np.mean(precision)),
+        "precision_mm": float(np.mean([precision[t] for t in train])),
         "accuracy_mm": 1e3 * float(np.mean(accuracy)) if accuracy else float("nan"),
         "n_retained": int(keep.sum()),
         "iterations": len(alt.history),
