@@ -294,7 +294,9 @@ def run_evaluation(
             outcomes = list(pool.map(_run_dataset, tasks))
     t_datasets = time.perf_counter() - t0
 
-    metrics = _metrics(scenario, names, touches, refinements, references, outcomes, twin)
+    metrics = _metrics(
+        scenario, names, touches, refinements, references, outcomes, twin, cad_vertices
+    )
     metrics["timing_s"] = {
         "touches_and_dh": t_touch,
         "datasets_wall": t_datasets,
@@ -342,7 +344,9 @@ def _tables_json(table: dict[str, dict[str, Summary]]) -> dict[str, Any]:
     return {metric: {s: v.as_dict() for s, v in by_set.items()} for metric, by_set in table.items()}
 
 
-def _metrics(scenario, names, touches, refinements, references, outcomes, twin) -> dict[str, Any]:
+def _metrics(
+    scenario, names, touches, refinements, references, outcomes, twin, cad_vertices
+) -> dict[str, Any]:
     truth = twin.truth
     first = outcomes[0]
     single = next(r for r in first.folds if r.fold.kind == "single")
@@ -419,7 +423,7 @@ def _metrics(scenario, names, touches, refinements, references, outcomes, twin) 
     rms = np.sqrt(np.mean(np.array([r.rms_change for r in refinements.values()]) ** 2, axis=0))
     true_rms = np.array(truth.dh_deltas.rms()) * [180 / np.pi, _MM, _MM, 180 / np.pi]
     ident = identifiability(
-        refinements[names[0]], [touches[n] for n in names if n != names[0]], _cad(twin)
+        refinements[names[0]], [touches[n] for n in names if n != names[0]], cad_vertices
     )
     return {
         "scenario": {"name": scenario.source, "seed": scenario.seed},
@@ -453,10 +457,6 @@ def _metrics(scenario, names, touches, refinements, references, outcomes, twin) 
         },
         "evaluation": {"datasets": names, "folds": folds_doc},
     }
-
-
-def _cad(twin) -> dict[str, Array]:
-    return {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("vertex_")}
 
 
 def _coarse_error(scenario: Scenario, truth) -> dict[str, float]:

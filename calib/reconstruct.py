@@ -147,7 +147,6 @@ class Registration:
 
     T: Array
     distances_mm: Array
-    iterations: int
 
 
 def surface_distances(mesh: trimesh.Trimesh, points: ArrayLike) -> Array:
@@ -177,29 +176,19 @@ def register_icp(
     P = np.asarray(points, dtype=float)
     T0 = np.eye(4) if initial is None else np.asarray(initial, dtype=float)
     cloud, _ = trimesh.sample.sample_surface_even(mesh, surface_samples, seed=0)
-    T, _, _ = trimesh.registration.icp(
-        P,
-        cloud,
-        initial=T0,
-        threshold=threshold,
-        max_iterations=max_iterations,
-        reflection=False,
-        scale=False,
-    )
-    moved = se3.apply(T, P)
-    if refine_iterations > 0:
-        T, moved, _ = trimesh.registration.icp(
-            P,
-            mesh,
-            initial=T,
-            threshold=threshold,
-            max_iterations=refine_iterations,
-            reflection=False,
-            scale=False,
-        )
-    return Registration(
-        np.asarray(T), surface_distances(mesh, moved) * 1e3, max_iterations + refine_iterations
-    )
+    T, moved = T0, se3.apply(T0, P)
+    for target, iterations in ((cloud, max_iterations), (mesh, refine_iterations)):
+        if iterations > 0:
+            T, moved, _ = trimesh.registration.icp(
+                P,
+                target,
+                initial=T,
+                threshold=threshold,
+                max_iterations=iterations,
+                reflection=False,
+                scale=False,
+            )
+    return Registration(np.asarray(T), surface_distances(mesh, moved) * 1e3)
 
 
 def distance_stats(distances_mm: ArrayLike) -> dict[str, float]:
