@@ -34,6 +34,8 @@ from calib.evaluate import (
     Summary,
     evaluate_fold,
     folds,
+    format_table_iii_csv,
+    format_table_iii_markdown,
     format_tables_csv,
     format_tables_markdown,
     summarize,
@@ -63,6 +65,15 @@ from .experiment import (
     simulate_acquisition,
     simulate_touches,
     stage_rngs,
+)
+from .reconstruction import (
+    PhantomReconstruction,
+    Recalibration,
+    merge_recalibrations,
+    reconstruct_phantom,
+    reconstruction_metrics,
+    run_recalibration,
+    run_scan,
 )
 from .scenario import Scenario
 
@@ -230,6 +241,7 @@ class EvaluationResult:
     refinements: dict[str, DHRefinement]
     references: dict[str, TouchReference]
     outcomes: list[DatasetOutcome] = field(repr=False)
+    reconstruction: list[PhantomReconstruction] = field(default_factory=list, repr=False)
 
 
 def _workers(scenario: Scenario, n_tasks: int) -> int:
@@ -278,20 +290,49 @@ def run_evaluation(
         )
     t_touch = time.perf_counter() - t_start
 
-    # ---- stage 2: datasets in a process pool
+    # ---- stage 2: datasets (and the reconstruction's tasks) in a process pool
     tasks = [
         _DatasetTask(sc, i, name, refinements[name].table, references[name], tuple(touches[name]))
         for i, (name, sc) in enumerate(zip(names, scenarios, strict=True))
     ]
+    tables = {name: refinements[name].table for name in names}
+    phantoms = scenario.reconstruction.phantoms
     workers = _workers(scenario, len(tasks))
     say(f"{len(tasks)} datasets on {workers} worker process(es)")
+    if phantoms:
+        say(f"reconstruction of the {' and '.join(phantoms)} beside them")
     t0 = time.perf_counter()
+    recon_parts: list[PhantomReconstruction] = []
+    recal: Recalibration | None = None
     if workers == 1:
         outcomes = [_run_dataset(t) for t in tasks]
+        if phantoms:
+            recal = run_recalibration(scenario, tables)
+            for kind in phantoms:
+                scan = run_scan(scenario, kind)
+                recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
     else:
         ctx = multiprocessing.get_context("spawn")
         with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            outcomes = list(pool.map(_run_dataset, tasks))
+            # Long tasks first, so that none is left running alone at the end: the
+            # three-marker re-calibration (a scan of spheres 1-3, three calibrations), the
+            # datasets, then the single-marker one (sphere 1), the phantom scans and
+            # their registrations.
+            recal_futures = []
+            if phantoms:
+                recal_futures.append(pool.submit(run_recalibration, scenario, tables, ("three",)))
+            dataset_futures = [pool.submit(_run_dataset, t) for t in tasks]
+            if phantoms:
+                recal_futures.append(pool.submit(run_recalibration, scenario, tables, ("single",)))
+            scan_futures = [pool.submit(run_scan, scenario, kind) for kind in phantoms]
+            if phantoms:
+                recal = merge_recalibrations([f.result() for f in recal_futures])
+                recon_futures = [
+                    pool.submit(reconstruct_phantom, scenario, f.result(), recal, tables)
+                    for f in scan_futures
+                ]
+                recon_parts = [f.result() for f in recon_futures]
+            outcomes = [f.result() for f in dataset_futures]
     t_datasets = time.perf_counter() - t0
 
     metrics = _metrics(
@@ -299,7 +340,7 @@ def run_evaluation(
     )
     metrics["timing_s"] = {
         "touches_and_dh": t_touch,
-        "datasets_wall": t_datasets,
+        "pool_wall": t_datasets,
         "workers": workers,
         "per_dataset": {o.name: o.timing_s for o in outcomes},
         "simulate": float(sum(o.timing_s["simulate"] for o in outcomes)),
@@ -309,18 +350,23 @@ def run_evaluation(
         "calibrate": float(
             sum(h["calibrate_s"] for o in outcomes for r in o.folds for h in r.alternation.history)
         ),
+        "reconstruction": {
+            **{f"recalibration {k}": v for k, v in (recal.timing_s if recal else {}).items()},
+            **{p.kind: p.metrics["timing_s"] for p in recon_parts},
+        },
         "total": time.perf_counter() - t_start,
     }
-    tables = _tables(names, references, outcomes)
-    metrics["evaluation"]["single"] = _tables_json(tables["single"])
-    metrics["evaluation"]["three"] = _tables_json(tables["three"])
+    tables_i_ii = _tables(names, references, outcomes)
+    metrics["evaluation"]["single"] = _tables_json(tables_i_ii["single"])
+    metrics["evaluation"]["three"] = _tables_json(tables_i_ii["three"])
+    markdown, csv_text = format_tables_markdown(tables_i_ii), format_tables_csv(tables_i_ii)
+    if recal is not None:
+        metrics["reconstruction"] = reconstruction_metrics(recon_parts, recal)
+        table_iii = {p.kind: p.metrics for p in recon_parts}
+        markdown += "\n" + format_table_iii_markdown(table_iii, names)
+        csv_text += format_table_iii_csv(table_iii, names)
     return EvaluationResult(
-        metrics,
-        format_tables_markdown(tables),
-        format_tables_csv(tables),
-        refinements,
-        references,
-        outcomes,
+        metrics, markdown, csv_text, refinements, references, outcomes, recon_parts
     )
 
 

@@ -155,6 +155,8 @@ def _type_text(tp: Any, meta: dict[str, Any]) -> str:
         return "one of " + ", ".join(repr(a) for a in args)
     if origin is tuple:
         n = meta.get("len") if args[-1] is Ellipsis else len(args)
+        if typing.get_origin(args[0]) is Literal:
+            return "list of values from " + ", ".join(repr(a) for a in typing.get_args(args[0]))
         elem = _type_text(args[0], {})
         return f"list of {n} {elem}s" if n else f"list of {elem}s"
     return {float: "number", int: "integer", bool: "true/false", str: "string"}[tp]
@@ -202,6 +204,11 @@ def _coerce(value: Any, tp: Any, meta: dict[str, Any], where: dict[str, Any]) ->
         if n is not None and len(value) != n:
             fail(f"expected {n} values, got {len(value)}")
         elem_tp = args[0]
+        if typing.get_origin(elem_tp) is Literal:
+            for v in value:
+                if v not in typing.get_args(elem_tp):
+                    fail(f"{v!r} is not an allowed value")
+            return tuple(value)
         return tuple(_coerce_scalar(v, elem_tp, meta, fail) for v in value)
     return _coerce_scalar(value, tp, meta, fail)
 

@@ -25,7 +25,7 @@ import csv
 import io
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +43,8 @@ __all__ = [
     "base_centres",
     "evaluate_fold",
     "folds",
+    "format_table_iii_csv",
+    "format_table_iii_markdown",
     "format_tables_csv",
     "format_tables_markdown",
     "localize_test_sphere",
@@ -296,12 +298,86 @@ def format_tables_markdown(
 
 
 def format_tables_csv(tables: Mapping[str, Mapping[str, Mapping[str, Summary]]]) -> str:
-    """The same tables, one row per (table, metric, set): mae, sd, rmse, n."""
+    """The same tables, one row per (table, metric, set): mae, sd, rmse, n (``max_mm``,
+    for Table III's rows, is empty here)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["table", "metric", "set", "mae_mm", "sd_mm", "rmse_mm", "n"])
+    w.writerow(["table", "metric", "set", "mae_mm", "sd_mm", "rmse_mm", "n", "max_mm"])
     for kind, metrics in tables.items():
         for key, by_set in metrics.items():
             for s, v in by_set.items():
-                w.writerow([kind, key, s, f"{v.mae:.6f}", f"{v.sd:.6f}", f"{v.rmse:.6f}", v.n])
+                w.writerow([kind, key, s, f"{v.mae:.6f}", f"{v.sd:.6f}", f"{v.rmse:.6f}", v.n, ""])
+    return buf.getvalue()
+
+
+#: Table III's phantoms, in the paper's order and wording.
+PHANTOM_TITLES = {"cone": "Cone", "prism": "Triangular prism"}
+
+
+def _stats_cells(v: Mapping[str, float], fmt: Callable[[float], str]) -> list[str]:
+    return [f"{fmt(v['mae'])} ± {fmt(v['sd'])}", fmt(v["rmse"]), fmt(v["max"])]
+
+
+def format_table_iii_markdown(
+    stats: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Any]]]],
+    sets: Sequence[str],
+    fmt: Callable[[float], str] = lambda v: f"{v:.2f}",
+) -> str:
+    """Table III in the paper's layout: per phantom and set (and Overall, pooled), the
+    single- and three-marker point-to-surface errors after ICP — MAE ± SD, RMSE, Max.
+    ``stats[phantom][method][set]``; a ``without_icp`` entry per cell (the same
+    distances through the true placement) gives a second table."""
+    header = (
+        "| Phantom | Set | Single MAE ± SD | Single RMSE | Single Max "
+        "| Three MAE ± SD | Three RMSE | Three Max |"
+    )
+    out = []
+    for title, pick in (
+        ("Table III. Single- and three-marker point-to-surface errors after ICP (mm).", None),
+        (
+            "Table III (twin only). The same without ICP, through the true phantom placement "
+            "(calibration and kinematic error included) (mm).",
+            "without_icp",
+        ),
+    ):
+        out += [f"**{title}**", "", header, "|" + "---|" * 8]
+        for kind, by_method in stats.items():
+            for s in [*sets, "overall"]:
+                cells = []
+                for method in ("single", "three"):
+                    v = by_method[method][s]
+                    cells += _stats_cells(v[pick] if pick else v, fmt)
+                label = "Overall" if s == "overall" else s
+                out.append(
+                    f"| {PHANTOM_TITLES.get(kind, kind)} | {label} | " + " | ".join(cells) + " |"
+                )
+        out.append("")
+    return "\n".join(out)
+
+
+def format_table_iii_csv(
+    stats: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Any]]]], sets: Sequence[str]
+) -> str:
+    """Table III as rows to append to :func:`format_tables_csv`'s: ``table`` is
+    ``reconstruction``, ``metric`` ``{phantom}_{method}`` (``_without_icp`` for the
+    through-the-truth figures), ``n`` the number of points."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    for kind, by_method in stats.items():
+        for method in ("single", "three"):
+            for suffix, pick in (("", None), ("_without_icp", "without_icp")):
+                for s in [*sets, "overall"]:
+                    v = by_method[method][s]
+                    n = v["n"]
+                    v = v[pick] if pick else v
+                    w.writerow(
+                        [
+                            "reconstruction",
+                            f"{kind}_{method}{suffix}",
+                            s,
+                            *(f"{v[k]:.6f}" for k in ("mae", "sd", "rmse")),
+                            n,
+                            f"{v['max']:.6f}",
+                        ]
+                    )
     return buf.getvalue()

@@ -65,6 +65,8 @@ def to_bmode(
         if noise is not None:
             np.multiply(noise.frame(), noise_power, out=buf.reshape(-1))
             buf += intensity[f]
+            # A float32 exponential draw can be exactly 0; in a shadow the echo is 0 too.
+            np.maximum(buf, np.float32(1e-30), out=buf)
         else:
             np.maximum(intensity[f], np.float32(1e-30), out=buf)
         np.log10(buf, out=buf)

@@ -1,0 +1,430 @@
+"""Cone and prism reconstruction on the twin (paper, "Volumetric Reconstruction of
+Different Phantoms", Table III and its heatmap figure).
+
+As in the paper, the probe has been taken off and put back (a new true ``T_ee_us``), so it
+is re-calibrated from a separate scan of the four-sphere phantom: single-marker on sphere
+1 and three-marker on spheres 1-3, with each of the three frozen leave-one-out DH models
+(sets A-C). Each DH/``T_ee_us`` pair then maps the boundary samples of one cone scan (45
+sweeps about the apex) and one prism scan (45 parallel sweeps along the ridge) to the base
+frame, where they are registered to the CAD surface with ICP and scored by their
+point-to-surface distances.
+
+Beyond the paper, the same distances are computed without ICP, through the true phantom
+pose the twin knows (expressed in each DH model's gauge): this separates the calibration
+and kinematic error from shape consistency, which is all the post-ICP residual shows.
+
+The stages are process-pool tasks that run beside the evaluation's datasets:
+:func:`run_recalibration` and one :func:`run_scan` per phantom (each keeps its frames and
+returns metrics or samples), then one :func:`reconstruct_phantom` per phantom.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib import se3
+from calib.calibrate import alternate
+from calib.dh import DHTable, forward_kinematics
+from calib.image import pixel_to_us
+from calib.kinematics import kinematic_gauge, with_kinematics
+from calib.localize import localize_sphere
+from calib.protocol import (
+    PlannedSweep,
+    acquire,
+    check_plan,
+    facing_pose,
+    plan_parallel_sweeps,
+    plan_sweeps,
+)
+from calib.reconstruct import distance_stats, extract_boundaries, register_icp, surface_distances
+from twin.phantoms import build_phantom
+
+from .experiment import (
+    axial_scale,
+    coarse_estimate,
+    dataset_rngs,
+    image_error_mm,
+    image_points,
+    make_imager,
+    make_twin,
+    simulate_acquisition,
+    stage_rngs,
+)
+from .scenario import Scenario
+
+__all__ = [
+    "METHODS",
+    "PhantomReconstruction",
+    "PhantomScan",
+    "Recalibration",
+    "merge_recalibrations",
+    "nominal_placement",
+    "recalibration_scenario",
+    "reconstruct_phantom",
+    "reconstruction_metrics",
+    "run_recalibration",
+    "run_scan",
+    "scan_scenario",
+]
+
+Array = NDArray[np.float64]
+_MM = 1e3
+
+#: Calibration methods of Table III: (name, spheres used).
+METHODS = {"single": ("sphere_1",), "three": ("sphere_1", "sphere_2", "sphere_3")}
+
+#: Session indices of the reconstruction's own random streams (``dataset_rngs``), past
+#: any evaluation dataset's: the four-sphere re-calibration scan, then one per phantom.
+_SESSION = {"recalibration": 50, "cone": 51, "prism": 52}
+#: Spawn key of the remount's own stream.
+_REMOUNT_KEY = 150
+
+
+def _remounted(scenario: Scenario) -> Scenario:
+    """The probe taken off and put back: its true mount moves by the configured amounts."""
+    rc = scenario.reconstruction
+    rng = np.random.default_rng(np.random.SeedSequence(scenario.seed, spawn_key=(_REMOUNT_KEY,)))
+    t = scenario.tools
+    pos = np.add(t.probe_mount_position_mm, rng.normal(0.0, rc.remount_position_mm, 3))
+    rot = np.add(t.probe_mount_rotation_deg, rng.normal(0.0, rc.remount_rotation_deg, 3))
+    tools = replace(
+        t,
+        probe_mount_position_mm=tuple(float(v) for v in pos),
+        probe_mount_rotation_deg=tuple(float(v) for v in rot),
+    )
+    return replace(scenario, tools=tools)
+
+
+def recalibration_scenario(
+    scenario: Scenario, methods: tuple[str, ...] = tuple(METHODS)
+) -> Scenario:
+    """The separate four-sphere scan after the remount, of the spheres ``methods`` use
+    (sphere 4 is used by neither, so it is not scanned)."""
+    sc = _remounted(scenario)
+    used = sorted({t for m in methods for t in METHODS[m]})
+    spheres = tuple(int(t.split("_")[1]) for t in used)
+    return replace(sc, protocol=replace(sc.protocol, spheres=spheres))
+
+
+def scan_scenario(scenario: Scenario, kind: str) -> Scenario:
+    """The cone or prism in the tank: it stands up to ± ``placement_error_mm`` off the
+    scenario's position (x, y) and turned up to ± ``placement_error_deg`` about the
+    vertical; the scenario's placement is the nominal one ICP starts from."""
+    sc = _remounted(scenario)
+    rc = scenario.reconstruction
+    rng = dataset_rngs(scenario, _SESSION[kind])["placement"]
+    dx, dy = rng.uniform(-1, 1, 2) * rc.placement_error_mm
+    dz = rng.uniform(-1, 1) * rc.placement_error_deg
+    ph = sc.phantom
+    x, y, z = ph.position_mm
+    rx, ry, rz = ph.rotation_deg
+    phantom = replace(
+        ph, kind=kind, position_mm=(x + dx, y + dy, z), rotation_deg=(rx, ry, rz + dz)
+    )
+    return replace(sc, phantom=phantom)
+
+
+def nominal_placement(scenario: Scenario) -> Array:
+    """``T_base_phantom`` as the user placed it: the scenario's phantom pose."""
+    ph = scenario.phantom
+    R = se3.matrix_from_euler(np.radians(ph.rotation_deg))
+    return se3.make(R, np.array(ph.position_mm) * 1e-3)
+
+
+# ------------------------------------------------------------------ re-calibration task
+
+
+@dataclass(frozen=True, eq=False)
+class Recalibration:
+    """``T_ee_us[(set, method)]`` re-estimated after the remount with each DH model, and
+    (kept apart) its error against the truth in that model's gauge."""
+
+    T_ee_us: dict[tuple[str, str], Array]
+    n_retained: dict[tuple[str, str], int]
+    truth: dict[tuple[str, str], dict[str, float]]
+    timing_s: dict[str, float]
+
+
+def run_recalibration(
+    scenario: Scenario, tables: dict[str, DHTable], methods: tuple[str, ...] = tuple(METHODS)
+) -> Recalibration:
+    """Scan the spheres ``methods`` use with the remounted probe and calibrate with every
+    DH model (a process-pool task; the frames stay here).
+
+    The scan is one scan whatever ``methods``: its random streams are drawn sphere by
+    sphere in order, so sphere 1's sweeps are the same frames whether spheres 2 and 3
+    follow or not. The evaluation runs the single- and three-marker calibrations as two
+    tasks side by side.
+    """
+    t0 = time.perf_counter()
+    sc = recalibration_scenario(scenario, methods)
+    rngs = dataset_rngs(scenario, _SESSION["recalibration"])
+    twin = make_twin(sc, rngs["joints"])
+    imager = make_imager(sc, twin, rngs["imaging"])
+    acq = simulate_acquisition(sc, twin, imager, "remount", rngs["protocol"])
+    truth = twin.truth
+    cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
+    del imager, twin
+    t_sim = time.perf_counter() - t0
+    radius = sc.phantom.sphere_radius_mm * 1e-3
+    scale = axial_scale(sc)
+    cfg = sc.localization
+    q_frames = np.concatenate([s.q[::10] for s in acq.dataset.sweeps])
+    tool_points = se3.apply(truth.T_ee_us, image_points(sc, 3))
+    T_ee_us, n_retained, errors = {}, {}, {}
+    t0 = time.perf_counter()
+    # The first localization (under the coarse T_ee_us) is done once, on the poses the
+    # controller recorded: it depends only on the flange's motion within each 20 mm
+    # sweep, on which the DH models differ by a turn of the flange frame of a degree or
+    # two (≈ 0.3 mm over 10 mm) — well inside the coarse T_ee_us's own error (up to
+    # 10°), and absorbed by the calibration. Every model's alternation starts from it and
+    # re-localizes with its own poses.
+    targets = acq.dataset.targets()
+    initial = {t: localize_sphere(acq.dataset.of(t), None, radius, cfg, scale) for t in targets}
+    for name, table in tables.items():
+        sweeps = {t: with_kinematics(acq.dataset.of(t), table) for t in targets}
+        X_equiv = kinematic_gauge(table, truth.dh_table, q_frames, tool_points).G @ truth.T_ee_us
+        for method in methods:
+            spheres = METHODS[method]
+            alt = alternate(
+                {t: sweeps[t] for t in spheres},
+                radius,
+                cfg,
+                scale,
+                cad if len(spheres) > 1 else None,
+                acq.T_ee_us_coarse,
+                sc.calibration.max_alternations,
+                initial={t: initial[t] for t in spheres},
+            )
+            X = alt.result.T_ee_us
+            T_ee_us[(name, method)] = X
+            n_retained[(name, method)] = int(alt.result.retained.sum())
+            errors[(name, method)] = {
+                "rotation_deg": float(np.degrees(se3.rotation_angle(X, X_equiv))),
+                "translation_mm": float(se3.translation_distance(X, X_equiv)) * _MM,
+                "image_mm": image_error_mm(sc, X, X_equiv),
+            }
+    timing = {"simulate": t_sim, "calibrate": time.perf_counter() - t0}
+    return Recalibration(T_ee_us, n_retained, errors, {"+".join(methods): timing})
+
+
+def merge_recalibrations(parts: list[Recalibration]) -> Recalibration:
+    """One :class:`Recalibration` from the tasks' (disjoint methods)."""
+    out = Recalibration({}, {}, {}, {})
+    for p in parts:
+        out.T_ee_us.update(p.T_ee_us)
+        out.n_retained.update(p.n_retained)
+        out.truth.update(p.truth)
+        out.timing_s.update(p.timing_s)
+    return out
+
+
+# ------------------------------------------------------------------------- scan tasks
+
+
+@dataclass(frozen=True, eq=False)
+class PhantomScan:
+    """Boundary samples of one phantom's 45 sweeps (no frames): per used frame its joint
+    angles, per sample its frame and its point in the image (``us``, metres)."""
+
+    kind: str
+    q_frames: Array  # (m, 6) reported joint angles of the central frames
+    frame: NDArray[np.int32]  # (n,) index into q_frames
+    p_us: Array  # (n, 3)
+    q_taught: Array  # (6,) the taught pose (apex or mid-ridge on the image centre line)
+    target_depth: float  # metres below the transducer face at the taught pose
+    n_sweeps: int
+    frames_without_two_boundaries: int
+    T_base_phantom_true: Array  # truth: kept apart, for the without-ICP distances
+    timing_s: dict[str, float]
+
+
+def _plan(sc: Scenario, twin, kind: str, rng: np.random.Generator):
+    """Teach at the apex (cone) or the ridge's middle (prism), as an operator would, off
+    by the teaching error; plan the 45 sweeps with the coarse ``T_ee_us``."""
+    truth = twin.truth
+    proto = sc.protocol
+    depth = proto.target_depth_mm * 1e-3
+    coarse = coarse_estimate(truth.T_ee_us, sc.calibration, stage_rngs(sc)["calibration"])
+    miss = rng.normal(0.0, proto.teaching_error_mm * 1e-3, 3)
+    if kind == "cone":
+        T_face = facing_pose(truth.landmarks_base["apex"] + miss, depth)
+        taught = twin.robot.teach(T_face @ se3.invert(truth.T_ee_us), "taught at the apex")
+        return taught, plan_sweeps("cone", taught.T_base_ee, coarse, proto)
+    a, b = truth.landmarks_base["ridge_start"], truth.landmarks_base["ridge_end"]
+    ridge = (b - a) / np.linalg.norm(b - a)
+    # The image plane across the ridge: its lateral axis horizontal, normal to the ridge.
+    lateral = np.cross([0.0, 0.0, 1.0], ridge)
+    T_face = facing_pose((a + b) / 2 + miss, depth, lateral)
+    taught = twin.robot.teach(T_face @ se3.invert(truth.T_ee_us), "taught at the ridge")
+    # The sweeps travel along the ridge as the operator sees it on the taught image: the
+    # normal of the image plane there, which the coarse T_ee_us predicts.
+    travel = (taught.T_base_ee @ coarse)[:3, 2]
+    return taught, plan_parallel_sweeps("prism", taught.T_base_ee, coarse, proto, travel)
+
+
+def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
+    """Scan the cone or prism with the remounted probe and extract the boundary samples
+    of each sweep's central frames (a process-pool task; frames are dropped per sweep)."""
+    t0 = time.perf_counter()
+    sc = scan_scenario(scenario, kind)
+    rngs = dataset_rngs(scenario, _SESSION[kind])
+    twin = make_twin(sc, rngs["joints"])
+    imager = make_imager(sc, twin, rngs["imaging"])
+    taught, plan = _plan(sc, twin, kind, rngs["protocol"])
+    check_plan(twin.robot, plan)
+    n_central = min(sc.reconstruction.central_frames, sc.protocol.frames_per_sweep)
+    scale = axial_scale(sc)
+    q_frames, frame, points, missing = [], [], [], 0
+    t_extract = 0.0
+    planned: PlannedSweep
+    first = (sc.protocol.frames_per_sweep - n_central) // 2
+    for planned in plan:
+        # The sweep's other frames are never read: the twin does not render them.
+        central = replace(planned, T_base_ee=planned.T_base_ee[first : first + n_central])
+        (sweep,) = acquire(twin.robot, imager, [central])
+        t2 = time.perf_counter()
+        sx, sy = sweep.spacing
+        width = sweep.images.shape[2]
+        pixel_mm = float(np.sqrt(sx * sy)) * _MM
+        for j in range(n_central):
+            bounds = extract_boundaries(sweep.images[j], pixel_mm, seed=len(q_frames))
+            missing += len(bounds) < 2
+            for b in bounds:
+                points.append(
+                    pixel_to_us(b.samples[:, 1], b.samples[:, 0], width, (sx, sy * scale))
+                )
+                frame.append(np.full(len(b.samples), len(q_frames), dtype=np.int32))
+            q_frames.append(sweep.q[j])
+        t_extract += time.perf_counter() - t2
+    return PhantomScan(
+        kind,
+        np.array(q_frames),
+        np.concatenate(frame) if frame else np.zeros(0, dtype=np.int32),
+        np.concatenate(points) if points else np.zeros((0, 3)),
+        taught.q,
+        sc.protocol.target_depth_mm * 1e-3 * scale,
+        len(plan),
+        missing,
+        twin.truth.T_base_phantom,
+        {"simulate": time.perf_counter() - t0 - t_extract, "extract": t_extract},
+    )
+
+
+# --------------------------------------------------------------------- reconstruction
+
+
+@dataclass(frozen=True, eq=False)
+class PhantomReconstruction:
+    """One phantom's Table III statistics (``metrics[method][set]``, plus scan figures)
+    and its registered points (CAD frame, metres, float32) with their distances (mm), by
+    (method, set)."""
+
+    kind: str
+    metrics: dict[str, Any]
+    points: dict[tuple[str, str], tuple[NDArray[np.float32], NDArray[np.float32]]]
+
+
+def _initial_alignment(
+    scan: PhantomScan, landmarks: dict[str, Array], table: DHTable, X: Array, T_nominal: Array
+) -> Array:
+    """ICP's start (applied to base-frame points): the nominal placement's orientation,
+    moved so the scanned landmark (apex, or the ridge's middle) sits where the taught
+    image's centre line put it. The nominal position alone can be a centimetre off in the
+    DH model's base frame (its base rotation is not identified by touches)."""
+    if scan.kind == "cone":
+        landmark = landmarks["apex"]
+    else:
+        landmark = (landmarks["ridge_start"] + landmarks["ridge_end"]) / 2
+    T_taught = forward_kinematics(table, scan.q_taught) @ X
+    seen = se3.apply(T_taught, np.array([0.0, scan.target_depth, 0.0]))
+    R = T_nominal[:3, :3]
+    return se3.invert(se3.make(R, seen - R @ landmark))
+
+
+def reconstruct_phantom(
+    scenario: Scenario, scan: PhantomScan, recal: Recalibration, tables: dict[str, DHTable]
+) -> PhantomReconstruction:
+    """Map one phantom's samples to the base frame with every (set, method) pair of DH
+    model and ``T_ee_us``, register each to the CAD surface (ICP) and score it; also score
+    it through the true phantom pose (no ICP). A process-pool task."""
+    t0 = time.perf_counter()
+    rc = scenario.reconstruction
+    kind = scan.kind
+    true_table = make_twin(scenario).truth.dh_table
+    cad = build_phantom(scan_scenario(scenario, kind).phantom)  # the CAD: no tolerance
+    mesh = cad.mesh()
+    T_nominal = nominal_placement(scenario)
+    q_gauge = scan.q_frames[:: max(1, len(scan.q_frames) // 100)]
+    metrics: dict[str, Any] = {}
+    points: dict[tuple[str, str], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
+    for method in METHODS:
+        pooled, pooled_true = [], []
+        metrics[method] = {}
+        for name, table in tables.items():
+            X = recal.T_ee_us[(name, method)]
+            T = forward_kinematics(table, scan.q_frames) @ X
+            R, t = T[scan.frame, :3, :3], T[scan.frame, :3, 3]
+            P = np.einsum("nij,nj->ni", R, scan.p_us) + t
+            reg = register_icp(
+                P,
+                mesh,
+                initial=_initial_alignment(scan, cad.landmarks, table, X, T_nominal),
+                max_iterations=rc.icp_max_iterations,
+                max_points=rc.icp_points,
+            )
+            # Without ICP: through the true placement, in this DH model's gauge (the base
+            # and flange motions touches cannot see).
+            gauge = kinematic_gauge(
+                table, true_table, q_gauge, se3.apply(X, image_points(scenario, 3))
+            )
+            T_phantom_base = se3.invert(gauge.B @ scan.T_base_phantom_true)
+            d_true = surface_distances(mesh, se3.apply(T_phantom_base, P)) * _MM
+            metrics[method][name] = {
+                **distance_stats(reg.distances_mm),
+                "n": len(P),
+                "icp_iterations": reg.iterations,
+                "without_icp": distance_stats(d_true),
+            }
+            pooled.append(reg.distances_mm)
+            pooled_true.append(d_true)
+            points[(method, name)] = (
+                se3.apply(reg.T, P).astype(np.float32),
+                reg.distances_mm.astype(np.float32),
+            )
+        metrics[method]["overall"] = {
+            **distance_stats(np.concatenate(pooled)),
+            "n": int(sum(len(d) for d in pooled)),
+            "without_icp": distance_stats(np.concatenate(pooled_true)),
+        }
+    metrics.update(
+        {
+            "n_sweeps": scan.n_sweeps,
+            "n_frames": len(scan.q_frames),
+            "frames_without_two_boundaries": scan.frames_without_two_boundaries,
+            "timing_s": {**scan.timing_s, "register": time.perf_counter() - t0},
+        }
+    )
+    return PhantomReconstruction(kind, metrics, points)
+
+
+def reconstruction_metrics(
+    parts: list[PhantomReconstruction], recal: Recalibration
+) -> dict[str, Any]:
+    """``metrics.json``'s ``reconstruction`` section: per phantom Table III's statistics
+    (``{cone,prism}.{single,three}.{A,B,C,overall}.{mae,sd,rmse,max}``, with ``n`` and
+    the ``without_icp`` figures), and the re-calibration against the truth."""
+    out: dict[str, Any] = {p.kind: p.metrics for p in parts}
+    out["recalibration"] = {
+        "true_error": {
+            f"{name}/{method}": {"n_retained": recal.n_retained[(name, method)], **err}
+            for (name, method), err in recal.truth.items()
+        },
+        "timing_s": recal.timing_s,
+    }
+    return out
