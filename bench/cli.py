@@ -375,32 +375,30 @@ def _print_evaluation(m: dict, console: Console) -> None:
 
 
 def _print_reconstruction(m: dict, console: Console) -> None:
-    from calib.evaluate import PHANTOM_TITLES
-
     names = m["evaluation"]["datasets"]
     rec = m["reconstruction"]
+    kinds = [k for k in ("cone", "prism") if k in rec]
     table = Table(title="Table III. Point-to-surface errors after ICP (mm)")
-    for col in ("phantom", "set", "1: MAE ± SD", "1: RMSE", "1: max", "3: MAE ± SD", "3: RMSE"):
-        table.add_column(col, justify="left" if col in ("phantom", "set") else "right")
-    table.add_column("no ICP 1 | 3", justify="right")
-    for kind in (k for k in ("cone", "prism") if k in rec):
+    for col in ("", "set", "1: MAE±SD", "RMSE", "max", "3: MAE±SD", "RMSE", "max"):
+        table.add_column(col, justify="left" if col in ("", "set") else "right")
+    for kind in kinds:
         for s in [*names, "overall"]:
-            one, three = rec[kind]["single"][s], rec[kind]["three"][s]
-            table.add_row(
-                PHANTOM_TITLES[kind],
-                "Overall" if s == "overall" else s,
-                f"{one['mae']:.2f} ± {one['sd']:.2f}",
-                f"{one['rmse']:.2f}",
-                f"{one['max']:.2f}",
-                f"{three['mae']:.2f} ± {three['sd']:.2f}",
-                f"{three['rmse']:.2f}",
-                f"{one['without_icp']['mae']:.2f} | {three['without_icp']['mae']:.2f}",
-            )
+            cells = []
+            for method in ("single", "three"):
+                v = rec[kind][method][s]
+                cells += [f"{v['mae']:.2f}±{v['sd']:.2f}", f"{v['rmse']:.2f}", f"{v['max']:.2f}"]
+            table.add_row(kind, "Overall" if s == "overall" else s, *cells)
     console.print(table)
     console.print(
         "1: single-marker (sphere 1), 3: three-marker (spheres 1–3), re-calibrated after the "
-        "remount with each set's DH model; no ICP: MAE through the true phantom placement "
-        "(beyond the paper)."
+        "remount with each set's DH model. Without ICP, through the true phantom placement "
+        "(beyond the paper), overall MAE: "
+        + "; ".join(
+            f"{kind} {rec[kind]['single']['overall']['without_icp']['mae']:.2f} (1), "
+            f"{rec[kind]['three']['overall']['without_icp']['mae']:.2f} (3)"
+            for kind in kinds
+        )
+        + " mm."
     )
 
 
