@@ -34,7 +34,6 @@ from calib.image import pixel_to_us
 from calib.kinematics import kinematic_gauge, with_kinematics
 from calib.localize import localize_sphere
 from calib.protocol import (
-    PlannedSweep,
     acquire,
     check_plan,
     facing_pose,
@@ -282,7 +281,6 @@ def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
     scale = axial_scale(sc)
     q_frames, frame, points, missing = [], [], [], 0
     t_extract = 0.0
-    planned: PlannedSweep
     first = (sc.protocol.frames_per_sweep - n_central) // 2
     for planned in plan:
         # The sweep's other frames are never read: the twin does not render them.
@@ -308,7 +306,7 @@ def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
         np.concatenate(frame) if frame else np.zeros(0, dtype=np.int32),
         np.concatenate(points) if points else np.zeros((0, 3)),
         taught.q,
-        sc.protocol.target_depth_mm * 1e-3 * scale,
+        sc.protocol.target_depth_mm * 1e-3,  # image frame: metres, depth corrected
         len(plan),
         missing,
         twin.truth.T_base_phantom,
@@ -361,6 +359,21 @@ def reconstruct_phantom(
     mesh = cad.mesh()
     T_nominal = nominal_placement(scenario)
     q_gauge = scan.q_frames[:: max(1, len(scan.q_frames) // 100)]
+    # Per DH model: the flange poses of the frames, and its gauge against the true arm
+    # (the base and flange motions touches cannot see) for the distances without ICP.
+    flange = {name: forward_kinematics(table, scan.q_frames) for name, table in tables.items()}
+    T_phantom_base = {
+        name: se3.invert(
+            kinematic_gauge(
+                table,
+                true_table,
+                q_gauge,
+                se3.apply(recal.T_ee_us[(name, "single")], image_points(scenario, 3)),
+            ).B
+            @ scan.T_base_phantom_true
+        )
+        for name, table in tables.items()
+    }
     metrics: dict[str, Any] = {}
     points: dict[tuple[str, str], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
     for method in METHODS:
@@ -368,7 +381,7 @@ def reconstruct_phantom(
         metrics[method] = {}
         for name, table in tables.items():
             X = recal.T_ee_us[(name, method)]
-            T = forward_kinematics(table, scan.q_frames) @ X
+            T = flange[name] @ X
             R, t = T[scan.frame, :3, :3], T[scan.frame, :3, 3]
             P = np.einsum("nij,nj->ni", R, scan.p_us) + t
             reg = register_icp(
@@ -378,13 +391,8 @@ def reconstruct_phantom(
                 max_iterations=rc.icp_max_iterations,
                 max_points=rc.icp_points,
             )
-            # Without ICP: through the true placement, in this DH model's gauge (the base
-            # and flange motions touches cannot see).
-            gauge = kinematic_gauge(
-                table, true_table, q_gauge, se3.apply(X, image_points(scenario, 3))
-            )
-            T_phantom_base = se3.invert(gauge.B @ scan.T_base_phantom_true)
-            d_true = surface_distances(mesh, se3.apply(T_phantom_base, P)) * _MM
+            # Without ICP: through the true placement, in this DH model's gauge.
+            d_true = surface_distances(mesh, se3.apply(T_phantom_base[name], P)) * _MM
             metrics[method][name] = {
                 **distance_stats(reg.distances_mm),
                 "n": len(P),
