@@ -44,7 +44,7 @@ def reconstruction_heatmaps(
                 P[order, 0] * 1e3,
                 P[order, 1] * 1e3,
                 c=d[order],
-                s=0.3,
+                s=1.5,
                 cmap="turbo",
                 vmin=0.0,
                 vmax=top,
