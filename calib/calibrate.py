@@ -70,7 +70,8 @@ class CalibrationResult:
     residuals_mm : (n,) float
         Distance of each reconstructed centre from its sphere's centroid.
     covariance : (6, 6) float
-        Of (rotation vector rad, translation m) of ``T_ee_us`` from the Jacobian.
+        Of (rotation vector in the ee frame, rad; translation, m) of ``T_ee_us``, from
+        the Jacobian and the residuals' variance (first order).
     cost : float
         Final loss (mm²).
     """
@@ -204,15 +205,22 @@ def calibrate(
         T0 = T_X
         if keep.sum() < 4:
             raise CalibrationError("fewer than 4 sweeps left after outlier rejection")
-    J = sol.jac[:, :6]
+    J = sol.jac[:, :6]  # residuals in mm per (m, rad) of the se(3) increment (ρ, ω)
     dof = max(len(sol.fun) - len(sol.x), 1)
-    sigma2 = 2 * sol.cost / dof
+    sigma2 = 2 * sol.cost / dof  # mm², so the covariance below is in m² and rad²
     try:
-        cov = np.linalg.inv(J.T @ J) * sigma2 / _MM**2  # parameters were in rad and m
+        cov = np.linalg.inv(J.T @ J) * sigma2
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.nan)
-    # Reorder se(3) (ρ, ω) into (rotation vector, translation).
-    cov = cov[np.ix_([3, 4, 5, 0, 1, 2], [3, 4, 5, 0, 1, 2])]
+    # The increment acts on the left, T = exp(ρ, ω) T_X: to first order the rotation
+    # vector is ω (ee frame) and the translation changes by ρ + ω × t = ρ − [t]× ω.
+    t = T_X[:3, 3]
+    t_hat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    A = np.zeros((6, 6))
+    A[:3, 3:] = np.eye(3)  # rotation vector ← ω
+    A[3:, :3] = np.eye(3)  # translation ← ρ
+    A[3:, 3:] = -t_hat  # … − [t]× ω
+    cov = A @ cov @ A.T
     return CalibrationResult(T_X, T_base_phantom, keep, dist, cov, float(2 * sol.cost), reasons)
 
 

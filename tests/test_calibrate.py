@@ -99,6 +99,21 @@ def test_noise_gives_physical_errors_and_outliers_are_rejected(rng):
     assert np.all(np.isfinite(sd)) and 1e-6 < sd[3:].max() < 2e-3
 
 
+def test_reported_covariance_matches_repeated_calibrations(rng):
+    """The covariance a calibration reports is the spread of its estimate: 80 noisy
+    calibrations (0.15 mm per axis) scatter, per component of (rotation vector in ee,
+    translation), as the reported standard deviations say (within ±35 %)."""
+    errors, reported = [], []
+    for _ in range(80):
+        res = calibrate(observations(np.array([0.3, 0.0, 0.02]), noise_mm=0.15, rng=rng))
+        dR = res.T_ee_us[:3, :3] @ T_EE_US_TRUE[:3, :3].T
+        dt = res.T_ee_us[:3, 3] - T_EE_US_TRUE[:3, 3]
+        errors.append(np.concatenate([se3.rotvec_from_matrix(dR), dt]))
+        reported.append(np.sqrt(np.diag(res.covariance)))
+    ratio = np.std(errors, axis=0) / np.mean(reported, axis=0)
+    assert np.all((ratio > 0.65) & (ratio < 1.35)), ratio
+
+
 def test_too_few_observations():
     obs = observations(np.array([0.3, 0.0, 0.02]))[:3]
     with pytest.raises(CalibrationError, match="at least 4"):
