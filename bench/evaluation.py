@@ -69,7 +69,6 @@ from .experiment import (
 from .reconstruction import (
     PhantomReconstruction,
     Recalibration,
-    merge_recalibrations,
     reconstruct_phantom,
     reconstruction_metrics,
     run_recalibration,
@@ -315,18 +314,13 @@ def run_evaluation(
         ctx = multiprocessing.get_context("spawn")
         with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             # Long tasks first, so that none is left running alone at the end: the
-            # three-marker re-calibration (a scan of spheres 1-3, three calibrations), the
-            # datasets, then the single-marker one (sphere 1), the phantom scans and
-            # their registrations.
-            recal_futures = []
-            if phantoms:
-                recal_futures.append(pool.submit(run_recalibration, scenario, tables, ("three",)))
+            # re-calibration (a scan of spheres 1-3 and six calibrations), the datasets,
+            # then the phantom scans and their registrations.
+            recal_future = pool.submit(run_recalibration, scenario, tables) if phantoms else None
             dataset_futures = [pool.submit(_run_dataset, t) for t in tasks]
-            if phantoms:
-                recal_futures.append(pool.submit(run_recalibration, scenario, tables, ("single",)))
             scan_futures = [pool.submit(run_scan, scenario, kind) for kind in phantoms]
-            if phantoms:
-                recal = merge_recalibrations([f.result() for f in recal_futures])
+            if recal_future is not None:
+                recal = recal_future.result()
                 recon_futures = [
                     pool.submit(reconstruct_phantom, scenario, f.result(), recal, tables)
                     for f in scan_futures
@@ -351,7 +345,7 @@ def run_evaluation(
             sum(h["calibrate_s"] for o in outcomes for r in o.folds for h in r.alternation.history)
         ),
         "reconstruction": {
-            **{f"recalibration {k}": v for k, v in (recal.timing_s if recal else {}).items()},
+            "recalibration": recal.timing_s if recal is not None else {},
             **{p.kind: p.metrics["timing_s"] for p in recon_parts},
         },
         "total": time.perf_counter() - t_start,

@@ -61,7 +61,6 @@ __all__ = [
     "PhantomReconstruction",
     "PhantomScan",
     "Recalibration",
-    "merge_recalibrations",
     "nominal_placement",
     "recalibration_scenario",
     "reconstruct_phantom",
@@ -153,13 +152,7 @@ def run_recalibration(
     scenario: Scenario, tables: dict[str, DHTable], methods: tuple[str, ...] = tuple(METHODS)
 ) -> Recalibration:
     """Scan the spheres ``methods`` use with the remounted probe and calibrate with every
-    DH model (a process-pool task; the frames stay here).
-
-    The scan is one scan whatever ``methods``: its random streams are drawn sphere by
-    sphere in order, so sphere 1's sweeps are the same frames whether spheres 2 and 3
-    follow or not. The evaluation runs the single- and three-marker calibrations as two
-    tasks side by side.
-    """
+    DH model (a process-pool task; the frames stay here)."""
     t0 = time.perf_counter()
     sc = recalibration_scenario(scenario, methods)
     rngs = dataset_rngs(scenario, _SESSION["recalibration"])
@@ -182,9 +175,12 @@ def run_recalibration(
     # sweep, on which the DH models differ by a turn of the flange frame of a degree or
     # two (≈ 0.3 mm over 10 mm) — well inside the coarse T_ee_us's own error (up to
     # 10°), and absorbed by the calibration. Every model's alternation starts from it and
-    # re-localizes with its own poses.
+    # re-localizes with its own poses. Each later model's alternation starts from the
+    # previous model's final localizations: it reaches the same estimate (within 0.02 mm
+    # over the image, measured) in fewer re-localizations.
     targets = acq.dataset.targets()
-    initial = {t: localize_sphere(acq.dataset.of(t), None, radius, cfg, scale) for t in targets}
+    first = {t: localize_sphere(acq.dataset.of(t), None, radius, cfg, scale) for t in targets}
+    start = {m: first for m in methods}
     for name, table in tables.items():
         sweeps = {t: with_kinematics(acq.dataset.of(t), table) for t in targets}
         X_equiv = kinematic_gauge(table, truth.dh_table, q_frames, tool_points).G @ truth.T_ee_us
@@ -198,8 +194,9 @@ def run_recalibration(
                 cad if len(spheres) > 1 else None,
                 acq.T_ee_us_coarse,
                 sc.calibration.max_alternations,
-                initial={t: initial[t] for t in spheres},
+                initial={t: start[method][t] for t in spheres},
             )
+            start[method] = alt.localizations
             X = alt.result.T_ee_us
             T_ee_us[(name, method)] = X
             n_retained[(name, method)] = int(alt.result.retained.sum())
@@ -209,18 +206,7 @@ def run_recalibration(
                 "image_mm": image_error_mm(sc, X, X_equiv),
             }
     timing = {"simulate": t_sim, "calibrate": time.perf_counter() - t0}
-    return Recalibration(T_ee_us, n_retained, errors, {"+".join(methods): timing})
-
-
-def merge_recalibrations(parts: list[Recalibration]) -> Recalibration:
-    """One :class:`Recalibration` from the tasks' (disjoint methods)."""
-    out = Recalibration({}, {}, {}, {})
-    for p in parts:
-        out.T_ee_us.update(p.T_ee_us)
-        out.n_retained.update(p.n_retained)
-        out.truth.update(p.truth)
-        out.timing_s.update(p.timing_s)
-    return out
+    return Recalibration(T_ee_us, n_retained, errors, timing)
 
 
 # ------------------------------------------------------------------------- scan tasks
