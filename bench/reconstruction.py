@@ -98,13 +98,11 @@ def _remounted(scenario: Scenario) -> Scenario:
     return replace(scenario, tools=tools)
 
 
-def recalibration_scenario(
-    scenario: Scenario, methods: tuple[str, ...] = tuple(METHODS)
-) -> Scenario:
-    """The separate four-sphere scan after the remount, of the spheres ``methods`` use
-    (sphere 4 is used by neither, so it is not scanned)."""
+def recalibration_scenario(scenario: Scenario) -> Scenario:
+    """The separate four-sphere scan after the remount, of the spheres Table III's
+    methods use (sphere 4 is used by neither, so it is not scanned)."""
     sc = _remounted(scenario)
-    used = sorted({t for m in methods for t in METHODS[m]})
+    used = sorted({t for spheres in METHODS.values() for t in spheres})
     spheres = tuple(int(t.split("_")[1]) for t in used)
     return replace(sc, protocol=replace(sc.protocol, spheres=spheres))
 
@@ -148,13 +146,11 @@ class Recalibration:
     timing_s: dict[str, float]
 
 
-def run_recalibration(
-    scenario: Scenario, tables: dict[str, DHTable], methods: tuple[str, ...] = tuple(METHODS)
-) -> Recalibration:
-    """Scan the spheres ``methods`` use with the remounted probe and calibrate with every
-    DH model (a process-pool task; the frames stay here)."""
+def run_recalibration(scenario: Scenario, tables: dict[str, DHTable]) -> Recalibration:
+    """Scan spheres 1-3 with the remounted probe and calibrate single- and three-marker
+    with every DH model (a process-pool task; the frames stay here)."""
     t0 = time.perf_counter()
-    sc = recalibration_scenario(scenario, methods)
+    sc = recalibration_scenario(scenario)
     rngs = dataset_rngs(scenario, _SESSION["recalibration"])
     twin = make_twin(sc, rngs["joints"])
     imager = make_imager(sc, twin, rngs["imaging"])
@@ -180,12 +176,11 @@ def run_recalibration(
     # over the image, measured) in fewer re-localizations.
     targets = acq.dataset.targets()
     first = {t: localize_sphere(acq.dataset.of(t), None, radius, cfg, scale) for t in targets}
-    start = {m: first for m in methods}
+    start = {m: first for m in METHODS}
     for name, table in tables.items():
         sweeps = {t: with_kinematics(acq.dataset.of(t), table) for t in targets}
         X_equiv = kinematic_gauge(table, truth.dh_table, q_frames, tool_points).G @ truth.T_ee_us
-        for method in methods:
-            spheres = METHODS[method]
+        for method, spheres in METHODS.items():
             alt = alternate(
                 {t: sweeps[t] for t in spheres},
                 radius,
