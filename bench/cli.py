@@ -7,6 +7,7 @@ Every :class:`~calib.errors.UscalError` becomes one line on stderr and exit code
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import traceback
 from collections.abc import Sequence
@@ -54,6 +55,16 @@ def _positive_mm(text: str) -> float:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number ≥ 0")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="uscal",
@@ -68,6 +79,20 @@ def _parser() -> argparse.ArgumentParser:
     _add_scenario_args(run, optional=True)
     run.add_argument("--out", help="output directory (default: the scenario's output.dir)")
     run.add_argument("--force", action="store_true", help="replace an existing directory")
+    rrd = run.add_mutually_exclusive_group()
+    rrd.add_argument("--rrd", metavar="FILE", help="rerun recording (default: OUT/recording.rrd)")
+    rrd.add_argument("--no-rrd", action="store_true", help="write no rerun recording")
+    run.add_argument(
+        "--rrd-frames",
+        type=_non_negative_int,
+        default=420,
+        metavar="N",
+        help="B-mode frames recorded per acquisition session at most, as whole sweeps "
+        "spread over it (default 420; 0 records none)",
+    )
+    run.add_argument(
+        "--spawn", action="store_true", help="open the recording in the rerun viewer at the end"
+    )
 
     check = sub.add_parser("check", help="validate a scenario and print a summary")
     _add_scenario_args(check, optional=True)
@@ -268,15 +293,29 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     import json
 
     from .output import atomic_output_dir
+    from .recording import RecordingOptions
     from .run import run
 
     scenario = load_scenario(args.scenario, args.overrides)
     out = args.out or scenario.output.dir
+    rrd_target = None
+    if not args.no_rrd:
+        rrd_target = Path(args.rrd) if args.rrd else Path(out) / "recording.rrd"
+    if args.rrd and Path(args.rrd).is_dir():
+        raise UscalError(f"--rrd {args.rrd}: is a directory; give a file name (e.g. run.rrd)")
     # Fail early (before minutes of simulation) if the output would be refused.
     with atomic_output_dir(out, force=args.force) as tmp:
-        result = run(scenario, progress=lambda msg: console.print(f"[dim]{msg}[/dim]"))
+        recording = None
+        if rrd_target is not None:
+            # Written inside the new output directory; moved to --rrd FILE once complete.
+            recording = RecordingOptions.new(tmp / "recording.rrd", args.rrd_frames)
+        result = run(
+            scenario,
+            progress=lambda msg: console.print(f"[dim]{msg}[/dim]"),
+            recording=recording,
+        )
         (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
-        written = ["metrics.json"]
+        written = ["metrics.json"] + (["recording.rrd"] if args.rrd is None and recording else [])
         if result.evaluation is not None:
             (tmp / "tables.md").write_text(result.evaluation.tables_markdown, encoding="utf-8")
             (tmp / "tables.csv").write_text(result.evaluation.tables_csv, encoding="utf-8")
@@ -291,13 +330,34 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
                     tmp / "figures" / "reconstruction_heatmaps.png",
                 )
                 written.append("figures/reconstruction_heatmaps.png")
+    if args.rrd and recording is not None:
+        target = Path(args.rrd)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        # The finished file leaves the (now final) output directory in one rename.
+        os.replace(Path(out) / "recording.rrd", target)
+        written.append(str(target.resolve()))
     _print_run(result.metrics, console)
     if result.evaluation is not None:
         _print_evaluation(result.metrics, console)
         if "reconstruction" in result.metrics:
             _print_reconstruction(result.metrics, console)
     console.print(f"wrote {', '.join(str(Path(out) / f) for f in written)}")
+    if args.spawn and rrd_target is not None:
+        _spawn_viewer(rrd_target, console)
     return 0
+
+
+def _spawn_viewer(path: Path, console: Console) -> None:
+    """Open a recording in the rerun viewer, if one is installed (a separate process)."""
+    import shutil
+    import subprocess
+
+    viewer = shutil.which("rerun")
+    if viewer is None:
+        console.print(f"no rerun viewer found on PATH: open {path} with `rerun {path}`")
+        return
+    subprocess.Popen([viewer, str(path)], start_new_session=True)
+    console.print(f"opened {path} in the rerun viewer")
 
 
 def _print_evaluation(m: dict, console: Console) -> None:

@@ -22,6 +22,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,7 @@ from calib.kinematics import (
 )
 from calib.localize import localize_sphere
 from calib.records import Touch
+from twin.imager import acoustic_scene
 
 from .experiment import (
     axial_scale,
@@ -68,12 +70,14 @@ from .experiment import (
 )
 from .reconstruction import (
     PhantomReconstruction,
+    PhantomScan,
     Recalibration,
     reconstruct_phantom,
     reconstruction_metrics,
     run_recalibration,
     run_scan,
 )
+from .recording import RecordingOptions
 from .scenario import Scenario
 
 __all__ = ["DatasetOutcome", "EvaluationResult", "run_evaluation"]
@@ -93,6 +97,7 @@ class _DatasetTask:
     table: DHTable
     reference: TouchReference
     touches: tuple[Touch, ...]
+    recording: RecordingOptions | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,6 +111,7 @@ class DatasetOutcome:
     n_sweeps: int
     n_rejected: int
     timing_s: dict[str, float]
+    recording_part: Path | None = None
 
 
 def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
@@ -121,6 +127,8 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
     t_sim = time.perf_counter() - t0
     truth = twin.truth
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
+    # What a recording shows of the scene (small: meshes and the MuJoCo model).
+    scene_view = (acoustic_scene(twin.robot.scene.scene).parts, twin.scene.model)
     # The scanner and scene are done: free them before the folds (memory per worker).
     del imager, twin
     gc.collect()
@@ -208,6 +216,11 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
         "folds": fold_truth,
         "T_ee_us_equivalent": X_equiv.tolist(),
     }
+    part, t_rec = None, 0.0
+    if task.recording is not None:
+        t1 = time.perf_counter()
+        part = _record_dataset(task, scenario, acq, truth, scene_view, results)
+        t_rec = time.perf_counter() - t1
     return DatasetOutcome(
         task.name,
         results,
@@ -216,6 +229,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
         n_sweeps,
         n_rejected,
         {
+            "recording": t_rec,
             "simulate": t_sim,
             "localize_initial": t_loc0,
             "folds": t_folds,
@@ -224,7 +238,37 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
                 sum(h["localize_s"] for r in results for h in r.alternation.history)
             ),
         },
+        part,
     )
+
+
+def _record_dataset(task, scenario, acq, truth, scene_view, results) -> Path:
+    """A dataset's part of the run's recording: its acquisition with the first single-
+    and three-marker folds' localizations, and every fold's convergence."""
+    from .recording import Recorder, log_acquisition
+
+    options = task.recording.part(task.name)
+    with Recorder(options) as rec:
+        first = {}
+        for r in results:
+            first.setdefault(r.fold.kind, r.alternation)
+        log_acquisition(
+            rec,
+            task.name,
+            scene_view[0],
+            scene_view[1],
+            acq.dataset,
+            first,
+            scenario.phantom.sphere_radius_mm * 1e-3,
+            scenario.localization,
+            axial_scale(scenario),
+            truth=(acq.T_base_ee_true, truth.T_ee_us, truth.landmarks_base),
+        )
+        for r in results:
+            rec.alternation(
+                task.name, f"folds/{r.fold.kind}/{'+'.join(r.fold.train)}", r.alternation
+            )
+    return options.path
 
 
 # ----------------------------------------------------------------------------- the run
@@ -251,9 +295,13 @@ def _workers(scenario: Scenario, n_tasks: int) -> int:
 
 
 def run_evaluation(
-    scenario: Scenario, progress: Callable[[str], None] | None = None
+    scenario: Scenario,
+    progress: Callable[[str], None] | None = None,
+    recording: RecordingOptions | None = None,
 ) -> EvaluationResult:
-    """The paper's experiment: touches, leave-one-out DH, folds, Tables I and II."""
+    """The paper's experiment: touches, leave-one-out DH, folds, Tables I and II; the
+    reconstruction (Table III). ``recording``: a rerun recording of it
+    (:mod:`bench.recording`)."""
     say = progress or (lambda _msg: None)
     t_start = time.perf_counter()
     ev = scenario.evaluation
@@ -291,7 +339,15 @@ def run_evaluation(
 
     # ---- stage 2: datasets (and the reconstruction's tasks) in a process pool
     tasks = [
-        _DatasetTask(sc, i, name, refinements[name].table, references[name], tuple(touches[name]))
+        _DatasetTask(
+            sc,
+            i,
+            name,
+            refinements[name].table,
+            references[name],
+            tuple(touches[name]),
+            recording,
+        )
         for i, (name, sc) in enumerate(zip(names, scenarios, strict=True))
     ]
     tables = {name: refinements[name].table for name in names}
@@ -302,13 +358,15 @@ def run_evaluation(
         say(f"reconstruction of the {' and '.join(phantoms)} beside them")
     t0 = time.perf_counter()
     recon_parts: list[PhantomReconstruction] = []
+    scans: list[PhantomScan] = []
     recal: Recalibration | None = None
     if workers == 1:
         outcomes = [_run_dataset(t) for t in tasks]
         if phantoms:
             recal = run_recalibration(scenario, tables)
             for kind in phantoms:
-                scan = run_scan(scenario, kind)
+                scan = run_scan(scenario, kind, recording)
+                scans.append(scan)
                 recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
     else:
         ctx = multiprocessing.get_context("spawn")
@@ -318,7 +376,7 @@ def run_evaluation(
             # then the phantom scans and their registrations.
             recal_future = pool.submit(run_recalibration, scenario, tables) if phantoms else None
             dataset_futures = [pool.submit(_run_dataset, t) for t in tasks]
-            scan_futures = [pool.submit(run_scan, scenario, kind) for kind in phantoms]
+            scan_futures = [pool.submit(run_scan, scenario, kind, recording) for kind in phantoms]
             if recal_future is not None:
                 recal = recal_future.result()
                 recon_futures = [
@@ -326,8 +384,14 @@ def run_evaluation(
                     for f in scan_futures
                 ]
                 recon_parts = [f.result() for f in recon_futures]
+                scans = [f.result() for f in scan_futures]
             outcomes = [f.result() for f in dataset_futures]
     t_datasets = time.perf_counter() - t0
+    t_record = 0.0
+    if recording is not None:
+        t1 = time.perf_counter()
+        _record_evaluation(scenario, recording, touches, tip_cad, outcomes, scans, recon_parts)
+        t_record = time.perf_counter() - t1
 
     metrics = _metrics(
         scenario, names, touches, refinements, references, outcomes, twin, cad_vertices
@@ -348,6 +412,9 @@ def run_evaluation(
             "recalibration": recal.timing_s if recal is not None else {},
             **{p.kind: p.metrics["timing_s"] for p in recon_parts},
         },
+        "recording": t_record
+        + sum(o.timing_s["recording"] for o in outcomes)
+        + sum(sc.timing_s["recording"] for sc in scans),
         "total": time.perf_counter() - t_start,
     }
     tables_i_ii = _tables(names, references, outcomes)
@@ -361,6 +428,39 @@ def run_evaluation(
         csv_text += format_table_iii_csv(table_iii, names)
     return EvaluationResult(
         metrics, markdown, csv_text, refinements, references, outcomes, recon_parts
+    )
+
+
+def _record_evaluation(
+    scenario: Scenario,
+    options: RecordingOptions,
+    touches: dict[str, list[Touch]],
+    tip_cad: Array,
+    outcomes: list[DatasetOutcome],
+    scans: list[PhantomScan],
+    recon_parts: list[PhantomReconstruction],
+) -> None:
+    """The main process's part of the recording (touches, the registered reconstructions)
+    and the merge of the workers' parts into the run's file."""
+    from twin.phantoms import build_phantom
+
+    from .reconstruction import scan_scenario
+    from .recording import Recorder, merge_parts
+
+    rec = Recorder(options)
+    for name, ts in touches.items():
+        tips = np.array([se3.apply(t.T_base_ee, tip_cad) for t in ts])
+        rec.points(f"/{name}/world/touches", tips, colour=(255, 200, 0), radius=0.001)
+    for part in recon_parts:
+        mesh = build_phantom(scan_scenario(scenario, part.kind).phantom).mesh()
+        rec.reconstruction(part.kind, mesh, part.points)
+    parts = [o.recording_part for o in outcomes] + [s.recording_part for s in scans]
+    merge_parts(
+        options,
+        [p for p in parts if p is not None],
+        [o.name for o in outcomes] + [s.kind for s in scans],
+        bool(recon_parts),
+        main=rec,
     )
 
 

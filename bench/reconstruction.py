@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
@@ -41,6 +43,7 @@ from calib.protocol import (
     plan_sweeps,
 )
 from calib.reconstruct import distance_stats, extract_boundaries, register_icp, surface_distances
+from twin.imager import acoustic_scene
 from twin.phantoms import build_phantom
 
 from .experiment import (
@@ -54,6 +57,7 @@ from .experiment import (
     simulate_acquisition,
     stage_rngs,
 )
+from .recording import RecordingOptions
 from .scenario import Scenario
 
 __all__ = [
@@ -222,6 +226,7 @@ class PhantomScan:
     frames_without_two_boundaries: int
     T_base_phantom_true: Array  # truth: kept apart, for the without-ICP distances
     timing_s: dict[str, float]
+    recording_part: Path | None = None
 
 
 def _plan(sc: Scenario, twin, kind: str, rng: np.random.Generator):
@@ -248,9 +253,13 @@ def _plan(sc: Scenario, twin, kind: str, rng: np.random.Generator):
     return taught, plan_parallel_sweeps("prism", taught.T_base_ee, coarse, proto, travel)
 
 
-def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
+def run_scan(
+    scenario: Scenario, kind: str, recording: RecordingOptions | None = None
+) -> PhantomScan:
     """Scan the cone or prism with the remounted probe and extract the boundary samples
-    of each sweep's central frames (a process-pool task; frames are dropped per sweep)."""
+    of each sweep's central frames (a process-pool task; frames are dropped per sweep).
+    ``recording``: log a spread of the frames with their boundary samples to a part file
+    of the run's recording (session ``kind``)."""
     t0 = time.perf_counter()
     sc = scan_scenario(scenario, kind)
     rngs = dataset_rngs(scenario, _SESSION[kind])
@@ -263,10 +272,26 @@ def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
     q_frames, frame, points, missing = [], [], [], 0
     t_extract = 0.0
     first = (sc.protocol.frames_per_sweep - n_central) // 2
-    for planned in plan:
+    rec = logged = None
+    if recording is not None:
+        from .recording import Recorder, sweeps_to_log
+
+        rec = Recorder(recording.part(kind))
+        rec.scene(kind, acoustic_scene(twin.robot.scene.scene).parts)
+        robot_ids = rec.robot_shapes(kind, twin.scene.model)
+        robot_data = mujoco.MjData(twin.scene.model)
+        logged = set(sweeps_to_log(len(plan), n_central, recording.max_frames))
+    t_record = 0.0
+    for i, planned in enumerate(plan):
         # The sweep's other frames are never read: the twin does not render them.
         central = replace(planned, T_base_ee=planned.T_base_ee[first : first + n_central])
-        (sweep,) = acquire(twin.robot, imager, [central])
+        true_flange = []
+        (sweep,) = acquire(
+            twin.robot,
+            imager,
+            [central],
+            on_frame=lambda _p, _j, log=true_flange: log.append(twin.robot.truth.T_base_ee),
+        )
         t2 = time.perf_counter()
         sx, sy = sweep.spacing
         width = sweep.images.shape[2]
@@ -274,6 +299,15 @@ def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
         for j in range(n_central):
             bounds = extract_boundaries(sweep.images[j], pixel_mm, seed=len(q_frames))
             missing += len(bounds) < 2
+            if rec is not None and i in logged:
+                t3 = time.perf_counter()
+                rec.next_frame()
+                rec.robot_pose(kind, twin.scene.model, robot_data, sweep.q[j], robot_ids)
+                T_true = true_flange[j] @ twin.truth.T_ee_us
+                rec.frame(kind, sweep.images[j], sweep.spacing, T_true, None, textured=j == 0)
+                samples = [b.samples for b in bounds] or [np.zeros((0, 2))]
+                rec.boundary(kind, np.concatenate(samples))
+                t_record += time.perf_counter() - t3
             for b in bounds:
                 points.append(
                     pixel_to_us(b.samples[:, 1], b.samples[:, 0], width, (sx, sy * scale))
@@ -281,6 +315,11 @@ def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
                 frame.append(np.full(len(b.samples), len(q_frames), dtype=np.int32))
             q_frames.append(sweep.q[j])
         t_extract += time.perf_counter() - t2
+    part = None
+    if rec is not None:
+        rec.close()
+        part = rec.options.path
+    t_extract -= t_record
     return PhantomScan(
         kind,
         np.array(q_frames),
@@ -291,7 +330,12 @@ def run_scan(scenario: Scenario, kind: str) -> PhantomScan:
         len(plan),
         missing,
         twin.truth.T_base_phantom,
-        {"simulate": time.perf_counter() - t0 - t_extract, "extract": t_extract},
+        {
+            "simulate": time.perf_counter() - t0 - t_extract - t_record,
+            "extract": t_extract,
+            "recording": t_record,
+        },
+        part,
     )
 
 

@@ -25,6 +25,7 @@ from .experiment import (
     make_twin,
     simulate_acquisition,
 )
+from .recording import RecordingOptions
 from .scenario import Scenario
 
 __all__ = ["RunResult", "run"]
@@ -87,15 +88,52 @@ def _calibration_metrics(
     }
 
 
-def run(scenario: Scenario, progress: Callable[[str], None] | None = None) -> RunResult:
+def _record_run(
+    options: RecordingOptions,
+    scenario: Scenario,
+    twin,
+    acq: SimulatedAcquisition,
+    single: AlternationResult,
+    three: AlternationResult | None,
+) -> int:
+    """The single-acquisition run in rerun (see :mod:`bench.recording`); returns the
+    number of B-mode frames logged."""
+    from twin.imager import acoustic_scene
+
+    from .recording import Recorder, log_acquisition, merge_parts
+
+    rec = Recorder(options)
+    alternations = {"single": single} | ({"three": three} if three is not None else {})
+    logged = log_acquisition(
+        rec,
+        "run",
+        acoustic_scene(twin.robot.scene.scene).parts,
+        twin.scene.model,
+        acq.dataset,
+        alternations,
+        scenario.phantom.sphere_radius_mm * 1e-3,
+        scenario.localization,
+        axial_scale(scenario),
+        truth=(acq.T_base_ee_true, twin.truth.T_ee_us, twin.truth.landmarks_base),
+    )
+    merge_parts(options, [], ["run"], False, main=rec)
+    return logged
+
+
+def run(
+    scenario: Scenario,
+    progress: Callable[[str], None] | None = None,
+    recording: RecordingOptions | None = None,
+) -> RunResult:
     """The whole experiment of a scenario; returns metrics against ground truth.
 
     With two or more ``evaluation.datasets`` this is the paper's experiment (touches,
     leave-one-dataset-out DH refinement, folds, Tables I and II); otherwise one
-    acquisition calibrated with the controller's kinematics.
+    acquisition calibrated with the controller's kinematics. ``recording`` writes a
+    rerun recording of it (:mod:`bench.recording`).
     """
     if len(scenario.evaluation.datasets) >= 2:
-        ev = run_evaluation(scenario, progress)
+        ev = run_evaluation(scenario, progress, recording)
         return RunResult(ev.metrics, evaluation=ev)
     t_start = time.perf_counter()
     twin = make_twin(scenario)
@@ -184,5 +222,9 @@ def run(scenario: Scenario, progress: Callable[[str], None] | None = None) -> Ru
         metrics["calibration"]["three"] = _calibration_metrics(
             scenario, acq, truth, three, targets[:3], targets[3:], radius, scale, loc_cfg
         )
+    if recording is not None:
+        t0 = time.perf_counter()
+        frames = _record_run(recording, scenario, twin, acq, single, three)
+        metrics["recording"] = {"frames": frames, "seconds": time.perf_counter() - t0}
     metrics["timing_s"]["total"] = time.perf_counter() - t_start
     return RunResult(metrics, acq, single, three)

@@ -52,6 +52,7 @@ __all__ = [
     "score_candidates",
     "score_candidates_reference",
     "score_grid",
+    "sphere_profile",
     "stack_sweep",
 ]
 
@@ -977,3 +978,45 @@ def localize_sphere(
             )
         )
     return out
+
+
+@dataclass(frozen=True)
+class SphereProfile:
+    """The radial brightness profile of a sphere's sweeps about their localized centres
+    (peak-normalised, averaged over the accepted sweeps) and the bands the localizer reads
+    off it: ``interior`` (first rising 0.25 crossing), ``shell`` (rising and falling 0.75
+    crossings). Radii in metres."""
+
+    radii: Array
+    profile: Array
+    interior: float
+    shell: tuple[float, float]
+    n_sweeps: int
+
+
+def sphere_profile(
+    sweeps: Sequence[Sweep],
+    localizations: Sequence[SweepLocalization],
+    T_ee_us: Array | None,
+    radius: float,
+    cfg: LocalizerConfig,
+    axial_scale: float = 1.0,
+) -> SphereProfile:
+    """:func:`radial_profile` and :func:`profile_bands` of localized sweeps, for showing
+    what the localizer saw (the stacks are rebuilt under ``T_ee_us``, as the localization
+    that produced the centres used)."""
+    if len(localizations) != len(sweeps):
+        raise ValueError(f"{len(localizations)} localizations for {len(sweeps)} sweeps")
+    vols, centres = [], []
+    for sweep, loc in zip(sweeps, localizations, strict=True):
+        if loc.accepted:
+            vol = stack_sweep(sweep, T_ee_us, axial_scale)
+            vols.append(vol)
+            centres.append(np.array(vol.index(loc.centre), dtype=float))
+    if not vols:
+        empty = np.zeros(0)
+        return SphereProfile(empty, empty, float("nan"), (float("nan"),) * 2, 0)
+    radii = np.arange(0.0, 1.6 * radius, min(vols[0].spacing[:2]))
+    profile = radial_profile(vols, centres, radii, cfg.profile_directions)
+    inner, rise, fall = profile_bands(radii, profile, radius)
+    return SphereProfile(radii, profile, inner, (rise, fall), len(vols))

@@ -13,6 +13,7 @@ import pytest
 from bench.experiment import dataset_scenario
 from bench.scenario import load_scenario
 
+from .rrd import Recording
 from .test_cli import uscal
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -128,3 +129,27 @@ def test_reconstruction_table_iii_and_heatmaps(small_run):
     img = imread(png)
     assert img.shape[0] > 400 and img.shape[1] > 1000  # 2 rows × 4 panels
     assert img[..., :3].std() > 0.05  # not blank
+
+
+def test_recording_holds_every_session_and_the_reconstruction(small_run):
+    out, m, _ = small_run
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []  # no parts
+    rec = Recording(out / "recording.rrd")
+    for session in ("A", "B", "cone", "prism"):
+        assert rec.rows(f"/{session}/bmode/image") > 0, session
+        assert f"/{session}/world/scene" in {e.rsplit("/", 1)[0] for e in rec.static}
+    # Sphere sessions: sections and every fold's convergence; scans: boundary samples.
+    assert rec.rows("/A/bmode/section/detected") == rec.rows("/A/bmode/image")
+    folds = {e.split("/folds/")[1].rsplit("/", 1)[0] for e in rec.timed if "/folds/" in e}
+    assert len(folds) == len([f for f in m["evaluation"]["folds"] if f["dataset"] == "A"])
+    assert rec.rows("/cone/bmode/boundary") == rec.rows("/cone/bmode/image")
+    # The touches, and the registered points with their errors as colours.
+    assert len(rec.values("/A/world/touches", "Points3D:positions", static=True)[0]) > 0
+    for kind in ("cone", "prism"):
+        for method in ("single", "three"):
+            for s in ("A", "B"):
+                entity = f"/reconstruction/{kind}/{method}/{s}"
+                pts = rec.values(entity, "Points3D:positions", static=True)[0]
+                colours = rec.values(entity, "Points3D:colors", static=True)[0]
+                n = m["reconstruction"][kind][method][s]["n"]
+                assert len(pts) == len(colours) == min(n, 50_000)

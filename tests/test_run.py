@@ -79,8 +79,10 @@ def test_converges_from_a_bad_coarse_estimate(tmp_path):
         "calibration.initial_error_mm=10",
         "--set",
         "calibration.initial_error_deg=20",
+        "--no-rrd",
     )
     assert r.returncode == 0, r.stderr
+    assert not (out / "recording.rrd").exists()
     assert "single" in r.stdout and "image mm" in r.stdout
     m = json.loads((out / "metrics.json").read_text())
     assert m["calibration"]["coarse_error"]["rotation_deg"] > 10
