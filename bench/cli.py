@@ -294,6 +294,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
 
     from .output import atomic_output_dir
     from .recording import RecordingOptions
+    from .report import write_report
     from .run import run
 
     scenario = load_scenario(args.scenario, args.overrides)
@@ -320,16 +321,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
             (tmp / "tables.md").write_text(result.evaluation.tables_markdown, encoding="utf-8")
             (tmp / "tables.csv").write_text(result.evaluation.tables_csv, encoding="utf-8")
             written += ["tables.md", "tables.csv"]
-            if result.evaluation.reconstruction:
-                from .figures import reconstruction_heatmaps
-
-                (tmp / "figures").mkdir()
-                reconstruction_heatmaps(
-                    result.evaluation.reconstruction,
-                    result.metrics["evaluation"]["datasets"],
-                    tmp / "figures" / "reconstruction_heatmaps.png",
-                )
-                written.append("figures/reconstruction_heatmaps.png")
+        written += write_report(tmp, scenario, result)
     if args.rrd and recording is not None:
         target = Path(args.rrd)
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -341,7 +333,12 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
         _print_evaluation(result.metrics, console)
         if "reconstruction" in result.metrics:
             _print_reconstruction(result.metrics, console)
-    console.print(f"wrote {', '.join(str(Path(out) / f) for f in written)}")
+    figures = [f for f in written if f.startswith("figures/")]
+    files = [f for f in written if not f.startswith("figures/")]
+    console.print(
+        f"wrote {', '.join(str(Path(out) / f) for f in files)} and {len(figures)} figures in "
+        f"{Path(out) / 'figures'} (open {Path(out) / 'report.html'})"
+    )
     if args.spawn and rrd_target is not None:
         _spawn_viewer(rrd_target, console)
     return 0

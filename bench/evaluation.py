@@ -68,6 +68,7 @@ from .experiment import (
     simulate_touches,
     stage_rngs,
 )
+from .figures import LocalizationSnapshot
 from .reconstruction import (
     PhantomReconstruction,
     PhantomScan,
@@ -112,6 +113,7 @@ class DatasetOutcome:
     n_rejected: int
     timing_s: dict[str, float]
     recording_part: Path | None = None
+    snapshot: LocalizationSnapshot | None = None  # the report's look (first dataset only)
 
 
 def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
@@ -216,6 +218,12 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
         "folds": fold_truth,
         "T_ee_us_equivalent": X_equiv.tolist(),
     }
+    snapshot = None
+    if task.index == 0:
+        from .run import snapshot_of
+
+        first_single = next(r for r in results if r.fold.kind == "single")
+        snapshot = snapshot_of(scenario, acq, first_single.alternation, truth)
     part, t_rec = None, 0.0
     if task.recording is not None:
         t1 = time.perf_counter()
@@ -239,6 +247,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
             ),
         },
         part,
+        snapshot,
     )
 
 
@@ -458,7 +467,8 @@ def _record_evaluation(
     merge_parts(
         options,
         [p for p in parts if p is not None],
-        [o.name for o in outcomes] + [s.kind for s in scans],
+        [o.name for o in outcomes],
+        [s.kind for s in scans],
         bool(recon_parts),
         main=rec,
     )

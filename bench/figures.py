@@ -2,17 +2,212 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+from numpy.typing import NDArray
 
+from calib.calibrate import AlternationResult
 from calib.evaluate import PHANTOM_TITLES
+from calib.image import sphere_section, us_to_pixel
+from calib.localize import SphereProfile, SweepLocalization, frame_offsets
+from calib.observability import information, jacobians
+from calib.records import Sweep
 
 from .reconstruction import METHODS, PhantomReconstruction
 
-__all__ = ["reconstruction_heatmaps"]
+__all__ = [
+    "LocalizationSnapshot",
+    "convergence_figure",
+    "localization_snapshot",
+    "observability_eigenvalues",
+    "observability_figure",
+    "overlay_figure",
+    "profile_figure",
+    "reconstruction_heatmaps",
+]
+
+Array = NDArray[np.float64]
+Circle3 = tuple[float, float, float]  # (column, row, radius) in pixels
+
+
+@dataclass(frozen=True, eq=False)
+class LocalizationSnapshot:
+    """What the report shows of one sweep's localization (small enough to return from a
+    worker): a few frames across the sphere with the section the localizer found (red)
+    and, in simulation, the true one (green), in pixels; and the sphere's radial profile.
+    """
+
+    title: str
+    frames: NDArray[np.uint8]  # (k, H, W)
+    elevation_mm: Array  # (k,) each frame's offset from the sweep's reference frame
+    detected: list[Circle3 | None]
+    true: list[Circle3 | None]
+    profile: SphereProfile
+    radius: float  # metres (the CAD radius)
+
+
+def _circle_px(centre_us: Array, radius: float, width: int, spacing) -> Circle3 | None:
+    section = sphere_section(centre_us, radius)
+    if section is None:
+        return None
+    x, y, r = section
+    rows, cols = us_to_pixel(np.array([x, y, 0.0]), width, spacing)
+    return float(cols), float(rows), r / spacing[0]
+
+
+def localization_snapshot(
+    sweep: Sweep,
+    localization: SweepLocalization,
+    T_ee_us: Array,
+    radius: float,
+    axial_scale: float,
+    profile: SphereProfile,
+    true_centres: Array | None = None,
+    n_frames: int = 8,
+) -> LocalizationSnapshot:
+    """Up to ``n_frames`` frames of ``sweep`` spread over those the found sphere cuts,
+    with its section and (``true_centres`` (n, 3): the true centre in each frame's us
+    frame) the true one."""
+    offsets = frame_offsets(sweep, T_ee_us)
+    centre = localization.centre
+    cut = [j for j in range(sweep.n_frames) if abs(centre[2] - offsets[j, 2]) < radius]
+    picks = cut or list(range(sweep.n_frames))
+    chosen = sorted({picks[int(i)] for i in np.linspace(0, len(picks) - 1, n_frames).round()})
+    W = sweep.images.shape[2]
+    spacing = (sweep.spacing[0], sweep.spacing[1] * axial_scale)
+    return LocalizationSnapshot(
+        f"{sweep.target}, sweep {sweep.pose_id}",
+        sweep.images[chosen].copy(),
+        (offsets[chosen, 2] - offsets[sweep.reference_index, 2]) * 1e3,
+        [_circle_px(centre - offsets[j], radius, W, spacing) for j in chosen],
+        [
+            _circle_px(true_centres[j], radius, W, spacing) if true_centres is not None else None
+            for j in chosen
+        ],
+        profile,
+        radius,
+    )
+
+
+def overlay_figure(snap: LocalizationSnapshot, path: str | Path) -> Path:
+    """The paper's figure of sphere cross-sections: frames across the sphere, the found
+    section in red (the true one in green where the twin knows it)."""
+    path = Path(path)
+    k = len(snap.frames)
+    cols = min(k, 4)
+    rows = -(-k // cols)
+    H, W = snap.frames.shape[1:]
+    fig = Figure(figsize=(2.4 * cols, 2.4 * rows * H / W + 0.5), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    for ax, img, z, det, tru in zip(
+        axes, snap.frames, snap.elevation_mm, snap.detected, snap.true, strict=False
+    ):
+        ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        for circle, colour in ((tru, "#30c050"), (det, "#e02020")):
+            if circle is not None:
+                c, r, rad = circle
+                ax.add_patch(Circle((c, r), rad, fill=False, color=colour, lw=1.0))
+        ax.set_title(f"{z:+.1f} mm", fontsize=8)
+        ax.set_axis_off()
+    for ax in axes[k:]:
+        ax.set_axis_off()
+    fig.suptitle(f"{snap.title}: found section (red), true (green)", fontsize=9)
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def profile_figure(snap: LocalizationSnapshot, path: str | Path) -> Path:
+    """The radial brightness profile about the found centres, with the 0.25 / 0.75
+    crossings that set the interior and shell bands (paper, threshold-free localization)."""
+    path = Path(path)
+    prof = snap.profile
+    fig = Figure(figsize=(5.0, 3.0), layout="constrained")
+    ax = fig.subplots()
+    ax.plot(prof.radii * 1e3, prof.profile, color="#2060c0")
+    for x, y, label, crossed in zip(
+        (prof.interior, *prof.shell),
+        (0.25, 0.75, 0.75),
+        ("interior", "shell", None),
+        prof.crossed,
+        strict=True,
+    ):
+        # A missing crossing: the band's fall-back (a share of the CAD radius), hollow.
+        ax.plot([x * 1e3], [y], "o", color="#e02020", mfc="#e02020" if crossed else "none")
+        ax.axvline(x * 1e3, color="#e02020", lw=0.6, ls=":")
+        if label:
+            text = label if crossed else f"{label} (no crossing: fall-back)"
+            ax.annotate(text, (x * 1e3, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    ax.axvline(snap.radius * 1e3, color="0.5", lw=0.8, ls="--", label="CAD radius")
+    ax.set_xlabel("distance from the found centre (mm)")
+    ax.set_ylabel("bright share (of the peak)")
+    sphere = snap.title.split(",")[0]
+    ax.set_title(f"{sphere}: radial profile over {prof.n_sweeps} sweeps", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def convergence_figure(alternations: Mapping[str, AlternationResult], path: str | Path) -> Path:
+    """Loss and estimate change per localize/calibrate alternation."""
+    path = Path(path)
+    fig = Figure(figsize=(7.5, 2.8), layout="constrained")
+    ax_loss, ax_change = fig.subplots(1, 2)
+    for name, alt in alternations.items():
+        it = [h["iteration"] for h in alt.history]
+        ax_loss.plot(it, [h["cost_mm2"] for h in alt.history], "o-", label=name)
+        ch = [(h["iteration"], h["change_mm"], h["change_deg"]) for h in alt.history]
+        ch = [c for c in ch if np.isfinite(c[1])]
+        if ch:
+            ax_change.semilogy([c[0] for c in ch], [c[1] for c in ch], "o-", label=f"{name}: mm")
+            ax_change.semilogy([c[0] for c in ch], [c[2] for c in ch], "s--", label=f"{name}: °")
+    ax_loss.set_xlabel("iteration")
+    ax_loss.set_ylabel("loss (mm²)")
+    ax_change.set_xlabel("iteration")
+    ax_change.set_ylabel("change of T_ee_us")
+    for ax in (ax_loss, ax_change):
+        ax.legend(fontsize=7)
+        ax.tick_params(labelsize=7)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def observability_eigenvalues(alt: AlternationResult) -> Array:
+    """Eigenvalues (descending) of the information matrix of the retained observations
+    about the estimate: each sphere's point constraint, summed (calib.observability)."""
+    obs = [o for o, keep in zip(alt.observations, alt.result.retained, strict=True) if keep]
+    H = np.zeros((6, 6))
+    for target in sorted({o.target for o in obs}):
+        mine = [o for o in obs if o.target == target]
+        G = jacobians(
+            np.array([o.T_base_ee for o in mine]),
+            alt.result.T_ee_us,
+            np.array([o.p_us for o in mine]),
+        )
+        H += information(G)
+    return np.sort(np.linalg.eigvalsh(0.5 * (H + H.T)))[::-1]
+
+
+def observability_figure(eigenvalues: Mapping[str, Array], path: str | Path) -> Path:
+    """Eigenvalues of the calibrations' information matrices (θ = rotation vector in
+    rad, translation in mm; points in mm), log scale: the smallest is the weakest
+    direction of the pose set."""
+    path = Path(path)
+    fig = Figure(figsize=(5.0, 3.0), layout="constrained")
+    ax = fig.subplots()
+    width = 0.8 / max(len(eigenvalues), 1)
+    for i, (name, w) in enumerate(eigenvalues.items()):
+        ax.bar(np.arange(len(w)) + i * width, np.maximum(w, 1e-12), width, label=name, log=True)
+    ax.set_xticks(np.arange(6) + 0.4 - width / 2, [f"λ{i + 1}" for i in range(6)])
+    ax.set_ylabel("eigenvalue (mm² per unit θ²)")
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    return path
+
 
 _METHOD_TITLES = {"single": "single-marker (sphere 1)", "three": "three-marker (spheres 1–3)"}
 

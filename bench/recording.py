@@ -47,7 +47,7 @@ from rerun.chunk import RrdReader
 
 from calib import se3
 from calib.calibrate import AlternationResult
-from calib.image import pixel_to_us, us_to_pixel
+from calib.image import pixel_to_us, sphere_section, us_to_pixel
 from calib.localize import LocalizerConfig, SweepLocalization, frame_offsets, sphere_profile
 from calib.records import Sweep
 
@@ -267,17 +267,13 @@ class Recorder:
         for name, value, colour in (("detected", detected, _RED), ("true", true, _GREEN)):
             path = f"/{session}/bmode/section/{name}"
             strips = []
-            if value is not None:
-                centre, radius = value
-                dz = float(centre[2])
-                if abs(dz) < radius:
-                    r = np.sqrt(radius**2 - dz**2)
-                    a = np.linspace(0, 2 * np.pi, 65)
-                    P = np.column_stack(
-                        [centre[0] + r * np.cos(a), centre[1] + r * np.sin(a), np.zeros_like(a)]
-                    )
-                    rows, cols = us_to_pixel(P, width, spacing)
-                    strips.append(np.column_stack([cols, rows]))
+            section = sphere_section(*value) if value is not None else None
+            if section is not None:
+                x, y, r = section
+                a = np.linspace(0, 2 * np.pi, 65)
+                P = np.column_stack([x + r * np.cos(a), y + r * np.sin(a), np.zeros_like(a)])
+                rows, cols = us_to_pixel(P, width, spacing)
+                strips.append(np.column_stack([cols, rows]))
             self.stream.log(path, rr.LineStrips2D(strips, colors=[colour], radii=[0.8]))
 
     def boundary(self, session: str, samples: Array) -> None:
@@ -312,7 +308,14 @@ class Recorder:
                 np.column_stack([np.array(xs) * 1e3, -10.0 * np.array(ys)]),
                 colors=[_RED],
                 radii=[0.15],
-                labels=["interior 0.25", "shell 0.75 ↑", "shell 0.75 ↓"],
+                labels=[
+                    label if crossed else f"{label} (fall-back)"
+                    for label, crossed in zip(
+                        ("interior 0.25", "shell 0.75 ↑", "shell 0.75 ↓"),
+                        prof.crossed,
+                        strict=True,
+                    )
+                ],
             ),
         )
 
@@ -518,9 +521,12 @@ def log_profiles(
         rec.profile(session, target, prof)
 
 
-def blueprint(sessions: Sequence[str], reconstruction: bool) -> rrb.Blueprint:
-    """One tab per session (3D scene | current frame over the plots), and one for the
-    reconstruction."""
+def blueprint(
+    sessions: Sequence[str], scans: Sequence[str] = (), reconstruction: bool = False
+) -> rrb.Blueprint:
+    """One tab per sphere session (3D scene | current frame over convergence, radial
+    profile and residuals), one per phantom scan (3D scene | frame with its boundary
+    samples), and one for the reconstruction."""
     tabs = []
     for s in sessions:
         tabs.append(
@@ -538,6 +544,15 @@ def blueprint(sessions: Sequence[str], reconstruction: bool) -> rrb.Blueprint:
                 name=s,
             )
         )
+    for s in scans:
+        tabs.append(
+            rrb.Horizontal(
+                rrb.Spatial3DView(origin=f"/{s}/world", name=f"{s}: scene"),
+                rrb.Spatial2DView(origin=f"/{s}/bmode", name=f"{s}: B-mode"),
+                column_shares=[3, 2],
+                name=s,
+            )
+        )
     if reconstruction:
         tabs.append(rrb.Spatial3DView(origin="/reconstruction", name="reconstruction"))
     return rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True)
@@ -547,7 +562,8 @@ def merge_parts(
     options: RecordingOptions,
     parts: Sequence[Path],
     sessions: Sequence[str],
-    reconstruction: bool,
+    scans: Sequence[str] = (),
+    reconstruction: bool = False,
     main: Recorder | None = None,
 ) -> Path:
     """Write the run's recording: the main process's own logs (``main``, closed here),
@@ -555,7 +571,7 @@ def merge_parts(
     rec = main or Recorder(options)
     for part in parts:
         rr.send_chunks(RrdReader(part).stream(), recording=rec.stream)
-    rec.stream.send_blueprint(blueprint(sessions, reconstruction))
+    rec.stream.send_blueprint(blueprint(sessions, scans, reconstruction))
     rec.close()
     for part in parts:
         part.unlink(missing_ok=True)

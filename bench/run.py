@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.calibrate import AlternationResult, alternate
 from calib.evaluate import training_precision
-from calib.localize import localize_sphere
+from calib.localize import localize_sphere, sphere_profile
 
 from .evaluation import EvaluationResult, run_evaluation
 from .experiment import (
@@ -25,6 +25,7 @@ from .experiment import (
     make_twin,
     simulate_acquisition,
 )
+from .figures import LocalizationSnapshot, localization_snapshot
 from .recording import RecordingOptions
 from .scenario import Scenario
 
@@ -43,6 +44,44 @@ class RunResult:
     single: AlternationResult | None = None
     three: AlternationResult | None = None
     evaluation: EvaluationResult | None = None
+    snapshot: LocalizationSnapshot | None = None  # what the report shows of one sweep
+
+    def alternations(self) -> dict[str, AlternationResult]:
+        """The calibrations ``metrics["calibration"]`` describes, by method (in an
+        evaluation: the first dataset's first single- and three-marker folds)."""
+        if self.evaluation is not None:
+            out: dict[str, AlternationResult] = {}
+            for r in self.evaluation.outcomes[0].folds:
+                out.setdefault(r.fold.kind, r.alternation)
+            return out
+        return {"single": self.single} | ({"three": self.three} if self.three else {})
+
+
+def snapshot_of(
+    scenario: Scenario,
+    acq: SimulatedAcquisition,
+    alt: AlternationResult,
+    truth=None,
+) -> LocalizationSnapshot | None:
+    """The report's look at the first sphere: its first accepted sweep's frames with the
+    sections found by ``alt`` (and the true ones when ``truth`` is the twin's), and the
+    sphere's radial profile over its sweeps."""
+    target = next(iter(alt.localizations))
+    sweeps = acq.dataset.of(target)
+    locs = alt.localizations[target]
+    radius = scenario.phantom.sphere_radius_mm * 1e-3
+    scale = axial_scale(scenario)
+    T = alt.result.T_ee_us
+    i = next((i for i, loc in enumerate(locs) if loc.accepted), None)
+    if i is None:
+        return None
+    true_centres = None
+    if truth is not None:
+        sweep = sweeps[i]
+        T_true = acq.T_base_ee_true[(target, sweep.pose_id)] @ truth.T_ee_us
+        true_centres = se3.apply(se3.invert(T_true), truth.landmarks_base[target])
+    profile = sphere_profile(sweeps, locs, T, radius, scenario.localization, scale)
+    return localization_snapshot(sweeps[i], locs[i], T, radius, scale, profile, true_centres)
 
 
 def _true_centre_in_sweep(acq, truth, target, sweep) -> Array:
@@ -116,7 +155,7 @@ def _record_run(
         axial_scale(scenario),
         truth=(acq.T_base_ee_true, twin.truth.T_ee_us, twin.truth.landmarks_base),
     )
-    merge_parts(options, [], ["run"], False, main=rec)
+    merge_parts(options, [], ["run"], main=rec)
     return logged
 
 
@@ -134,7 +173,7 @@ def run(
     """
     if len(scenario.evaluation.datasets) >= 2:
         ev = run_evaluation(scenario, progress, recording)
-        return RunResult(ev.metrics, evaluation=ev)
+        return RunResult(ev.metrics, evaluation=ev, snapshot=ev.outcomes[0].snapshot)
     t_start = time.perf_counter()
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
@@ -226,5 +265,6 @@ def run(
         t0 = time.perf_counter()
         frames = _record_run(recording, scenario, twin, acq, single, three)
         metrics["recording"] = {"frames": frames, "seconds": time.perf_counter() - t0}
+    snapshot = snapshot_of(scenario, acq, single, truth)
     metrics["timing_s"]["total"] = time.perf_counter() - t_start
-    return RunResult(metrics, acq, single, three)
+    return RunResult(metrics, acq, single, three, snapshot=snapshot)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["pixel_to_us", "us_to_pixel"]
+__all__ = ["pixel_to_us", "sphere_section", "us_to_pixel"]
 
 
 def pixel_to_us(
@@ -38,3 +38,12 @@ def us_to_pixel(
     P_us = np.asarray(P_us, dtype=float)
     sx, sy = spacing
     return P_us[..., 1] / sy, P_us[..., 0] / sx + (width_px - 1) / 2
+
+
+def sphere_section(centre_us: ArrayLike, radius: float) -> tuple[float, float, float] | None:
+    """Where a sphere (centre in the us frame, metres) cuts the image plane z = 0: the
+    circle's centre (x, y) and radius, metres; None when it misses the plane."""
+    x, y, z = (float(v) for v in np.asarray(centre_us, dtype=float))
+    if abs(z) >= radius:
+        return None
+    return x, y, float(np.sqrt(radius**2 - z**2))

@@ -44,6 +44,7 @@ from .records import Sweep
 
 __all__ = [
     "LocalizerConfig",
+    "SphereProfile",
     "SweepLocalization",
     "SweepVolume",
     "fibonacci_hemisphere",
@@ -715,10 +716,11 @@ def radial_profile(
     return profile / peak if peak > 0 else profile
 
 
-def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, float, float]:
-    """(interior limit, shell inner, shell outer) from a peak-normalised radial profile:
-    first rising 0.25 crossing; rising and falling 0.75 crossings around the peak. Falls
-    back to (0.8 R, 0.9 R, 1.1 R) pieces when a crossing is missing."""
+def profile_crossings(
+    radii: Array, profile: Array
+) -> tuple[float | None, float | None, float | None]:
+    """(first rising 0.25 crossing, rising and falling 0.75 crossings around the peak) of
+    a peak-normalised radial profile, linearly interpolated; None where it has none."""
     peak = int(np.argmax(profile))
 
     def crossing(level: float, rising: bool) -> float | None:
@@ -729,9 +731,14 @@ def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, f
                 return float(radii[i - 1] + (level - a) / (b - a) * (radii[i] - radii[i - 1]))
         return None
 
-    inner = crossing(0.25, True)
-    rise = crossing(0.75, True)
-    fall = crossing(0.75, False)
+    return crossing(0.25, True), crossing(0.75, True), crossing(0.75, False)
+
+
+def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, float, float]:
+    """(interior limit, shell inner, shell outer) from a peak-normalised radial profile:
+    first rising 0.25 crossing; rising and falling 0.75 crossings around the peak. Falls
+    back to (0.8 R, 0.9 R, 1.1 R) pieces when a crossing is missing."""
+    inner, rise, fall = profile_crossings(radii, profile)
     return (
         inner if inner is not None else 0.8 * radius,
         rise if rise is not None else 0.9 * radius,
@@ -985,13 +992,16 @@ class SphereProfile:
     """The radial brightness profile of a sphere's sweeps about their localized centres
     (peak-normalised, averaged over the accepted sweeps) and the bands the localizer reads
     off it: ``interior`` (first rising 0.25 crossing), ``shell`` (rising and falling 0.75
-    crossings). Radii in metres."""
+    crossings); ``crossed`` says which of the three the profile has (the others are
+    :func:`profile_bands`'s fall-backs, e.g. no 0.25 crossing when speckle keeps the
+    interior above a quarter of the peak). Radii in metres."""
 
     radii: Array
     profile: Array
     interior: float
     shell: tuple[float, float]
     n_sweeps: int
+    crossed: tuple[bool, bool, bool] = (True, True, True)
 
 
 def sphere_profile(
@@ -1019,4 +1029,5 @@ def sphere_profile(
     radii = np.arange(0.0, 1.6 * radius, min(vols[0].spacing[:2]))
     profile = radial_profile(vols, centres, radii, cfg.profile_directions)
     inner, rise, fall = profile_bands(radii, profile, radius)
-    return SphereProfile(radii, profile, inner, (rise, fall), len(vols))
+    crossed = tuple(c is not None for c in profile_crossings(radii, profile))
+    return SphereProfile(radii, profile, inner, (rise, fall), len(vols), crossed)

@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from calib.dh import NOMINAL_TABLES, DHDeltas, DHTable
+
+from .rrd import Recording
+from .test_cli import uscal
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = ROOT / "scenarios" / "quick.yaml"
 
 # Paper-like DH error magnitudes (RMS): 2.51°, 0.24 mm, 1.51 mm, 0.27°.
 PAPER_RMS = (np.radians(2.51), 0.24e-3, 1.51e-3, np.radians(0.27))
@@ -20,3 +29,17 @@ def perturbed_table(rng: np.random.Generator, name: str = "ur3") -> DHTable:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261122)
+
+
+@pytest.fixture(scope="session")
+def quick_run(tmp_path_factory):
+    """`uscal run quick.yaml` on one sphere, the recording sent elsewhere: (output
+    directory, recording path, metrics, the recording read back)."""
+    base = tmp_path_factory.mktemp("rec")
+    out, rrd = base / "run", base / "elsewhere" / "quick.rrd"
+    r = uscal(
+        "run", str(QUICK), "--out", str(out), "--set", "protocol.spheres=[1]",
+        "--rrd", str(rrd), "--rrd-frames", "63",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    return out, rrd, json.loads((out / "metrics.json").read_text()), Recording(rrd)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from bench.experiment import dataset_scenario
 from bench.scenario import load_scenario
@@ -153,3 +154,15 @@ def test_recording_holds_every_session_and_the_reconstruction(small_run):
                 colours = rec.values(entity, "Points3D:colors", static=True)[0]
                 n = m["reconstruction"][kind][method][s]["n"]
                 assert len(pts) == len(colours) == min(n, 50_000)
+
+
+def test_report_carries_the_papers_tables_and_the_refined_dh_model(small_run):
+    out, m, _ = small_run
+    md = (out / "report.md").read_text(encoding="utf-8")
+    for title in ("Table I.", "Table II.", "Table III."):
+        assert title in md, title
+    assert "](figures/reconstruction_heatmaps.png)" in md
+    assert (out / "figures" / "reconstruction_heatmaps.png").is_file()
+    doc = yaml.safe_load((out / "calibration.yaml").read_text(encoding="utf-8"))
+    assert doc["dh_table"]["source"].startswith("refined from the touches of datasets B")
+    assert np.allclose(doc["T_ee_us"]["matrix_m"], m["calibration"]["three"]["T_ee_us"])

@@ -3,31 +3,10 @@ counts, and values checked against metrics.json and the ground truth it overlays
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from bench.recording import sweeps_to_log
-
-from .rrd import Recording
-from .test_cli import uscal
-
-ROOT = Path(__file__).resolve().parents[1]
-QUICK = ROOT / "scenarios" / "quick.yaml"
-
-
-@pytest.fixture(scope="module")
-def quick_run(tmp_path_factory):
-    base = tmp_path_factory.mktemp("rec")
-    out, rrd = base / "run", base / "elsewhere" / "quick.rrd"
-    r = uscal(
-        "run", str(QUICK), "--out", str(out), "--set", "protocol.spheres=[1]",
-        "--rrd", str(rrd), "--rrd-frames", "63",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    return out, rrd, json.loads((out / "metrics.json").read_text()), Recording(rrd)
 
 
 def test_recording_goes_where_asked_and_nothing_else_is_left(quick_run):

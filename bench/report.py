@@ -1,0 +1,368 @@
+"""The run's report: ``report.md`` and ``report.html`` (relative links to
+``figures/*.png``), the figures, and ``calibration.yaml`` — the estimated ``T_ee_us``
+and the DH table in a form a user copies into their robot software, plus PLUS's
+``ImageToProbe`` matrix for PLUS / 3D Slicer users.
+
+The HTML is the Markdown rendered by markdown-it-py (CommonMark with tables), so the
+two always say the same.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from markdown_it import MarkdownIt
+from numpy.typing import NDArray
+
+from calib import se3
+from calib.dh import DHTable
+
+from .figures import (
+    LocalizationSnapshot,
+    convergence_figure,
+    observability_eigenvalues,
+    observability_figure,
+    overlay_figure,
+    profile_figure,
+    reconstruction_heatmaps,
+)
+from .run import RunResult
+from .scenario import Scenario
+
+__all__ = ["calibration_document", "image_to_probe_mm", "write_report"]
+
+Array = NDArray[np.float64]
+_MM = 1e3
+_METHOD_TITLES = {
+    "single": "single-marker (sphere 1)",
+    "three": "three-marker (spheres 1–3)",
+}
+
+
+def image_to_probe_mm(T_ee_us: Array, width_px: int, spacing_m: tuple[float, float]) -> Array:
+    """PLUS's ``ImageToProbe``: pixel (i = column, j = row, 0, 1) → flange millimetres.
+
+    PLUS keeps the pixel spacing in this transform, not in the image: it is
+    ``T_ee_us`` (in mm) times the pixel-to-``us`` map of :mod:`calib.image`
+    (x = (i − (W − 1)/2)·sx, y = j·sy)."""
+    sx, sy = (s * _MM for s in spacing_m)
+    S = np.array(
+        [[sx, 0.0, 0.0, -(width_px - 1) / 2 * sx], [0.0, sy, 0.0, 0.0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    )
+    T = np.asarray(T_ee_us, dtype=float).copy()
+    T[:3, 3] *= _MM
+    return T @ S
+
+
+def _pose_doc(T: Array) -> dict[str, Any]:
+    T = np.asarray(T, dtype=float)
+    T_mm = T.copy()
+    T_mm[:3, 3] *= _MM
+    return {
+        "matrix_m": np.round(T, 9).tolist(),
+        "matrix_mm": np.round(T_mm, 6).tolist(),
+        "position_mm": np.round(T[:3, 3] * _MM, 4).tolist(),
+        "rotation_vector_rad": np.round(se3.rotvec_from_matrix(T[:3, :3]), 9).tolist(),
+        "rotation_xyz_deg": np.round(np.degrees(se3.euler_from_matrix(T[:3, :3])), 5).tolist(),
+    }
+
+
+def _dh_doc(table: DHTable, source: str) -> dict[str, Any]:
+    return {
+        "source": source,
+        "theta_rad": list(table.theta),
+        "d_m": list(table.d),
+        "a_m": list(table.a),
+        "alpha_rad": list(table.alpha),
+    }
+
+
+def _chosen(metrics: dict[str, Any]) -> str:
+    """The calibration the document recommends: three-marker when it ran (it also
+    anchors the phantom; the paper's recommended use), else single-marker."""
+    return "three" if "three" in metrics["calibration"] else "single"
+
+
+def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any]:
+    """``calibration.yaml``'s content."""
+    m = result.metrics
+    method = _chosen(m)
+    cal = m["calibration"][method]
+    T = np.array(cal["T_ee_us"])
+    cov = np.array(cal["covariance_rotvec_rad_translation_m"])
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    H, W = scenario.imaging.image_shape
+    spacing = scenario.imaging.spacing_m
+    if result.evaluation is not None:
+        dataset = cal["fold"].split("/")[0]
+        others = ", ".join(n for n in m["evaluation"]["datasets"] if n != dataset)
+        dh = _dh_doc(
+            result.evaluation.refinements[dataset].table,
+            f"refined from the touches of datasets {others} (used for dataset {dataset})",
+        )
+        origin = f"fold {cal['fold']} of the paper's cross-validation"
+    else:
+        dh = _dh_doc(scenario.robot.nominal_table, f"nominal {scenario.robot.model} table")
+        origin = "the run's acquisition"
+    return {
+        "description": (
+            "T_ee_us maps points of the ultrasound image frame (us: origin at the centre of "
+            "the transducer face, x lateral along increasing columns, y axial = depth, "
+            "z = x × y) to the robot flange frame (ee); T_dst_src convention."
+        ),
+        "scenario": m["scenario"]["name"],
+        "method": _METHOD_TITLES[method],
+        "from": origin,
+        "T_ee_us": _pose_doc(T),
+        "uncertainty_1sigma": {
+            "rotation_deg": np.round(np.degrees(std[:3]), 5).tolist(),
+            "translation_mm": np.round(std[3:] * _MM, 5).tolist(),
+            "covariance_rotvec_rad_translation_m": cov.tolist(),
+        },
+        "image": {
+            "width_px": int(W),
+            "height_px": int(H),
+            "pixel_spacing_mm": [round(s * _MM, 6) for s in spacing],
+            "note": "spacing as the scanner displays it (at its assumed speed of sound)",
+        },
+        "plus_ImageToProbe": {
+            "matrix": np.round(image_to_probe_mm(T, W, spacing), 6).tolist(),
+            "note": (
+                "PLUS / 3D Slicer: image pixel (i, j) → probe (= flange) mm, pixel spacing "
+                "included; put it in the PLUS device set as the ImageToProbe transform."
+            ),
+        },
+        "dh_table": dh,
+    }
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def _figures(out: Path, result: RunResult, snapshot: LocalizationSnapshot | None) -> dict[str, str]:
+    """Draw the figures; returns {key: relative path}."""
+    fig_dir = out / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    written: dict[str, str] = {}
+    alternations = result.alternations()
+    if alternations:
+        convergence_figure(alternations, fig_dir / "convergence.png")
+        written["convergence"] = "figures/convergence.png"
+        observability_figure(
+            {_METHOD_TITLES[k]: observability_eigenvalues(a) for k, a in alternations.items()},
+            fig_dir / "observability.png",
+        )
+        written["observability"] = "figures/observability.png"
+    if snapshot is not None:
+        overlay_figure(snapshot, fig_dir / "localization_overlay.png")
+        written["overlay"] = "figures/localization_overlay.png"
+        if snapshot.profile.n_sweeps:
+            profile_figure(snapshot, fig_dir / "radial_profile.png")
+            written["profile"] = "figures/radial_profile.png"
+    ev = result.evaluation
+    if ev is not None and ev.reconstruction:
+        reconstruction_heatmaps(
+            ev.reconstruction,
+            result.metrics["evaluation"]["datasets"],
+            fig_dir / "reconstruction_heatmaps.png",
+        )
+        written["heatmaps"] = "figures/reconstruction_heatmaps.png"
+    return written
+
+
+# ----------------------------------------------------------------------------- text
+
+
+def _matrix_md(T: Array, digits: int = 4) -> str:
+    rows = ["| | | | |", "|---:|---:|---:|---:|"]
+    rows += ["| " + " | ".join(f"{v:.{digits}f}" for v in r) + " |" for r in np.asarray(T)]
+    return "\n".join(rows)
+
+
+def _scenario_md(s: Scenario) -> str:
+    r, p, im, pr = s.robot, s.phantom, s.imaging, s.protocol
+    rows = [
+        ("scenario", f"`{s.source}` (seed {s.seed})"),
+        ("robot", f"{r.model}, DH error ×{r.dh_error_scale:g}"),
+        ("phantom", f"{p.kind}, sphere radius {p.sphere_radius_mm:g} mm"),
+        (
+            "imaging",
+            f"{im.width_mm:g} × {im.depth_mm:g} mm, {list(im.pixel_spacing_mm)} mm/px, "
+            f"{im.f_mhz:g} MHz, gain {im.gain_db:g} dB",
+        ),
+        ("medium", f"{s.medium.kind} at {s.medium.temperature_c:g} °C"),
+        (
+            "protocol",
+            f"spheres {list(pr.spheres)}, 45 sweeps each of {pr.frames_per_sweep} frames "
+            f"over ±{pr.sweep_half_length_mm:g} mm",
+        ),
+        ("localization", f"{s.localization.method}"),
+        ("datasets", ", ".join(s.evaluation.datasets) or "one acquisition"),
+    ]
+    return "| setting | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
+
+
+def _calibration_md(m: dict[str, Any]) -> str:
+    parts = []
+    for method in ("single", "three"):
+        c = m["calibration"].get(method)
+        if c is None:
+            continue
+        T = np.array(c["T_ee_us"])
+        T_mm = T.copy()
+        T_mm[:3, 3] *= _MM
+        cov = np.array(c["covariance_rotvec_rad_translation_m"])
+        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        e = c["true_error"]
+        fold = f" — fold `{c['fold']}`" if "fold" in c else ""
+        parts.append(
+            f"### {_METHOD_TITLES[method]}{fold}\n\n"
+            f"`T_ee_us` (translation in mm):\n\n{_matrix_md(T_mm)}\n\n"
+            f"1 σ (first order, from the residuals): rotation "
+            f"{', '.join(f'{v:.3f}' for v in np.degrees(std[:3]))} °, translation "
+            f"{', '.join(f'{v:.3f}' for v in std[3:] * _MM)} mm. "
+            f"{c['n_retained']} observations kept, {c['iterations']} alternations.\n\n"
+            f"Against the twin's ground truth: rotation {e['rotation_deg']:.3f} °, "
+            f"translation {e['translation_mm']:.3f} mm, mean error over the image "
+            f"{e['image_mm']:.3f} mm; precision {c['precision_mm']:.3f} mm, accuracy "
+            f"{c['accuracy_mm']:.3f} mm."
+        )
+    return "\n\n".join(parts)
+
+
+def _localization_md(m: dict[str, Any]) -> str:
+    loc = m["localization"]
+    e = loc["error_mm"]
+    return (
+        f"{loc['n_sweeps']} sweeps localized ({loc['method']}), {loc['n_rejected']} rejected; "
+        f"centre error against the truth: median {e['median']:.3f} mm, p95 {e['p95']:.3f} mm, "
+        f"max {e['max']:.3f} mm."
+    )
+
+
+def _figure_md(figures: dict[str, str], key: str, caption: str) -> str:
+    if key not in figures:
+        return ""
+    return f"![{caption}]({figures[key]})\n\n*{caption}*\n"
+
+
+def report_markdown(scenario: Scenario, result: RunResult, figures: dict[str, str]) -> str:
+    """``report.md``."""
+    m = result.metrics
+    out = [
+        "# uscal report",
+        "",
+        "## Scenario",
+        "",
+        _scenario_md(scenario),
+        "",
+        "## Localization",
+        "",
+        _localization_md(m),
+        "",
+        _figure_md(
+            figures, "overlay", "Sphere sections across one sweep: found (red), true (green)."
+        ),
+        _figure_md(
+            figures,
+            "profile",
+            "Radial brightness profile about the found centres; its 0.25 and 0.75 crossings "
+            "set the interior and shell bands.",
+        ),
+        "## Calibration",
+        "",
+        _calibration_md(m),
+        "",
+        "The transform to copy into robot software, with the DH table and PLUS's "
+        "`ImageToProbe`, is in [`calibration.yaml`](calibration.yaml).",
+        "",
+        _figure_md(figures, "convergence", "Loss and change of T_ee_us per alternation."),
+        _figure_md(
+            figures,
+            "observability",
+            "Eigenvalues of the calibrations' information matrices (the smallest is the "
+            "weakest direction of the poses).",
+        ),
+    ]
+    if result.evaluation is not None:
+        out += [
+            "## The paper's tables",
+            "",
+            result.evaluation.tables_markdown.strip(),
+            "",
+            _figure_md(
+                figures,
+                "heatmaps",
+                "Registered reconstruction points coloured by point-to-surface error.",
+            ),
+        ]
+    out += [
+        "## Files",
+        "",
+        "`metrics.json` (every figure, ground truth kept apart), `tables.md` / `tables.csv` "
+        "(evaluation runs), `calibration.yaml`, `figures/`, and `recording.rrd` (open with "
+        "`rerun recording.rrd`) when recorded.",
+        "",
+    ]
+    return "\n".join(line for line in out if line is not None)
+
+
+_CSS = """
+body { font-family: system-ui, sans-serif; max-width: 72rem; margin: 2rem auto;
+       padding: 0 1rem; color: #222; line-height: 1.45; }
+table { border-collapse: collapse; margin: 0.6rem 0; font-size: 0.9rem; }
+th, td { border: 1px solid #ccc; padding: 0.2rem 0.5rem; }
+th { background: #f2f2f2; }
+img { max-width: 100%; }
+code { background: #f4f4f4; padding: 0 0.2rem; }
+"""
+
+
+def report_html(markdown: str) -> str:
+    """The Markdown as one HTML page (figures linked relatively)."""
+    body = MarkdownIt("commonmark").enable("table").render(markdown)
+    return (
+        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
+        f"<title>{html.escape('uscal report')}</title>\n<style>{_CSS}</style>\n"
+        f"</head>\n<body>\n{body}</body>\n</html>\n"
+    )
+
+
+class _Dumper(yaml.SafeDumper):
+    """Lists of numbers in flow style (a 4 × 4 matrix reads as four rows)."""
+
+
+def _represent_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
+    flat = all(not isinstance(v, (list, dict)) for v in data)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flat)
+
+
+_Dumper.add_representer(list, _represent_list)
+
+
+def write_report(
+    out: str | Path,
+    scenario: Scenario,
+    result: RunResult,
+) -> list[str]:
+    """Write the report, its figures and ``calibration.yaml`` into ``out``; returns the
+    files written (relative)."""
+    out = Path(out)
+    figures = _figures(out, result, result.snapshot)
+    md = report_markdown(scenario, result, figures)
+    (out / "report.md").write_text(md, encoding="utf-8")
+    (out / "report.html").write_text(report_html(md), encoding="utf-8")
+    doc = calibration_document(scenario, result)
+    header = (
+        "# uscal calibration. T_ee_us: image (us) → flange (ee). Lengths in metres unless\n"
+        "# the key says mm; rotations in radians unless it says deg.\n"
+    )
+    (out / "calibration.yaml").write_text(
+        header + yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=100, allow_unicode=True),
+        encoding="utf-8",
+    )
+    return ["report.md", "report.html", "calibration.yaml", *figures.values()]
