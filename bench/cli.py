@@ -7,6 +7,8 @@ Every :class:`~calib.errors.UscalError` becomes one line on stderr and exit code
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import os
 import sys
 import traceback
@@ -16,11 +18,22 @@ from pathlib import Path
 import numpy as np
 import yaml
 from rich.console import Console
+from rich.logging import RichHandler
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.progress import Progress as RichProgress
 from rich.table import Table
 
 from calib import se3
 from calib.errors import UscalError
 
+from .progress import reporting
 from .scenario import Scenario, load_scenario, scenarios_markdown
 
 __all__ = ["main"]
@@ -70,8 +83,30 @@ def _parser() -> argparse.ArgumentParser:
         prog="uscal",
         description="Tracker-free robotic ultrasound calibration: digital twin and test bench.",
     )
-    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    for target in (parser, common := argparse.ArgumentParser(add_help=False)):
+        # Accepted before and after the command; the command's copy must not reset the
+        # global one, hence SUPPRESS there.
+        default = False if target is parser else argparse.SUPPRESS
+        target.add_argument(
+            "--debug",
+            action="store_true",
+            default=default,
+            help="show tracebacks of errors and verbose logs",
+        )
+        target.add_argument(
+            "--quiet",
+            "-q",
+            action="store_true",
+            default=default,
+            help="print nothing but errors (for scripts)",
+        )
     sub = parser.add_subparsers(dest="command", required=True)
+    add_parser = sub.add_parser
+
+    def sub_add_parser(name: str, **kwargs):
+        return add_parser(name, parents=[common], **kwargs)
+
+    sub.add_parser = sub_add_parser  # every command accepts --debug and --quiet
 
     run = sub.add_parser(
         "run", help="simulate the acquisition, localize, calibrate and score against truth"
@@ -310,11 +345,12 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
         if rrd_target is not None:
             # Written inside the new output directory; moved to --rrd FILE once complete.
             recording = RecordingOptions.new(tmp / "recording.rrd", args.rrd_frames)
-        result = run(
-            scenario,
-            progress=lambda msg: console.print(f"[dim]{msg}[/dim]"),
-            recording=recording,
-        )
+        with _progress_bars(console) as bars, reporting(bars.update):
+            result = run(
+                scenario,
+                progress=lambda msg: bars.console.print(f"[dim]{msg}[/dim]"),
+                recording=recording,
+            )
         (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
         written = ["metrics.json"] + (["recording.rrd"] if args.rrd is None and recording else [])
         if result.evaluation is not None:
@@ -342,6 +378,36 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     if args.spawn and rrd_target is not None:
         _spawn_viewer(rrd_target, console)
     return 0
+
+
+class _Bars:
+    """Rich progress bars, one per reported task, with counts, elapsed time and ETA."""
+
+    def __init__(self, console: Console) -> None:
+        self.progress = RichProgress(
+            TextColumn("{task.description:<28}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TextColumn("eta"),
+            TimeRemainingColumn(),
+            console=console,
+            disable=console.quiet,
+        )
+        self.console = self.progress.console
+        self._tasks: dict[str, TaskID] = {}
+
+    def update(self, task: str, done: int, total: int) -> None:
+        if task not in self._tasks:
+            self._tasks[task] = self.progress.add_task(task, total=total)
+        self.progress.update(self._tasks[task], completed=done, total=total)
+
+
+@contextlib.contextmanager
+def _progress_bars(console: Console):
+    bars = _Bars(console)
+    with bars.progress:
+        yield bars
 
 
 def _spawn_viewer(path: Path, console: Console) -> None:
@@ -506,7 +572,16 @@ def _cmd_docs(args: argparse.Namespace, console: Console) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``uscal`` console script; returns the exit code."""
     args = _parser().parse_args(argv)
-    console = Console()
+    console = Console(quiet=args.quiet)
+    if args.debug:
+        # Verbose logs of this project's packages only (libraries stay at warnings).
+        logging.basicConfig(
+            level=logging.WARNING,
+            format="%(name)s: %(message)s",
+            handlers=[RichHandler(console=Console(stderr=True), show_path=False)],
+        )
+        for package in ("bench", "calib", "twin", "sim_us", "hw"):
+            logging.getLogger(package).setLevel(logging.DEBUG)
     handlers = {
         "check": _cmd_check,
         "docs": _cmd_docs,

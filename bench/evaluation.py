@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import gc
+import logging
 import multiprocessing
 import os
 import time
@@ -55,6 +56,7 @@ from calib.localize import localize_sphere
 from calib.records import Touch
 from twin.imager import acoustic_scene
 
+from . import progress as progress_report
 from .experiment import (
     axial_scale,
     coarse_estimate,
@@ -85,6 +87,7 @@ __all__ = ["DatasetOutcome", "EvaluationResult", "run_evaluation"]
 
 Array = NDArray[np.float64]
 _MM = 1e3
+log = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------- stage 2
@@ -124,7 +127,13 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
     twin = make_twin(scenario, rngs["joints"])
     imager = make_imager(scenario, twin, rngs["imaging"])
     acq = simulate_acquisition(
-        scenario, twin, imager, task.name, rngs["protocol"], touches=task.touches
+        scenario,
+        twin,
+        imager,
+        task.name,
+        rngs["protocol"],
+        touches=task.touches,
+        progress=f"{task.name}: acquire sweeps",
     )
     t_sim = time.perf_counter() - t0
     truth = twin.truth
@@ -145,21 +154,25 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
     t_loc0 = time.perf_counter() - t0
     references = task.reference.reference_points({t: cad[t] for t in targets})
     t0 = time.perf_counter()
-    results = [
-        evaluate_fold(
-            fold,
-            sweeps,
-            initial,
-            references,
-            radius,
-            loc_cfg,
-            scale,
-            cad,
-            acq.T_ee_us_coarse,
-            scenario.calibration.max_alternations,
+    fold_list = folds(task.name, targets)
+    results = []
+    for k, fold in enumerate(fold_list):
+        progress_report.report(f"{task.name}: folds", k, len(fold_list))
+        results.append(
+            evaluate_fold(
+                fold,
+                sweeps,
+                initial,
+                references,
+                radius,
+                loc_cfg,
+                scale,
+                cad,
+                acq.T_ee_us_coarse,
+                scenario.calibration.max_alternations,
+            )
         )
-        for fold in folds(task.name, targets)
-    ]
+    progress_report.report(f"{task.name}: folds", len(fold_list), len(fold_list))
     t_folds = time.perf_counter() - t0
 
     # ---- against the truth (beyond the paper)
@@ -320,16 +333,19 @@ def run_evaluation(
     # ---- stage 1: touches, DH refinement, references
     touches: dict[str, list[Touch]] = {}
     for i, (name, sc) in enumerate(zip(names, scenarios, strict=True)):
+        progress_report.report("touches (datasets)", i, len(names))
         rngs = dataset_rngs(scenario, i)
         twin = make_twin(sc, rngs["touch_joints"])
         touches[name] = simulate_touches(sc, twin, rngs["touch_contact"])
+    progress_report.report("touches (datasets)", len(names), len(names))
     twin = make_twin(scenario)
     cad_vertices = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("vertex_")}
     tip_cad = np.array(ev.stylus_tip_cad_mm) * 1e-3
     nominal = scenario.robot.nominal_table
     refinements: dict[str, DHRefinement] = {}
     references: dict[str, TouchReference] = {}
-    for name in names:
+    for k, name in enumerate(names):
+        progress_report.report("DH refinement", k, len(names))
         train = [touches[n] for n in names if n != name]
         say(f"DH refinement for {name} from {', '.join(n for n in names if n != name)}")
         refinements[name] = refine_dh(
@@ -344,6 +360,7 @@ def run_evaluation(
         references[name] = fit_reference(
             refinements[name].table, touches[name], cad_vertices, tip_cad
         )
+    progress_report.report("DH refinement", len(names), len(names))
     t_touch = time.perf_counter() - t_start
 
     # ---- stage 2: datasets (and the reconstruction's tasks) in a process pool
@@ -379,7 +396,20 @@ def run_evaluation(
                 recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
     else:
         ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        counts = ctx.Queue()  # the workers' progress reports
+        with cf.ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=ctx,
+            initializer=progress_report.worker_initializer,
+            initargs=(counts,),
+        ) as pool:
+
+            def result(future: cf.Future):
+                while not future.done():
+                    cf.wait([future], timeout=0.2)
+                    progress_report.drain(counts)
+                return future.result()
+
             # Long tasks first, so that none is left running alone at the end: the
             # re-calibration (a scan of spheres 1-3 and six calibrations), the datasets,
             # then the phantom scans and their registrations.
@@ -387,15 +417,21 @@ def run_evaluation(
             dataset_futures = [pool.submit(_run_dataset, t) for t in tasks]
             scan_futures = [pool.submit(run_scan, scenario, kind, recording) for kind in phantoms]
             if recal_future is not None:
-                recal = recal_future.result()
+                recal = result(recal_future)
                 recon_futures = [
-                    pool.submit(reconstruct_phantom, scenario, f.result(), recal, tables)
+                    pool.submit(reconstruct_phantom, scenario, result(f), recal, tables)
                     for f in scan_futures
                 ]
-                recon_parts = [f.result() for f in recon_futures]
+                recon_parts = [result(f) for f in recon_futures]
                 scans = [f.result() for f in scan_futures]
-            outcomes = [f.result() for f in dataset_futures]
+            outcomes = [result(f) for f in dataset_futures]
+            progress_report.drain(counts)
     t_datasets = time.perf_counter() - t0
+    log.debug("touches and DH refinement: %.1f s; pool: %.1f s", t_touch, t_datasets)
+    for o in outcomes:
+        log.debug("dataset %s: %s", o.name, {k: round(v, 2) for k, v in o.timing_s.items()})
+    if recal is not None:
+        log.debug("re-calibration: %s", {k: round(v, 2) for k, v in recal.timing_s.items()})
     t_record = 0.0
     if recording is not None:
         t1 = time.perf_counter()

@@ -17,6 +17,8 @@ from calib.protocol import (
     acquire_touches,
     check_plan,
     facing_pose,
+    in_plane_offsets,
+    orientation_offsets,
     plan_sweeps,
     touch_plan,
 )
@@ -27,6 +29,7 @@ from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
+from .progress import report
 from .scenario import Scenario
 
 __all__ = [
@@ -166,13 +169,15 @@ def simulate_acquisition(
     name: str = "sim",
     protocol_rng: np.random.Generator | None = None,
     touches: Sequence[Touch] = (),
+    progress: str | None = None,
 ) -> SimulatedAcquisition:
     """Teach, plan, check and acquire the scenario's spheres with the twin.
 
     Teaching is emulated from the true scene: the true probe faces the sphere at the
     protocol's target depth, off by the teaching error; the robot records what its
     controller reports there. ``protocol_rng`` replaces the teaching-error stream;
-    ``touches`` go into the dataset as they are.
+    ``touches`` go into the dataset as they are; ``progress`` names the task whose
+    sweep counts :func:`bench.progress.report` receives.
     """
     rngs = stage_rngs(scenario)
     if protocol_rng is not None:
@@ -183,6 +188,12 @@ def simulate_acquisition(
     depth = proto.target_depth_mm * 1e-3
     sweeps: list[Sweep] = []
     truth: dict[tuple[str, int], list[NDArray[np.float64]]] = {}
+    per_sphere = len(orientation_offsets(proto.rotation_deg)) * len(
+        in_plane_offsets(proto.translation_mm)
+    )
+    total = len(proto.spheres) * per_sphere
+    label = progress or f"{name}: acquire sweeps"
+    report(label, 0, total)
     for index in proto.spheres:
         target = f"sphere_{index}"
         centre = twin.truth.landmarks_base[target]
@@ -196,6 +207,8 @@ def simulate_acquisition(
             truth.setdefault((planned.target, planned.pose_id), []).append(
                 twin.robot.truth.T_base_ee
             )
+            if j == len(planned.T_base_ee) - 1:
+                report(label, len(truth), total)
 
         sweeps += acquire(twin.robot, imager, plan, on_frame=log)
     meta = {

@@ -57,6 +57,7 @@ from .experiment import (
     simulate_acquisition,
     stage_rngs,
 )
+from .progress import report
 from .recording import RecordingOptions
 from .scenario import Scenario
 
@@ -158,7 +159,9 @@ def run_recalibration(scenario: Scenario, tables: dict[str, DHTable]) -> Recalib
     rngs = dataset_rngs(scenario, _SESSION["recalibration"])
     twin = make_twin(sc, rngs["joints"])
     imager = make_imager(sc, twin, rngs["imaging"])
-    acq = simulate_acquisition(sc, twin, imager, "remount", rngs["protocol"])
+    acq = simulate_acquisition(
+        sc, twin, imager, "remount", rngs["protocol"], progress="remount: acquire sweeps"
+    )
     truth = twin.truth
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
     del imager, twin
@@ -181,6 +184,8 @@ def run_recalibration(scenario: Scenario, tables: dict[str, DHTable]) -> Recalib
     targets = acq.dataset.targets()
     first = {t: localize_sphere(acq.dataset.of(t), None, radius, cfg, scale) for t in targets}
     start = {m: first for m in METHODS}
+    n_cal = len(tables) * len(METHODS)
+    report("remount: calibrations", 0, n_cal)
     for name, table in tables.items():
         sweeps = {t: with_kinematics(acq.dataset.of(t), table) for t in targets}
         X_equiv = kinematic_gauge(table, truth.dh_table, q_frames, tool_points).G @ truth.T_ee_us
@@ -204,6 +209,7 @@ def run_recalibration(scenario: Scenario, tables: dict[str, DHTable]) -> Recalib
                 "translation_mm": float(se3.translation_distance(X, X_equiv)) * _MM,
                 "image_mm": image_error_mm(sc, X, X_equiv),
             }
+            report("remount: calibrations", len(T_ee_us), n_cal)
     timing = {"simulate": t_sim, "calibrate": time.perf_counter() - t0}
     return Recalibration(T_ee_us, n_retained, errors, timing)
 
@@ -283,6 +289,7 @@ def run_scan(
         logged = set(sweeps_to_log(len(plan), n_central, recording.max_frames))
     t_record = 0.0
     for i, planned in enumerate(plan):
+        report(f"{kind}: scan sweeps", i, len(plan))
         # The sweep's other frames are never read: the twin does not render them.
         central = replace(planned, T_base_ee=planned.T_base_ee[first : first + n_central])
         true_flange = []
@@ -315,6 +322,7 @@ def run_scan(
                 frame.append(np.full(len(b.samples), len(q_frames), dtype=np.int32))
             q_frames.append(sweep.q[j])
         t_extract += time.perf_counter() - t2
+    report(f"{kind}: scan sweeps", len(plan), len(plan))
     part = None
     if rec is not None:
         rec.close()
@@ -409,6 +417,7 @@ def reconstruct_phantom(
             T = flange[name] @ X
             R, t = T[scan.frame, :3, :3], T[scan.frame, :3, 3]
             P = np.einsum("nij,nj->ni", R, scan.p_us) + t
+            report(f"{kind}: ICP", len(points), len(METHODS) * len(tables))
             reg = register_icp(
                 P,
                 mesh,
@@ -430,6 +439,7 @@ def reconstruct_phantom(
                 se3.apply(reg.T, P).astype(np.float32),
                 reg.distances_mm.astype(np.float32),
             )
+        report(f"{kind}: ICP", len(points), len(METHODS) * len(tables))
         metrics[method]["overall"] = {
             **distance_stats(np.concatenate(pooled)),
             "n": int(sum(len(d) for d in pooled)),

@@ -32,6 +32,8 @@ blueprint, so the viewer opens on the 3D scene, the current frame and the plots.
 from __future__ import annotations
 
 import contextlib
+import logging
+import time
 import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -62,6 +64,7 @@ __all__ = [
 ]
 
 Array = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 _RED, _GREEN = (230, 40, 40), (40, 200, 80)
 _MATERIAL_COLOURS = {
@@ -569,10 +572,18 @@ def merge_parts(
     """Write the run's recording: the main process's own logs (``main``, closed here),
     then every worker's part file, and the blueprint. The part files are removed."""
     rec = main or Recorder(options)
+    t0 = time.perf_counter()
     for part in parts:
+        log.debug("merging %s (%.1f MB)", part.name, part.stat().st_size / 2**20)
         rr.send_chunks(RrdReader(part).stream(), recording=rec.stream)
     rec.stream.send_blueprint(blueprint(sessions, scans, reconstruction))
     rec.close()
+    log.debug(
+        "recording %s: %.1f MB, merged in %.1f s",
+        options.path,
+        options.path.stat().st_size / 2**20,
+        time.perf_counter() - t0,
+    )
     for part in parts:
         part.unlink(missing_ok=True)
     if parts:

@@ -26,6 +26,7 @@ from .experiment import (
     simulate_acquisition,
 )
 from .figures import LocalizationSnapshot, localization_snapshot
+from .progress import report
 from .recording import RecordingOptions
 from .scenario import Scenario
 
@@ -177,7 +178,7 @@ def run(
     t_start = time.perf_counter()
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
-    acq = simulate_acquisition(scenario, twin, imager)
+    acq = simulate_acquisition(scenario, twin, imager, progress="acquire sweeps")
     t_sim = time.perf_counter() - t_start
     truth = twin.truth
     radius = scenario.phantom.sphere_radius_mm * 1e-3  # the CAD radius: the only prior
@@ -188,6 +189,8 @@ def run(
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
     cal = scenario.calibration
 
+    n_cal = 2 if len(targets) >= 3 else 1
+    report("calibrations", 0, n_cal)
     single = alternate(
         {targets[0]: by_target[targets[0]]},
         radius,
@@ -197,6 +200,7 @@ def run(
         acq.T_ee_us_coarse,
         cal.max_alternations,
     )
+    report("calibrations", 1, n_cal)
     three = None
     if len(targets) >= 3:
         three = alternate(
@@ -209,6 +213,7 @@ def run(
             cal.max_alternations,
         )
 
+        report("calibrations", 2, n_cal)
     # Localization error of the final single-marker localizations vs the true centres.
     errors, n_sweeps, n_rejected = [], 0, 0
     final = {targets[0]: single.localizations[targets[0]]}

@@ -42,4 +42,5 @@ def quick_run(tmp_path_factory):
         "--rrd", str(rrd), "--rrd-frames", "63",
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
+    (base / "stdout.txt").write_text(r.stdout, encoding="utf-8")
     return out, rrd, json.loads((out / "metrics.json").read_text()), Recording(rrd)

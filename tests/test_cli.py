@@ -110,3 +110,17 @@ def test_image_gallery(tmp_path):
     poses = yaml.safe_load((out / "gallery.yaml").read_text())["poses"]
     assert poses["a_m10_p10_p10_offset"]["in_plane_mm"] == [3, 3]
     assert len(list(out.glob("frame_*.png"))) == len(poses) == 10
+
+
+def test_quiet_prints_nothing_before_or_after_the_command():
+    for args in (("--quiet", "check", QUICK), ("check", QUICK, "-q")):
+        r = uscal(*map(str, args))
+        assert r.returncode == 0, r.stderr
+        assert r.stdout == ""
+
+
+def test_run_shows_progress_with_counts(quick_run):
+    out, *_ = quick_run
+    stdout = (out.parent / "stdout.txt").read_text(encoding="utf-8")
+    assert "acquire sweeps" in stdout and "45/45" in stdout  # one sphere, 45 sweeps
+    assert "calibrations" in stdout
