@@ -328,7 +328,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     import json
 
     from .output import atomic_output_dir
-    from .recording import RecordingOptions
+    from .recording_options import RecordingOptions
     from .report import write_report
     from .run import run
 

@@ -16,7 +16,6 @@ Stages (the split the timing figures use):
 from __future__ import annotations
 
 import concurrent.futures as cf
-import gc
 import logging
 import multiprocessing
 import os
@@ -66,6 +65,7 @@ from .experiment import (
     image_points,
     make_imager,
     make_twin,
+    release_memory,
     simulate_acquisition,
     simulate_touches,
     stage_rngs,
@@ -80,7 +80,7 @@ from .reconstruction import (
     run_recalibration,
     run_scan,
 )
-from .recording import RecordingOptions
+from .recording_options import RecordingOptions
 from .scenario import Scenario
 
 __all__ = ["DatasetOutcome", "EvaluationResult", "run_evaluation"]
@@ -142,7 +142,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
     scene_view = (acoustic_scene(twin.robot.scene.scene).parts, twin.scene.model)
     # The scanner and scene are done: free them before the folds (memory per worker).
     del imager, twin
-    gc.collect()
+    release_memory()
     radius = scenario.phantom.sphere_radius_mm * 1e-3
     scale = axial_scale(scenario)
     loc_cfg = scenario.localization
@@ -309,6 +309,14 @@ class EvaluationResult:
     reconstruction: list[PhantomReconstruction] = field(default_factory=list, repr=False)
 
 
+def _pool_task(fn: Callable[..., Any], *args: Any) -> Any:
+    """Run a pool task, then release the memory it freed."""
+    try:
+        return fn(*args)
+    finally:
+        release_memory()
+
+
 def _workers(scenario: Scenario, n_tasks: int) -> int:
     """Worker processes: the scenario's number, or one per dataset (up to twice the
     cores: three datasets on two cores finish sooner side by side than two, then one)."""
@@ -413,13 +421,16 @@ def run_evaluation(
             # Long tasks first, so that none is left running alone at the end: the
             # re-calibration (a scan of spheres 1-3 and six calibrations), the datasets,
             # then the phantom scans and their registrations.
-            recal_future = pool.submit(run_recalibration, scenario, tables) if phantoms else None
-            dataset_futures = [pool.submit(_run_dataset, t) for t in tasks]
-            scan_futures = [pool.submit(run_scan, scenario, kind, recording) for kind in phantoms]
+            def submit(fn: Callable[..., Any], *args: Any) -> cf.Future:
+                return pool.submit(_pool_task, fn, *args)
+
+            recal_future = submit(run_recalibration, scenario, tables) if phantoms else None
+            dataset_futures = [submit(_run_dataset, t) for t in tasks]
+            scan_futures = [submit(run_scan, scenario, kind, recording) for kind in phantoms]
             if recal_future is not None:
                 recal = result(recal_future)
                 recon_futures = [
-                    pool.submit(reconstruct_phantom, scenario, result(f), recal, tables)
+                    submit(reconstruct_phantom, scenario, result(f), recal, tables)
                     for f in scan_futures
                 ]
                 recon_parts = [result(f) for f in recon_futures]

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import gc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
@@ -221,6 +224,18 @@ def simulate_acquisition(
         coarse,
         {k: np.array(v) for k, v in truth.items()},
     )
+
+
+def release_memory() -> None:
+    """Collect garbage and give the heap's freed pages back to the system (glibc
+    ``malloc_trim``).
+
+    A pool worker's frames are freed when its task ends, but glibc keeps freed heap
+    memory for reuse, so an idle worker went on holding ≈ 0.3-0.9 GB (measured) until
+    the pool closed; with three workers that decided the run's peak memory."""
+    gc.collect()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
 
 
 def axial_scale(scenario: Scenario) -> float:

@@ -54,11 +54,12 @@ from .experiment import (
     image_points,
     make_imager,
     make_twin,
+    release_memory,
     simulate_acquisition,
     stage_rngs,
 )
 from .progress import report
-from .recording import RecordingOptions
+from .recording_options import RecordingOptions
 from .scenario import Scenario
 
 __all__ = [
@@ -165,6 +166,7 @@ def run_recalibration(scenario: Scenario, tables: dict[str, DHTable]) -> Recalib
     truth = twin.truth
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
     del imager, twin
+    release_memory()
     t_sim = time.perf_counter() - t0
     radius = sc.phantom.sphere_radius_mm * 1e-3
     scale = axial_scale(sc)
@@ -280,7 +282,8 @@ def run_scan(
     first = (sc.protocol.frames_per_sweep - n_central) // 2
     rec = logged = None
     if recording is not None:
-        from .recording import Recorder, sweeps_to_log
+        from .recording import Recorder
+        from .recording_options import sweeps_to_log
 
         rec = Recorder(recording.part(kind))
         rec.scene(kind, acoustic_scene(twin.robot.scene.scene).parts)

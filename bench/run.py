@@ -27,7 +27,7 @@ from .experiment import (
 )
 from .figures import LocalizationSnapshot, localization_snapshot
 from .progress import report
-from .recording import RecordingOptions
+from .recording_options import RecordingOptions
 from .scenario import Scenario
 
 __all__ = ["RunResult", "run"]

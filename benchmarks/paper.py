@@ -28,7 +28,7 @@ import threading  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from bench.recording import RecordingOptions  # noqa: E402
+from bench.recording_options import RecordingOptions  # noqa: E402
 from bench.run import run  # noqa: E402
 from bench.scenario import load_scenario  # noqa: E402
 

@@ -1017,10 +1017,14 @@ def sphere_profile(
     that produced the centres used)."""
     if len(localizations) != len(sweeps):
         raise ValueError(f"{len(localizations)} localizations for {len(sweeps)} sweeps")
+    grid = cfg.grid_mm * 1e-3
     vols, centres = [], []
     for sweep, loc in zip(sweeps, localizations, strict=True):
         if loc.accepted:
-            vol = stack_sweep(sweep, T_ee_us, axial_scale)
+            # The localizer's column step: the sweep's bright bits are then the ones it
+            # already memoised (no second copy of them).
+            step = candidate_step((sweep.spacing[0], sweep.spacing[1], 1.0), grid)[2]
+            vol = stack_sweep(sweep, T_ee_us, axial_scale, step)
             vols.append(vol)
             centres.append(np.array(vol.index(loc.centre), dtype=float))
     if not vols:

@@ -159,8 +159,10 @@ def test_recording_holds_every_session_and_the_reconstruction(small_run):
 def test_report_carries_the_papers_tables_and_the_refined_dh_model(small_run):
     out, m, _ = small_run
     md = (out / "report.md").read_text(encoding="utf-8")
-    for title in ("Table I.", "Table II.", "Table III."):
+    for title in ("Table I.", "Table II.", "Table III.", "Against the twin's ground truth"):
         assert title in md, title
+    nominal = m["kinematics"]["datasets"]["A"]["true_error"]["nominal_rms"]
+    assert f"| A | {nominal:.2f} |" in md
     assert "](figures/reconstruction_heatmaps.png)" in md
     assert (out / "figures" / "reconstruction_heatmaps.png").is_file()
     doc = yaml.safe_load((out / "calibration.yaml").read_text(encoding="utf-8"))
