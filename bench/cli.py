@@ -129,6 +129,22 @@ def _parser() -> argparse.ArgumentParser:
         "--spawn", action="store_true", help="open the recording in the rerun viewer at the end"
     )
 
+    sweep = sub.add_parser(
+        "sweep",
+        help="robustness sweep: a grid of scenario overrides × seeds, localized (and "
+        "calibrated) with each localizer; local processes or a Dask cluster",
+    )
+    sweep.add_argument("sweep_file", help="sweep YAML (base, grid, seeds, stages, methods)")
+    sweep.add_argument(
+        "--out", help="output directory (default: out/<sweep file name>); rerunning resumes"
+    )
+    sweep.add_argument(
+        "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (tcp://host:8786)"
+    )
+    sweep.add_argument(
+        "--workers", type=_non_negative_int, default=0, help="local processes (default: cores)"
+    )
+
     check = sub.add_parser("check", help="validate a scenario and print a summary")
     _add_scenario_args(check, optional=True)
 
@@ -560,6 +576,21 @@ def _print_run(m: dict, console: Console) -> None:
     )
 
 
+def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
+    from .sweep import load_sweep, run_sweep
+
+    spec = load_sweep(args.sweep_file)
+    out = Path(args.out or Path("out") / Path(args.sweep_file).stem)
+    with _progress_bars(console) as bars, reporting(bars.update):
+        result = run_sweep(spec, out, args.scheduler, args.workers or None)
+    console.print(
+        f"{len(result.points)} points: {result.computed} computed, {result.cached} from "
+        f"the cache, {result.failed} failed, in {result.seconds:.0f} s"
+    )
+    console.print(f"wrote {out / 'results.csv'} and {out / 'sweep.html'}")
+    return 1 if result.failed else 0
+
+
 def _cmd_docs(args: argparse.Namespace, console: Console) -> int:
     text = scenarios_markdown()
     if args.output:
@@ -588,6 +619,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "image": _cmd_image,
         "plan": _cmd_plan,
         "run": _cmd_run,
+        "sweep": _cmd_sweep,
     }
     try:
         if args.command == "twin":

@@ -365,12 +365,12 @@ code { background: #f4f4f4; padding: 0 0.2rem; }
 """
 
 
-def report_html(markdown: str) -> str:
+def report_html(markdown: str, title: str = "uscal report") -> str:
     """The Markdown as one HTML page (figures linked relatively)."""
     body = MarkdownIt("commonmark").enable("table").render(markdown)
     return (
         '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
-        f"<title>{html.escape('uscal report')}</title>\n<style>{_CSS}</style>\n"
+        f"<title>{html.escape(title)}</title>\n<style>{_CSS}</style>\n"
         f"</head>\n<body>\n{body}</body>\n</html>\n"
     )
 

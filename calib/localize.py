@@ -75,11 +75,24 @@ _MM = 1e-3
 class LocalizerConfig:
     """Threshold-free sphere localization (paper, "Threshold-Free Sphere Localization")."""
 
-    method: Literal["paper", "refined"] = field(
+    method: Literal["paper", "refined", "fixed_threshold"] = field(
         default="refined",
         metadata={
             "doc": "'paper': grid-point centres exactly as published; 'refined': plus a "
-            "sub-voxel centre from the moments of the cap's echo."
+            "sub-voxel centre from the moments of the cap's echo; 'fixed_threshold': the "
+            "baseline the paper argues against (one absolute grey-level threshold, "
+            "largest bright set, least-squares sphere; calib/baseline.py)."
+        },
+    )
+    fixed_threshold: int = field(
+        default=120,
+        metadata={
+            "doc": "The fixed_threshold baseline's grey level (0-255), tuned once at the "
+            "nominal gain and depth: the best of 60, 90, …, 240 by median error "
+            "(scenarios/tune_fixed_threshold.yaml, seed 100); unused by the "
+            "threshold-free methods.",
+            "ge": 1,
+            "le": 255,
         },
     )
     grid_mm: float = field(
@@ -929,6 +942,10 @@ def localize_sphere(
         previous centre (falling back to the whole grid as described there); None entries
         get the whole grid.
     """
+    if cfg.method == "fixed_threshold":
+        from .baseline import localize_sphere_fixed_threshold
+
+        return localize_sphere_fixed_threshold(sweeps, T_ee_us, radius, cfg, axial_scale)
     grid = cfg.grid_mm * 1e-3
     shell = fibonacci_hemisphere(cfg.shell_samples) * radius
     interior = half_ball_samples(cfg.interior_samples, radius)

@@ -1,0 +1,372 @@
+"""Robustness sweeps: a grid of scenario overrides × seeds, each point simulated,
+localized (and calibrated) with every localizer named, on a local process pool or a
+Dask cluster; results cached per point so that an interrupted sweep resumes.
+
+A sweep file::
+
+    base: quick.yaml                 # the base scenario, relative to this file
+    grid:                            # key path (as for --set) -> values; full product
+      imaging.gain_db: [-20, -10, 0, 10, 20]
+      imaging.depth_mm: [30, 50, 70]
+    seeds: [0, 1, 2]
+    stages: [localize]               # or [localize, calibrate]
+    methods: [refined, fixed_threshold]
+
+Each point is a pure function of (base scenario, overrides, seed): the tasks return
+metrics, never frames, and the main process writes ``DIR/points/<key>.json`` as each
+finishes.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import functools
+import hashlib
+import itertools
+import json
+import multiprocessing
+import os
+import time
+import traceback
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calib import se3
+from calib.calibrate import alternate
+from calib.errors import UscalError
+from calib.localize import localize_sphere
+
+from . import progress as progress_report
+from .experiment import (
+    axial_scale,
+    image_error_mm,
+    make_imager,
+    make_twin,
+    release_memory,
+    simulate_acquisition,
+)
+from .scenario import load_scenario
+
+__all__ = ["SweepError", "SweepSpec", "load_sweep", "run_point", "run_sweep"]
+
+STAGES = ("localize", "calibrate")
+METHODS = ("paper", "refined", "fixed_threshold")
+CSV_COLUMNS = ("seed", "method", "localization_median_error_mm", "rejected_fraction")
+
+
+class SweepError(UscalError):
+    """A sweep file that cannot be run."""
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A validated sweep file."""
+
+    source: Path
+    base: Path
+    grid: dict[str, list[Any]]
+    seeds: tuple[int, ...]
+    stages: tuple[str, ...]
+    methods: tuple[str, ...]
+
+    def points(self) -> list[tuple[tuple[tuple[str, Any], ...], int]]:
+        """(overrides, seed) of every point: the grid's full product × the seeds."""
+        keys = list(self.grid)
+        combos = itertools.product(*(self.grid[k] for k in keys)) if keys else [()]
+        return [
+            (tuple(zip(keys, values, strict=True)), seed)
+            for values in combos
+            for seed in self.seeds
+        ]
+
+
+def _fail(source: Path, where: str, what: str) -> SweepError:
+    return SweepError(f"{source}: {where}: {what}")
+
+
+def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
+    """Read and validate a sweep file: the base scenario must load, and the base with
+    each grid value applied too (so a typo fails now, not an hour into the sweep)."""
+    source = Path(path)
+    if not source.is_file():
+        raise SweepError(f"{source}: no such file")
+    try:
+        data = yaml.safe_load(source.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise SweepError(f"{source}: not valid YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise _fail(source, "top level", "expected a mapping with base, grid, seeds, stages")
+    allowed = {"base", "grid", "seeds", "stages", "methods"}
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise _fail(source, ", ".join(unknown), f"unknown key(s); allowed: {sorted(allowed)}")
+    if not isinstance(data.get("base"), str):
+        raise _fail(source, "base", "the base scenario's path (relative to the sweep file)")
+    base = (source.parent / data["base"]).resolve()
+    grid = data.get("grid") or {}
+    if not isinstance(grid, dict) or not all(
+        isinstance(v, list) and v and isinstance(k, str) for k, v in grid.items()
+    ):
+        raise _fail(source, "grid", "a mapping of key path -> non-empty list of values")
+    seeds = data.get("seeds", [0])
+    if not (isinstance(seeds, list) and seeds and all(type(s) is int for s in seeds)):
+        raise _fail(source, "seeds", "a non-empty list of whole numbers")
+    stages = data.get("stages", ["localize"])
+    if stages not in (["localize"], ["localize", "calibrate"]):
+        raise _fail(source, "stages", "[localize] or [localize, calibrate]")
+    methods = data.get("methods", ["refined", "fixed_threshold"])
+    if not (isinstance(methods, list) and methods and set(methods) <= set(METHODS)):
+        raise _fail(source, "methods", f"a non-empty list from {list(METHODS)}")
+    # Fail now on a bad base or value (load_scenario names the key and what is allowed).
+    load_scenario(base)
+    for key, values in grid.items():
+        for v in values:
+            load_scenario(base, [_override(key, v)])
+    return SweepSpec(
+        source, base, {k: list(v) for k, v in grid.items()}, tuple(seeds), tuple(stages),
+        tuple(methods),
+    )  # fmt: skip
+
+
+def _override(key: str, value: Any) -> str:
+    return f"{key}={json.dumps(value)}"
+
+
+@functools.cache
+def code_version() -> str:
+    """A hash of the source of the packages a point runs (calib, sim_us, twin, bench):
+    a cached result computed by other code is not reused."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for package in ("calib", "sim_us", "twin", "bench"):
+        for path in sorted((root / package).rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def point_key(spec: SweepSpec, overrides: Sequence[tuple[str, Any]], seed: int) -> str:
+    """Cache key of a point: a hash of everything its result depends on (the code, the
+    base scenario's text, the overrides, the seed, stages and methods)."""
+    doc = {
+        "code": code_version(),
+        "base": spec.base.read_text(encoding="utf-8"),
+        "overrides": [[k, v] for k, v in overrides],
+        "seed": seed,
+        "stages": list(spec.stages),
+        "methods": list(spec.methods),
+    }
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+# ----------------------------------------------------------------------------- a point
+
+
+def run_point(
+    base: str,
+    overrides: Sequence[tuple[str, Any]],
+    seed: int,
+    stages: Sequence[str],
+    methods: Sequence[str],
+) -> list[dict[str, Any]]:
+    """Simulate one acquisition of ``base`` with ``overrides`` and ``seed``, localize
+    every sphere with each method (at the robot-measured spacing, as the first
+    localization of a calibration) and, with the ``calibrate`` stage, calibrate
+    single-marker on the first sphere; one row of metrics per method, no frames."""
+    scenario = load_scenario(Path(base), [*(_override(k, v) for k, v in overrides), f"seed={seed}"])
+    twin = make_twin(scenario)
+    imager = make_imager(scenario, twin)
+    with progress_report.reporting(None):  # the sweep counts points, not sweeps
+        acq = simulate_acquisition(scenario, twin, imager, "sweep")
+    truth = twin.truth
+    del imager
+    release_memory()
+    radius = scenario.phantom.sphere_radius_mm * 1e-3
+    scale = axial_scale(scenario)
+    targets = acq.dataset.targets()
+    rows = []
+    for method in methods:
+        cfg = replace(scenario.localization, method=method)
+        errors, n, rejected = [], 0, 0
+        for t in targets:
+            sweeps = acq.dataset.of(t)
+            # The localizer alone: the sweeps stacked with the true T_ee_us (the twin's),
+            # so that no calibration error enters; centres against the true centre in
+            # each sweep's true reference frame.
+            locs = localize_sphere(sweeps, truth.T_ee_us, radius, cfg, scale)
+            for sweep, loc in zip(sweeps, locs, strict=True):
+                n += 1
+                if not loc.accepted:
+                    rejected += 1
+                    continue
+                T = acq.T_base_ee_true[(t, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
+                p_true = se3.apply(se3.invert(T), truth.landmarks_base[t])
+                errors.append(float(np.linalg.norm(loc.centre - p_true)) * 1e3)
+        row: dict[str, Any] = {
+            "seed": seed,
+            "method": method,
+            "localization_median_error_mm": float(np.median(errors)) if errors else float("nan"),
+            "rejected_fraction": rejected / n if n else float("nan"),
+        }
+        if "calibrate" in stages:
+            row["calibration_image_mm"] = float("nan")
+            try:
+                alt = alternate(
+                    {targets[0]: acq.dataset.of(targets[0])},
+                    radius,
+                    cfg,
+                    scale,
+                    None,
+                    acq.T_ee_us_coarse,
+                    scenario.calibration.max_alternations,
+                )
+                row["calibration_image_mm"] = image_error_mm(
+                    scenario, alt.result.T_ee_us, truth.T_ee_us
+                )
+            except UscalError as exc:  # e.g. too few accepted sweeps to calibrate
+                row["calibration_error"] = str(exc)
+        rows.append(row)
+    return rows
+
+
+def _safe_point(base, overrides, seed, stages, methods) -> dict[str, Any]:
+    """:func:`run_point` that records a failure instead of raising (the sweep goes on)."""
+    try:
+        return {"rows": run_point(base, overrides, seed, stages, methods)}
+    except Exception as exc:
+        return {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+
+
+# ----------------------------------------------------------------------------- the sweep
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """Every point's rows (or error), in grid order, and what was computed anew."""
+
+    spec: SweepSpec
+    points: list[dict[str, Any]]
+    computed: int
+    cached: int
+    failed: int
+    seconds: float
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _executor(scheduler: str | None, workers: int | None):
+    """(submit, wait-for-any, close) on a local process pool or a Dask cluster."""
+    if scheduler is None:
+        n = workers or os.cpu_count() or 1
+        pool = cf.ProcessPoolExecutor(
+            max_workers=n, mp_context=multiprocessing.get_context("spawn")
+        )
+        return pool.submit, pool.shutdown
+    try:
+        from distributed import Client
+    except ImportError:
+        raise SweepError("--scheduler needs Dask distributed: pip install 'uscal[dist]'") from None
+    try:
+        client = Client(scheduler, timeout="10s")
+    except OSError as exc:
+        raise SweepError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+    return client.submit, client.close
+
+
+def run_sweep(
+    spec: SweepSpec,
+    out: str | os.PathLike[str],
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> SweepResult:
+    """Run every point not yet cached in ``out/points``, on a local process pool
+    (``workers``, default one per core) or the Dask cluster at ``scheduler``; then write
+    ``results.csv`` and ``sweep.html``. A failed point records its error and the sweep
+    goes on."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    (out / "points").mkdir(parents=True, exist_ok=True)
+    todo, done = [], {}
+    points = spec.points()
+    for overrides, seed in points:
+        key = point_key(spec, overrides, seed)
+        cached = out / "points" / f"{key}.json"
+        if cached.is_file():
+            done[key] = json.loads(cached.read_text(encoding="utf-8"))
+        else:
+            todo.append((key, overrides, seed))
+    n_cached = len(done)
+    progress_report.report("sweep points", n_cached, len(points))
+    if todo:
+        submit, close = _executor(scheduler, workers)
+        try:
+            futures = {
+                submit(_safe_point, str(spec.base), overrides, seed, spec.stages, spec.methods): (
+                    key,
+                    overrides,
+                    seed,
+                )
+                for key, overrides, seed in todo
+            }
+            for future in _as_completed(futures, scheduler is not None):
+                key, overrides, seed = futures[future]
+                doc = {"overrides": [[k, v] for k, v in overrides], "seed": seed}
+                doc.update(future.result())
+                _write_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
+                done[key] = doc
+                progress_report.report("sweep points", len(done), len(points))
+        finally:
+            close()
+    ordered = [done[point_key(spec, o, s)] for o, s in points]
+    _write_atomic(out / "results.csv", results_csv(spec, ordered))
+    from .sweep_report import sweep_html
+
+    _write_atomic(out / "sweep.html", sweep_html(spec, ordered, out))
+    failed = sum("error" in d for d in ordered)
+    return SweepResult(spec, ordered, len(todo), n_cached, failed, time.perf_counter() - t0)
+
+
+def _as_completed(futures, dask: bool):
+    if dask:
+        from distributed import as_completed
+
+        return as_completed(list(futures))
+    return cf.as_completed(futures)
+
+
+def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any]]) -> str:
+    """One row per point, seed and method: the grid keys (named by key path), then
+    seed, method and the metrics; a failed point gives one row per method with the
+    error."""
+    keys = list(spec.grid)
+    metrics = ["localization_median_error_mm", "rejected_fraction"]
+    if "calibrate" in spec.stages:
+        metrics.append("calibration_image_mm")
+    lines = [",".join([*keys, "seed", "method", *metrics, "error"])]
+    for doc in points:
+        values = [json.dumps(v) if not isinstance(v, str) else v for _, v in doc["overrides"]]
+        rows = doc.get("rows") or [{"method": m} for m in spec.methods]
+        for row in rows:
+            cells = [*values, str(doc["seed"]), row["method"]]
+            cells += [_fmt(row.get(m)) for m in metrics]
+            error = doc.get("error") or row.get("calibration_error") or ""
+            cells.append('"' + error.replace('"', "'") + '"' if error else "")
+            lines.append(",".join(cells))
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "nan" if not np.isfinite(v) else f"{v:.6g}"
+    return str(v)

@@ -1,0 +1,111 @@
+"""``sweep.html``: a sweep's results per grid key and localizer — localization error
+(median and spread), detection failures, calibration error — with its figures in
+``DIR/figures``."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from .report import report_html
+
+__all__ = ["sweep_html", "sweep_table"]
+
+_METRICS = {
+    "localization_median_error_mm": "localization error, median over sweeps (mm)",
+    "rejected_fraction": "sweeps without a detection (share)",
+    "calibration_image_mm": "calibration: true image error (mm)",
+}
+
+
+def sweep_table(points: Sequence[dict[str, Any]], key: str, metric: str):
+    """{method: (values, median, 25th, 75th percentile)} of ``metric`` against the grid
+    key ``key``, pooling seeds and the other keys."""
+    by: dict[str, dict[Any, list[float]]] = {}
+    for doc in points:
+        value = dict((k, v) for k, v in doc["overrides"]).get(key)
+        if not isinstance(value, (int, float, str, bool)):
+            value = json.dumps(value)  # lists (e.g. protocol.spheres) as their text
+        for row in doc.get("rows", []):
+            x = row.get(metric)
+            if x is None:
+                continue
+            by.setdefault(row["method"], {}).setdefault(value, []).append(float(x))
+    out = {}
+    for method, groups in by.items():
+        values = sorted(groups)
+        stats = [
+            np.nanpercentile(groups[v], [50, 25, 75]) if np.isfinite(groups[v]).any() else
+            np.full(3, np.nan)
+            for v in values
+        ]  # fmt: skip
+        out[method] = (values, *np.array(stats).T)
+    return out
+
+
+def _figure(points, key: str, metric: str, path: Path) -> None:
+    fig = Figure(figsize=(5.2, 3.2), layout="constrained")
+    ax = fig.subplots()
+    for method, (values, med, lo, hi) in sweep_table(points, key, metric).items():
+        x = np.asarray(values, dtype=float)
+        ax.plot(x, med, "o-", label=method)
+        ax.fill_between(x, lo, hi, alpha=0.2)
+    ax.set_xlabel(key)
+    ax.set_ylabel(_METRICS[metric])
+    if metric == "localization_median_error_mm":
+        ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=100)
+
+
+def sweep_html(spec, points: Sequence[dict[str, Any]], out: Path) -> str:
+    """The page (and its figures, written into ``out/figures``)."""
+    fig_dir = out / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    metrics = ["localization_median_error_mm", "rejected_fraction"]
+    if "calibrate" in spec.stages:
+        metrics.append("calibration_image_mm")
+    failed = [d for d in points if "error" in d]
+    lines = [
+        "# uscal sweep",
+        "",
+        f"`{spec.source}`: base `{spec.base.name}`, {len(points)} points "
+        f"({' × '.join(f'{len(v)} {k}' for k, v in spec.grid.items()) or 'no grid'}, "
+        f"{len(spec.seeds)} seeds), stages {', '.join(spec.stages)}, localizers "
+        f"{', '.join(spec.methods)}. Lines: median over seeds and the other keys; bands: "
+        "25th-75th percentile. Every row is in `results.csv`.",
+        "",
+    ]
+    if failed:
+        lines += [f"**{len(failed)} point(s) failed**:", ""]
+        lines += [f"- {d['overrides']}, seed {d['seed']}: {d['error']}" for d in failed]
+        lines.append("")
+    for key in spec.grid:
+        if len(spec.grid[key]) < 2:
+            continue  # a fixed setting, not a varied one
+        lines += [f"## {key}", ""]
+        numeric = all(isinstance(v, (int, float)) for v in spec.grid[key])
+        for metric in metrics if numeric else []:
+            name = f"{key.replace('.', '_')}__{metric}.png"
+            _figure(points, key, metric, fig_dir / name)
+            lines += [f"![{_METRICS[metric]} vs {key}](figures/{name})", ""]
+        for metric in metrics:
+            table = sweep_table(points, key, metric)
+            if not table:
+                continue
+            values = next(iter(table.values()))[0]
+            lines += [
+                f"{_METRICS[metric]}, median:",
+                "",
+                "| method | " + " | ".join(str(v) for v in values) + " |",
+                "|---|" + "---:|" * len(values),
+            ]
+            for method, (_, med, _, _) in table.items():
+                lines.append(f"| {method} | " + " | ".join(f"{m:.3g}" for m in med) + " |")
+            lines.append("")
+    return report_html("\n".join(lines), "uscal sweep")
