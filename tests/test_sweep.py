@@ -1,0 +1,168 @@
+"""`uscal sweep`: the sweep file's validation, the same results on a local pool and on
+a real Dask LocalCluster, resuming an interrupted sweep without recomputing, and the
+paper's robustness claim measured against the fixed-threshold baseline."""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.sweep import load_sweep, run_sweep
+from calib.errors import UscalError
+
+from .test_cli import uscal
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = ROOT / "scenarios" / "quick.yaml"
+# One sphere, short sweeps: a point takes a few seconds.
+SMALL = "  protocol.spheres: [[1]]\n  protocol.frames_per_sweep: [9]\n"
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _sweep_file(tmp_path: Path, grid: str, seeds="[0]", methods="[refined, fixed_threshold]"):
+    return _write(
+        tmp_path / "sweep.yaml",
+        f"base: {QUICK}\ngrid:\n{SMALL}{grid}seeds: {seeds}\nstages: [localize]\n"
+        f"methods: {methods}\n",
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (f"base: {QUICK}\ncolour: red\n", "colour: unknown key"),
+        ("grid: {}\n", "base: the base scenario's path"),
+        (f"base: {QUICK}\nstages: [calibrate]\n", "stages: [localize] or [localize, calibrate]"),
+        (f"base: {QUICK}\nmethods: [magic]\n", "methods: a non-empty list from"),
+        (f"base: {QUICK}\nseeds: [1.5]\n", "seeds: a non-empty list of whole numbers"),
+        (f"base: {QUICK}\ngrid:\n  imaging.gain_db: 3\n", "grid: a mapping of key path"),
+        (f"base: {QUICK}\ngrid:\n  imaging.gain_db: [loud]\n", "imaging.gain_db"),
+        (f"base: {QUICK}\ngrid:\n  imaging.gane_db: [0]\n", "gane_db"),
+        ("base: nowhere.yaml\n", "nowhere.yaml"),
+    ],
+)
+def test_bad_sweep_files_fail_with_one_clear_line(tmp_path, text, message):
+    path = _write(tmp_path / "bad.yaml", text)
+    with pytest.raises(UscalError, match=re.escape(message)):
+        load_sweep(path)
+    r = uscal("sweep", str(path), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2
+    assert r.stderr.startswith("uscal: error:") and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def _rows(out: Path) -> list[dict[str, str]]:
+    return list(csv.DictReader(io.StringIO((out / "results.csv").read_text())))
+
+
+def test_a_dask_cluster_gives_the_local_pools_results(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    spec = load_sweep(_sweep_file(tmp_path, "  imaging.gain_db: [0, 10]\n"))
+    local = run_sweep(spec, tmp_path / "local", workers=2)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        remote = run_sweep(spec, tmp_path / "dask", scheduler=cluster.scheduler_address)
+    assert local.computed == remote.computed == 2 and not local.failed
+    assert _rows(tmp_path / "local") == _rows(tmp_path / "dask")
+    rows = _rows(tmp_path / "local")
+    assert [r["method"] for r in rows] == ["refined", "fixed_threshold"] * 2
+    assert list(rows[0])[:3] == ["protocol.spheres", "protocol.frames_per_sweep", "imaging.gain_db"]
+    assert all(
+        float(r["localization_median_error_mm"]) < 1.0 for r in rows if r["method"] == "refined"
+    )
+    assert (tmp_path / "dask" / "sweep.html").read_text().count("<img") >= 2
+
+
+def test_an_unreachable_scheduler_fails_fast(tmp_path):
+    pytest.importorskip("distributed")
+    path = _sweep_file(tmp_path, "  imaging.gain_db: [0]\n")
+    t0 = time.perf_counter()
+    r = uscal("sweep", str(path), "--out", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:9")
+    assert r.returncode == 2 and "cannot connect" in r.stderr
+    assert time.perf_counter() - t0 < 60
+
+
+def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path):
+    path = _write(
+        tmp_path / "sweep.yaml",
+        f"base: {QUICK}\ngrid:\n{SMALL}  imaging.gain_db: [-10, 0, 10]\nseeds: [0]\n"
+        "stages: [localize, calibrate]\nmethods: [refined]\n",
+    )
+    out = tmp_path / "out"
+    script = Path(sys.executable).parent / "uscal"
+    proc = subprocess.Popen(
+        [str(script), "sweep", str(path), "--out", str(out), "--workers", "1"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    points = out / "points"
+    deadline = time.time() + 240
+    while time.time() < deadline and not (points.is_dir() and list(points.glob("*.json"))):
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)  # the whole process group, workers included
+    proc.wait()
+    first = {p.name: p.stat().st_mtime_ns for p in points.glob("*.json")}
+    assert 1 <= len(first) < 3 and not (out / "results.csv").exists()
+    r = uscal("sweep", str(path), "--out", str(out), "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    assert f"{len(first)} from the cache" in r.stdout
+    assert {p.name: p.stat().st_mtime_ns for p in points.glob("*.json") if p.name in first} == first
+    rows = _rows(out)
+    assert len(rows) == 3
+    assert all(0 < float(r["calibration_image_mm"]) < 1.0 for r in rows)  # calibrate stage
+
+
+def test_the_threshold_free_localizer_holds_across_gain_and_the_baseline_does_not(tmp_path):
+    """The paper's claim on the twin: quick.yaml (spheres 1-3, 135 sweeps per gain),
+    seed 0. Measured (also over seeds 0-2, in the closing note): the threshold-free
+    median error stays within 25 % of its 0 dB value from -10 to +10 dB; beyond, it does
+    not — +20 dB raises it by half or more (speckle and cap saturate) and -20 dB loses a
+    fifth of the detections — though it stays sub-millimetre; the fixed threshold tuned
+    at 0 dB loses every detection at -20 dB and is centimetres off from +10 dB."""
+    path = _write(
+        tmp_path / "gain.yaml",
+        f"base: {QUICK}\ngrid:\n  imaging.gain_db: [-20, -10, 0, 10, 20]\nseeds: [0]\n"
+        "stages: [localize]\nmethods: [refined, fixed_threshold]\n",
+    )
+    result = run_sweep(load_sweep(path), tmp_path / "out", workers=2)
+    assert not result.failed
+    table = {}
+    for doc in result.points:
+        gain = dict((k, v) for k, v in doc["overrides"])["imaging.gain_db"]
+        for row in doc["rows"]:
+            table[(row["method"], gain)] = (
+                row["localization_median_error_mm"],
+                row["rejected_fraction"],
+            )
+    ref0 = table[("refined", 0)][0]
+    for gain in (-10, 10):
+        assert abs(table[("refined", gain)][0] - ref0) <= 0.25 * ref0, table
+        assert table[("refined", gain)][1] <= 0.05, table
+    for gain in (-20, 20):
+        assert table[("refined", gain)][0] < 1.0 and table[("refined", gain)][1] <= 0.3, table
+    base0 = table[("fixed_threshold", 0)][0]
+    assert base0 < 0.2  # tuned at 0 dB: as good as the threshold-free method there
+    # Several-fold worse, or no detection in most sweeps, at ±10 dB or beyond.
+    grew = {
+        g for g in (-20, -10, 10, 20)
+        if not np.isfinite(table[("fixed_threshold", g)][0])
+        or table[("fixed_threshold", g)][0] >= 5 * base0
+        or table[("fixed_threshold", g)][1] >= 0.5
+    }  # fmt: skip
+    assert {-20, 10, 20} <= grew, table
