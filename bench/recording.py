@@ -470,22 +470,6 @@ def log_acquisition(
     return logged
 
 
-def log_profiles(
-    rec: Recorder,
-    session: str,
-    sweeps_by_target: Mapping[str, Sequence[Sweep]],
-    localizations: Mapping[str, Sequence[SweepLocalization]],
-    T_ee_us: Array | None,
-    radius: float,
-    cfg: LocalizerConfig,
-    axial_scale: float,
-) -> None:
-    """The radial profile of each sphere about its final localizations."""
-    for target, locs in localizations.items():
-        prof = sphere_profile(sweeps_by_target[target], locs, T_ee_us, radius, cfg, axial_scale)
-        rec.profile(session, target, prof)
-
-
 def blueprint(
     sessions: Sequence[str], scans: Sequence[str] = (), reconstruction: bool = False
 ) -> rrb.Blueprint:
