@@ -69,6 +69,7 @@ class SweepSpec:
 
     source: Path
     base: Path
+    base_text: str  # as validated: the cache key's, even if the file changes later
     grid: dict[str, list[Any]]
     seeds: tuple[int, ...]
     stages: tuple[str, ...]
@@ -128,8 +129,8 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
         for v in values:
             load_scenario(base, [_override(key, v)])
     return SweepSpec(
-        source, base, {k: list(v) for k, v in grid.items()}, tuple(seeds), tuple(stages),
-        tuple(methods),
+        source, base, base.read_text(encoding="utf-8"), {k: list(v) for k, v in grid.items()},
+        tuple(seeds), tuple(stages), tuple(methods),
     )  # fmt: skip
 
 
@@ -155,7 +156,7 @@ def point_key(spec: SweepSpec, overrides: Sequence[tuple[str, Any]], seed: int) 
     base scenario's text, the overrides, the seed, stages and methods)."""
     doc = {
         "code": code_version(),
-        "base": spec.base.read_text(encoding="utf-8"),
+        "base": spec.base_text,
         "overrides": [[k, v] for k, v in overrides],
         "seed": seed,
         "stages": list(spec.stages),

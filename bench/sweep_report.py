@@ -51,7 +51,10 @@ def sweep_table(points: Sequence[dict[str, Any]], key: str, metric: str):
 def _figure(points, key: str, metric: str, path: Path) -> None:
     fig = Figure(figsize=(5.2, 3.2), layout="constrained")
     ax = fig.subplots()
-    for method, (values, med, lo, hi) in sweep_table(points, key, metric).items():
+    table = sweep_table(points, key, metric)
+    if not table:
+        ax.text(0.5, 0.5, "no results (every point failed)", ha="center", transform=ax.transAxes)
+    for method, (values, med, lo, hi) in table.items():
         x = np.asarray(values, dtype=float)
         ax.plot(x, med, "o-", label=method)
         ax.fill_between(x, lo, hi, alpha=0.2)
@@ -59,7 +62,8 @@ def _figure(points, key: str, metric: str, path: Path) -> None:
     ax.set_ylabel(_METRICS[metric])
     if metric == "localization_median_error_mm":
         ax.set_yscale("log")
-    ax.legend(fontsize=8)
+    if table:
+        ax.legend(fontsize=8)
     fig.savefig(path, dpi=100)
 
 

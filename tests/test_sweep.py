@@ -166,3 +166,20 @@ def test_the_threshold_free_localizer_holds_across_gain_and_the_baseline_does_no
         or table[("fixed_threshold", g)][1] >= 0.5
     }  # fmt: skip
     assert {-20, 10, 20} <= grew, table
+
+
+def test_a_failing_point_records_its_error_and_the_sweep_goes_on(tmp_path):
+    """A point that raises (here: its base scenario vanished after validation) is
+    recorded with its error, in points/ and results.csv; the other points still run."""
+    base = _write(tmp_path / "base.yaml", QUICK.read_text(encoding="utf-8"))
+    path = _write(
+        tmp_path / "sweep.yaml",
+        "base: base.yaml\ngrid:\n  imaging.gain_db: [0, 10]\nseeds: [0]\nmethods: [refined]\n",
+    )
+    spec = load_sweep(path)
+    base.unlink()
+    result = run_sweep(spec, tmp_path / "out", workers=1)
+    assert result.failed == 2 and result.computed == 2
+    rows = _rows(tmp_path / "out")
+    assert len(rows) == 2 and all("base.yaml" in r["error"] for r in rows)
+    assert "2 point(s) failed" in (tmp_path / "out" / "sweep.html").read_text()
