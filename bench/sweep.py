@@ -176,9 +176,10 @@ def run_point(
     methods: Sequence[str],
 ) -> list[dict[str, Any]]:
     """Simulate one acquisition of ``base`` with ``overrides`` and ``seed``, localize
-    every sphere with each method (at the robot-measured spacing, as the first
-    localization of a calibration) and, with the ``calibrate`` stage, calibrate
-    single-marker on the first sphere; one row of metrics per method, no frames."""
+    every sphere with each method (the sweeps stacked with the twin's true ``T_ee_us``:
+    the localizer alone) and, with the ``calibrate`` stage, calibrate single-marker on
+    the first sphere from the coarse estimate; one row of metrics per method, no
+    frames."""
     scenario = load_scenario(Path(base), [*(_override(k, v) for k, v in overrides), f"seed={seed}"])
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
