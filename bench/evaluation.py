@@ -69,6 +69,7 @@ from .experiment import (
     simulate_acquisition,
     simulate_touches,
     stage_rngs,
+    true_centre_in_sweep,
 )
 from .figures import LocalizationSnapshot
 from .reconstruction import (
@@ -215,8 +216,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
             if not loc.accepted:
                 n_rejected += 1
                 continue
-            T = acq.T_base_ee_true[(t, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
-            p_true = se3.apply(se3.invert(T), truth.landmarks_base[t])
+            p_true = true_centre_in_sweep(acq, truth, t, sweep)
             errors.append(np.linalg.norm(loc.centre - p_true) * _MM)
     truth_doc = {
         "kinematic_error_mm": {

@@ -226,6 +226,16 @@ def simulate_acquisition(
     )
 
 
+def true_centre_in_sweep(
+    acq: SimulatedAcquisition, truth, target: str, sweep: Sweep
+) -> NDArray[np.float64]:
+    """Truth: a sphere's centre (3,) in the sweep's true reference frame (the true
+    flange pose of its reference frame and the true mount), where a localization of it
+    should land."""
+    T = acq.T_base_ee_true[(target, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
+    return se3.apply(se3.invert(T), truth.landmarks_base[target])
+
+
 def release_memory() -> None:
     """Collect garbage and give the heap's freed pages back to the system (glibc
     ``malloc_trim``).

@@ -24,6 +24,7 @@ from .experiment import (
     make_imager,
     make_twin,
     simulate_acquisition,
+    true_centre_in_sweep,
 )
 from .figures import LocalizationSnapshot, localization_snapshot
 from .progress import report
@@ -83,11 +84,6 @@ def snapshot_of(
         true_centres = se3.apply(se3.invert(T_true), truth.landmarks_base[target])
     profile = sphere_profile(sweeps, locs, T, radius, scenario.localization, scale)
     return localization_snapshot(sweeps[i], locs[i], T, radius, scale, profile, true_centres)
-
-
-def _true_centre_in_sweep(acq, truth, target, sweep) -> Array:
-    T = acq.T_base_ee_true[(target, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
-    return se3.apply(se3.invert(T), truth.landmarks_base[target])
 
 
 def _calibration_metrics(
@@ -225,7 +221,7 @@ def run(
             if not loc.accepted:
                 n_rejected += 1
                 continue
-            p_true = _true_centre_in_sweep(acq, truth, target, sweep)
+            p_true = true_centre_in_sweep(acq, truth, target, sweep)
             errors.append(1e3 * np.linalg.norm(loc.centre - p_true))
     errors = np.array(errors) if errors else np.array([np.nan])
     hist = single.history + (three.history if three else [])

@@ -36,7 +36,6 @@ from typing import Any
 import numpy as np
 import yaml
 
-from calib import se3
 from calib.calibrate import alternate
 from calib.errors import UscalError
 from calib.localize import localize_sphere
@@ -49,6 +48,7 @@ from .experiment import (
     make_twin,
     release_memory,
     simulate_acquisition,
+    true_centre_in_sweep,
 )
 from .scenario import load_scenario
 
@@ -206,8 +206,7 @@ def run_point(
                 if not loc.accepted:
                     rejected += 1
                     continue
-                T = acq.T_base_ee_true[(t, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
-                p_true = se3.apply(se3.invert(T), truth.landmarks_base[t])
+                p_true = true_centre_in_sweep(acq, truth, t, sweep)
                 errors.append(float(np.linalg.norm(loc.centre - p_true)) * 1e3)
         row: dict[str, Any] = {
             "seed": seed,
