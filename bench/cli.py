@@ -128,6 +128,44 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--spawn", action="store_true", help="open the recording in the rerun viewer at the end"
     )
+    run.add_argument(
+        "--save-dataset",
+        metavar="DATASET",
+        help="also write the acquisition as dataset files (PLUS .mha per sweep + "
+        "dataset.yaml) for `uscal calibrate`; one-acquisition scenarios only",
+    )
+
+    calibrate = sub.add_parser(
+        "calibrate",
+        help="localize and calibrate a recorded dataset (hardware or twin), offline",
+    )
+    calibrate.add_argument("dataset", help="dataset directory (dataset.yaml + sweeps/*.mha)")
+    calibrate.add_argument(
+        "--markers",
+        choices=["1", "3"],
+        help="single-marker (first sphere) or three-marker (first three) only; default both",
+    )
+    calibrate.add_argument("--out", help="output directory (default: DATASET-calibration)")
+    calibrate.add_argument("--force", action="store_true", help="replace an existing directory")
+    calibrate.add_argument(
+        "--settings",
+        metavar="SCENARIO",
+        help="scenario whose localization and calibration settings to use (default: built-in)",
+    )
+    calibrate.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY.PATH=VALUE",
+        help="override a settings key, e.g. localization.min_score=0.2; repeatable",
+    )
+    crrd = calibrate.add_mutually_exclusive_group()
+    crrd.add_argument("--rrd", metavar="FILE", help="rerun recording (default: OUT/recording.rrd)")
+    crrd.add_argument("--no-rrd", action="store_true", help="write no rerun recording")
+    calibrate.add_argument(
+        "--rrd-frames", type=_non_negative_int, default=420, metavar="N", help=argparse.SUPPRESS
+    )
 
     sweep = sub.add_parser(
         "sweep",
@@ -350,6 +388,14 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
 
     scenario = load_scenario(args.scenario, args.overrides)
     out = args.out or scenario.output.dir
+    if args.save_dataset:
+        _check_new_directory(args.save_dataset, "--save-dataset")
+        if len(scenario.evaluation.datasets) >= 2:
+            raise UscalError(
+                f"--save-dataset: {scenario.source} is the paper's experiment "
+                f"({len(scenario.evaluation.datasets)} datasets); save one acquisition "
+                "(--set evaluation.datasets=[]) instead"
+            )
     rrd_target = None
     if not args.no_rrd:
         rrd_target = Path(args.rrd) if args.rrd else Path(out) / "recording.rrd"
@@ -366,6 +412,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
                 scenario,
                 progress=lambda msg: bars.console.print(f"[dim]{msg}[/dim]"),
                 recording=recording,
+                save_dataset=args.save_dataset,
             )
         (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
         written = ["metrics.json"] + (["recording.rrd"] if args.rrd is None and recording else [])
@@ -391,9 +438,85 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
         f"wrote {', '.join(str(Path(out) / f) for f in files)} and {len(figures)} figures in "
         f"{Path(out) / 'figures'} (open {Path(out) / 'report.html'})"
     )
+    if args.save_dataset:
+        console.print(f"wrote the dataset {args.save_dataset} (uscal calibrate reads it)")
     if args.spawn and rrd_target is not None:
         _spawn_viewer(rrd_target, console)
     return 0
+
+
+def _check_new_directory(path: str, option: str) -> None:
+    p = Path(path)
+    if p.exists() and (not p.is_dir() or any(p.iterdir())):
+        raise UscalError(f"{option} {path}: exists and is not an empty directory")
+
+
+def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
+    import json
+
+    from .offline import calibrate_recorded, record_recorded
+    from .output import atomic_output_dir
+    from .recording_options import RecordingOptions
+    from .report import write_report
+
+    settings = load_scenario(args.settings, args.overrides)
+    dataset_dir = Path(args.dataset)
+    out = Path(args.out) if args.out else dataset_dir.with_name(dataset_dir.name + "-calibration")
+    if args.rrd and Path(args.rrd).is_dir():
+        raise UscalError(f"--rrd {args.rrd}: is a directory; give a file name (e.g. run.rrd)")
+    markers = (int(args.markers),) if args.markers else (1, 3)
+    with atomic_output_dir(out, force=args.force) as tmp:
+        with _progress_bars(console) as bars, reporting(bars.update):
+            result = calibrate_recorded(dataset_dir, settings, markers)
+        (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
+        written = ["metrics.json"]
+        if not args.no_rrd:
+            recording = RecordingOptions.new(tmp / "recording.rrd", args.rrd_frames)
+            record_recorded(recording, settings, result)
+            if args.rrd is None:
+                written.append("recording.rrd")
+        written += write_report(tmp, settings, result.as_run_result(settings))
+    if args.rrd and not args.no_rrd:
+        target = Path(args.rrd)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(out / "recording.rrd", target)
+        written.append(str(target.resolve()))
+    _print_recorded(result.metrics, console)
+    files = [f for f in written if not f.startswith("figures/")]
+    console.print(f"wrote {', '.join(str(out / f) for f in files)} (open {out / 'report.html'})")
+    return 0
+
+
+def _print_recorded(m: dict, console: Console) -> None:
+    d, loc = m["dataset"], m["localization"]
+    console.print(
+        f"dataset {d['name']} ({d['source']}): {d['n_sweeps']} sweeps of "
+        f"{', '.join(d['targets'])}; {loc['n_sweeps']} localized, {loc['n_rejected']} rejected"
+    )
+    table = Table(title="calibration (no ground truth)")
+    for col in ("method", "x mm", "y mm", "z mm", "1σ rot °", "1σ mm", "prec mm", "kept"):
+        table.add_column(col, justify="right" if col != "method" else "left")
+    for name in ("single", "three"):
+        c = m["calibration"].get(name)
+        if c is None:
+            continue
+        t = np.array(c["T_ee_us"])[:3, 3] * 1e3
+        std = np.sqrt(np.clip(np.diag(np.array(c["covariance_rotvec_rad_translation_m"])), 0, None))
+        table.add_row(
+            name,
+            *(f"{v:.2f}" for v in t),
+            f"{np.degrees(std[:3]).max():.3f}",
+            f"{1e3 * std[3:].max():.3f}",
+            f"{c['precision_mm']:.3f}",
+            str(c["n_retained"]),
+        )
+    console.print(table)
+    both = m["calibration"].get("single_vs_three")
+    if both:
+        console.print(
+            f"single vs three-marker: {both['rotation_deg']:.3f} °, "
+            f"{both['translation_mm']:.3f} mm apart"
+        )
 
 
 class _Bars:
@@ -614,6 +737,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for package in ("bench", "calib", "twin", "sim_us", "hw"):
             logging.getLogger(package).setLevel(logging.DEBUG)
     handlers = {
+        "calibrate": _cmd_calibrate,
         "check": _cmd_check,
         "docs": _cmd_docs,
         "image": _cmd_image,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from calib.calibrate import AlternationResult
 from calib.evaluate import PHANTOM_TITLES
 from calib.image import sphere_section, us_to_pixel
-from calib.localize import SphereProfile, SweepLocalization, frame_offsets
+from calib.localize import SphereProfile, SweepLocalization, frame_offsets, sphere_profile
 from calib.observability import information, jacobians
 from calib.records import Sweep
 
@@ -58,6 +58,30 @@ def _circle_px(centre_us: Array, radius: float, width: int, spacing) -> Circle3 
     x, y, r = section
     rows, cols = us_to_pixel(np.array([x, y, 0.0]), width, spacing)
     return float(cols), float(rows), r / spacing[0]
+
+
+def dataset_snapshot(
+    dataset,
+    alt,
+    radius: float,
+    cfg,
+    axial_scale: float,
+    true_centres: Callable[[str, Sweep], Array] | None = None,
+) -> LocalizationSnapshot | None:
+    """The report's look at the first sphere an alternation localized: its first
+    accepted sweep's frames with the sections found (and, ``true_centres(target, sweep)``
+    giving the true centre in each frame's us frame, the true ones), and the sphere's
+    radial profile over its sweeps. None when no sweep was accepted."""
+    target = next(iter(alt.localizations))
+    sweeps = dataset.of(target)
+    locs = alt.localizations[target]
+    T = alt.result.T_ee_us
+    i = next((i for i, loc in enumerate(locs) if loc.accepted), None)
+    if i is None:
+        return None
+    truth = true_centres(target, sweeps[i]) if true_centres is not None else None
+    profile = sphere_profile(sweeps, locs, T, radius, cfg, axial_scale)
+    return localization_snapshot(sweeps[i], locs[i], T, radius, axial_scale, profile, truth)
 
 
 def localization_snapshot(

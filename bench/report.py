@@ -95,9 +95,20 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
     T = np.array(cal["T_ee_us"])
     cov = np.array(cal["covariance_rotvec_rad_translation_m"])
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    H, W = scenario.imaging.image_shape
-    spacing = scenario.imaging.spacing_m
-    if result.evaluation is not None:
+    if "image" in m:  # a recorded dataset: its frames decide
+        W, H = m["image"]["width_px"], m["image"]["height_px"]
+        spacing = tuple(m["image"]["spacing_m"])
+    else:
+        H, W = scenario.imaging.image_shape
+        spacing = scenario.imaging.spacing_m
+    if "dataset" in m:
+        dh = _dh_doc(
+            scenario.robot.nominal_table,
+            f"nominal {scenario.robot.model} table (the poses are as the controller reported "
+            "them, with its own calibrated model)",
+        )
+        origin = f"dataset {m['dataset']['name']} ({m['dataset']['path']})"
+    elif result.evaluation is not None:
         dataset = cal["fold"].split("/")[0]
         others = ", ".join(n for n in m["evaluation"]["datasets"] if n != dataset)
         dh = _dh_doc(
@@ -114,7 +125,11 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
             "the transducer face, x lateral along increasing columns, y axial = depth, "
             "z = x × y) to the robot flange frame (ee); T_dst_src convention."
         ),
-        "scenario": m["scenario"]["name"],
+        **(
+            {"scenario": m["scenario"]["name"]}
+            if "scenario" in m
+            else {"dataset": m["dataset"]["path"]}
+        ),
         "method": _METHOD_TITLES[method],
         "from": origin,
         "T_ee_us": _pose_doc(T),
@@ -206,6 +221,29 @@ def _scenario_md(s: Scenario) -> str:
     return "| setting | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
 
 
+def _dataset_md(m: dict[str, Any]) -> str:
+    d, im = m["dataset"], m["image"]
+    rows = [
+        ("dataset", f"`{d['name']}` ({d['source']}), `{d['path']}`"),
+        ("sweeps", f"{d['n_sweeps']} ({d['n_frames']} frames) of {', '.join(d['targets'])}"),
+        (
+            "image",
+            f"{im['width_px']} × {im['height_px']} px, "
+            f"{', '.join(f'{v * _MM:.4g}' for v in im['spacing_m'])} mm/px",
+        ),
+        ("medium", f"{d['temperature_c']:g} °C, axial scale {d['axial_scale']:.5f}"),
+        ("touches", str(d["n_touches"])),
+    ]
+    text = "| setting | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
+    both = m["calibration"].get("single_vs_three")
+    if both:
+        text += (
+            f"\n\nSingle- vs three-marker `T_ee_us`: {both['rotation_deg']:.3f} °, "
+            f"{both['translation_mm']:.3f} mm apart."
+        )
+    return text
+
+
 def _calibration_md(m: dict[str, Any]) -> str:
     parts = []
     for method in ("single", "three"):
@@ -217,26 +255,35 @@ def _calibration_md(m: dict[str, Any]) -> str:
         T_mm[:3, 3] *= _MM
         cov = np.array(c["covariance_rotvec_rad_translation_m"])
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        e = c["true_error"]
         fold = f" — fold `{c['fold']}`" if "fold" in c else ""
+        e = c.get("true_error")
+        if e is None:  # recorded data: no truth to compare with
+            against = f"Precision {c['precision_mm']:.3f} mm (spread of the sphere centres)."
+        else:
+            against = (
+                f"Against the twin's ground truth: rotation {e['rotation_deg']:.3f} °, "
+                f"translation {e['translation_mm']:.3f} mm, mean error over the image "
+                f"{e['image_mm']:.3f} mm; precision {c['precision_mm']:.3f} mm, accuracy "
+                f"{c['accuracy_mm']:.3f} mm."
+            )
         parts.append(
             f"### {_METHOD_TITLES[method]}{fold}\n\n"
             f"`T_ee_us` (translation in mm):\n\n{_matrix_md(T_mm)}\n\n"
             f"1 σ (first order, from the residuals): rotation "
             f"{', '.join(f'{v:.3f}' for v in np.degrees(std[:3]))} °, translation "
             f"{', '.join(f'{v:.3f}' for v in std[3:] * _MM)} mm. "
-            f"{c['n_retained']} observations kept, {c['iterations']} alternations.\n\n"
-            f"Against the twin's ground truth: rotation {e['rotation_deg']:.3f} °, "
-            f"translation {e['translation_mm']:.3f} mm, mean error over the image "
-            f"{e['image_mm']:.3f} mm; precision {c['precision_mm']:.3f} mm, accuracy "
-            f"{c['accuracy_mm']:.3f} mm."
+            f"{c['n_retained']} observations kept, {c['iterations']} alternations.\n\n" + against
         )
     return "\n\n".join(parts)
 
 
 def _localization_md(m: dict[str, Any]) -> str:
     loc = m["localization"]
-    e = loc["error_mm"]
+    e = loc.get("error_mm")
+    if e is None:
+        return (
+            f"{loc['n_sweeps']} sweeps localized ({loc['method']}), {loc['n_rejected']} rejected."
+        )
     return (
         f"{loc['n_sweeps']} sweeps localized ({loc['method']}), {loc['n_rejected']} rejected; "
         f"centre error against the truth: median {e['median']:.3f} mm, p95 {e['p95']:.3f} mm, "
@@ -295,10 +342,11 @@ def report_markdown(scenario: Scenario, result: RunResult, figures: dict[str, st
     out = [
         "# uscal report",
         "",
-        "## Scenario",
-        "",
-        _scenario_md(scenario),
-        "",
+        *(
+            ["## Dataset", "", _dataset_md(m), ""]
+            if "dataset" in m
+            else ["## Scenario", "", _scenario_md(scenario), ""]
+        ),
         "## Localization",
         "",
         _localization_md(m),

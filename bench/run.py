@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -12,9 +13,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.calibrate import AlternationResult, alternate
+from calib.calibrate import AlternationResult
+from calib.errors import UscalError
 from calib.evaluate import training_precision
-from calib.localize import localize_sphere, sphere_profile
+from calib.localize import localize_sphere
 
 from .evaluation import EvaluationResult, run_evaluation
 from .experiment import (
@@ -26,8 +28,9 @@ from .experiment import (
     simulate_acquisition,
     true_centre_in_sweep,
 )
-from .figures import LocalizationSnapshot, localization_snapshot
-from .progress import report
+from .figures import LocalizationSnapshot, dataset_snapshot
+from .offline import calibrate_markers
+from .offline import save_dataset as save_dataset_files
 from .recording_options import RecordingOptions
 from .scenario import Scenario
 
@@ -56,7 +59,8 @@ class RunResult:
             for r in self.evaluation.outcomes[0].folds:
                 out.setdefault(r.fold.kind, r.alternation)
             return out
-        return {"single": self.single} | ({"three": self.three} if self.three else {})
+        pairs = (("single", self.single), ("three", self.three))
+        return {k: a for k, a in pairs if a is not None}
 
 
 def snapshot_of(
@@ -68,22 +72,21 @@ def snapshot_of(
     """The report's look at the first sphere: its first accepted sweep's frames with the
     sections found by ``alt`` (and the true ones when ``truth`` is the twin's), and the
     sphere's radial profile over its sweeps."""
-    target = next(iter(alt.localizations))
-    sweeps = acq.dataset.of(target)
-    locs = alt.localizations[target]
-    radius = scenario.phantom.sphere_radius_mm * 1e-3
-    scale = axial_scale(scenario)
-    T = alt.result.T_ee_us
-    i = next((i for i, loc in enumerate(locs) if loc.accepted), None)
-    if i is None:
-        return None
     true_centres = None
     if truth is not None:
-        sweep = sweeps[i]
-        T_true = acq.T_base_ee_true[(target, sweep.pose_id)] @ truth.T_ee_us
-        true_centres = se3.apply(se3.invert(T_true), truth.landmarks_base[target])
-    profile = sphere_profile(sweeps, locs, T, radius, scenario.localization, scale)
-    return localization_snapshot(sweeps[i], locs[i], T, radius, scale, profile, true_centres)
+
+        def true_centres(target: str, sweep) -> Array:
+            T_true = acq.T_base_ee_true[(target, sweep.pose_id)] @ truth.T_ee_us
+            return se3.apply(se3.invert(T_true), truth.landmarks_base[target])
+
+    return dataset_snapshot(
+        acq.dataset,
+        alt,
+        scenario.phantom.sphere_radius_mm * 1e-3,
+        scenario.localization,
+        axial_scale(scenario),
+        true_centres,
+    )
 
 
 def _calibration_metrics(
@@ -160,15 +163,23 @@ def run(
     scenario: Scenario,
     progress: Callable[[str], None] | None = None,
     recording: RecordingOptions | None = None,
+    save_dataset: str | os.PathLike[str] | None = None,
 ) -> RunResult:
     """The whole experiment of a scenario; returns metrics against ground truth.
 
     With two or more ``evaluation.datasets`` this is the paper's experiment (touches,
     leave-one-dataset-out DH refinement, folds, Tables I and II); otherwise one
     acquisition calibrated with the controller's kinematics. ``recording`` writes a
-    rerun recording of it (:mod:`bench.recording`).
+    rerun recording of it (:mod:`bench.recording`). ``save_dataset``: a directory to write
+    the acquisition to in the dataset format (:mod:`calib.dataset_files`), which
+    ``uscal calibrate`` reads back (one acquisition only).
     """
     if len(scenario.evaluation.datasets) >= 2:
+        if save_dataset is not None:
+            raise UscalError(
+                "--save-dataset: the paper's experiment has several datasets; save one "
+                "acquisition (evaluation.datasets=[]) instead"
+            )
         ev = run_evaluation(scenario, progress, recording)
         return RunResult(ev.metrics, evaluation=ev, snapshot=ev.outcomes[0].snapshot)
     t_start = time.perf_counter()
@@ -185,31 +196,11 @@ def run(
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
     cal = scenario.calibration
 
-    n_cal = 2 if len(targets) >= 3 else 1
-    report("calibrations", 0, n_cal)
-    single = alternate(
-        {targets[0]: by_target[targets[0]]},
-        radius,
-        loc_cfg,
-        scale,
-        None,
-        acq.T_ee_us_coarse,
-        cal.max_alternations,
+    cals = calibrate_markers(
+        acq.dataset, radius, loc_cfg, scale, cad, acq.T_ee_us_coarse, cal.max_alternations
     )
-    report("calibrations", 1, n_cal)
-    three = None
-    if len(targets) >= 3:
-        three = alternate(
-            {t: by_target[t] for t in targets[:3]},
-            radius,
-            loc_cfg,
-            scale,
-            cad,
-            acq.T_ee_us_coarse,
-            cal.max_alternations,
-        )
-
-        report("calibrations", 2, n_cal)
+    single, three = cals.single, cals.three
+    assert single is not None  # markers 1 and 3: the single-marker calibration always runs
     # Localization error of the final single-marker localizations vs the true centres.
     errors, n_sweeps, n_rejected = [], 0, 0
     final = {targets[0]: single.localizations[targets[0]]}
@@ -267,5 +258,9 @@ def run(
         frames = _record_run(recording, scenario, twin, acq, single, three)
         metrics["recording"] = {"frames": frames, "seconds": time.perf_counter() - t0}
     snapshot = snapshot_of(scenario, acq, single, truth)
+    if save_dataset is not None:
+        t0 = time.perf_counter()
+        save_dataset_files(save_dataset, scenario, twin, acq)
+        metrics["timing_s"]["save_dataset"] = time.perf_counter() - t0
     metrics["timing_s"]["total"] = time.perf_counter() - t_start
     return RunResult(metrics, acq, single, three, snapshot=snapshot)

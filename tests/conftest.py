@@ -33,13 +33,14 @@ def rng() -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def quick_run(tmp_path_factory):
-    """`uscal run quick.yaml` on one sphere, the recording sent elsewhere: (output
-    directory, recording path, metrics, the recording read back)."""
+    """`uscal run quick.yaml` on one sphere, the recording sent elsewhere, the
+    acquisition saved as dataset files (``base / "dataset"``): (output directory,
+    recording path, metrics, the recording read back)."""
     base = tmp_path_factory.mktemp("rec")
     out, rrd = base / "run", base / "elsewhere" / "quick.rrd"
     r = uscal(
         "run", str(QUICK), "--out", str(out), "--set", "protocol.spheres=[1]",
-        "--rrd", str(rrd), "--rrd-frames", "63",
+        "--rrd", str(rrd), "--rrd-frames", "63", "--save-dataset", str(base / "dataset"),
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     (base / "stdout.txt").write_text(r.stdout, encoding="utf-8")

@@ -1,0 +1,319 @@
+"""Recorded data: the twin's acquisitions as dataset files, and ``uscal calibrate`` —
+localization and single-/three-marker calibration of a dataset on disk (from the
+hardware or from the twin), with no ground truth.
+
+The acquisition's facts come from the dataset (frames, reported poses and joint angles,
+pixel spacing, medium temperature, the phantom's CAD landmarks, the holder's coarse
+``T_ee_us``); the pipeline's settings (localizer, alternation limits) from a scenario,
+the built-in default unless the user names one.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib import se3
+from calib.calibrate import AlternationResult, alternate
+from calib.dataset_files import AcquisitionInfo, DatasetWriter, read_dataset
+from calib.errors import DatasetError
+from calib.evaluate import training_precision
+from calib.localize import LocalizerConfig
+from calib.records import Dataset
+from sim_us.materials import water_speed_m_s
+
+from .experiment import SimulatedAcquisition
+from .figures import dataset_snapshot
+from .progress import report
+from .scenario import Scenario
+
+__all__ = [
+    "MarkerCalibrations",
+    "acquisition_info",
+    "calibrate_markers",
+    "calibrate_recorded",
+    "record_recorded",
+    "save_dataset",
+]
+
+Array = NDArray[np.float64]
+_MM = 1e3
+
+
+# ------------------------------------------------------------------ twin → dataset
+
+
+def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> AcquisitionInfo:
+    """What a twin acquisition's dataset records besides its sweeps: what the pipeline
+    knows (CAD landmarks, coarse mount, settings), never the truth."""
+    return AcquisitionInfo(
+        T_ee_us_coarse=np.asarray(T_ee_us_coarse, dtype=float),
+        landmarks={k: np.asarray(v, dtype=float) for k, v in twin.phantom_cad.landmarks.items()},
+        sphere_radius_mm=scenario.phantom.sphere_radius_mm,
+        temperature_c=scenario.medium.temperature_c,
+        assumed_speed_m_s=scenario.imaging.assumed_speed_m_s,
+        sound_speed_correction=scenario.imaging.sound_speed_correction,
+        medium=scenario.medium.kind,
+        stylus_tip_cad_mm=tuple(scenario.evaluation.stylus_tip_cad_mm),
+        source="twin",
+        extra={"scenario": scenario.source, "seed": scenario.seed},
+    )
+
+
+def image_meta(scenario: Scenario) -> dict[str, Any]:
+    """The probe settings a dataset's manifest keeps (for the reader's information)."""
+    im = scenario.imaging
+    H, W = im.image_shape
+    return {
+        "width_px": int(W),
+        "height_px": int(H),
+        "pixel_spacing_mm": [float(v) for v in im.pixel_spacing_mm],
+        "depth_mm": float(im.depth_mm),
+        "f_mhz": float(im.f_mhz),
+        "gain_db": float(im.gain_db),
+    }
+
+
+def save_dataset(
+    directory: str | os.PathLike[str], scenario: Scenario, twin, acq: SimulatedAcquisition
+) -> Path:
+    """Write a twin acquisition in the dataset format (:mod:`calib.dataset_files`).
+
+    The twin has no acquisition clock; each frame's timestamp is its index in the
+    dataset times a nominal frame period, so timestamps increase through the dataset.
+    """
+    writer = DatasetWriter(
+        directory,
+        acq.dataset.name,
+        acquisition_info(scenario, twin, acq.T_ee_us_coarse),
+        image_meta(scenario),
+    )
+    period = 0.5  # s per frame: settle and grab
+    n = 0
+    for sweep in acq.dataset.sweeps:
+        writer.add_sweep(sweep, period * (n + np.arange(sweep.n_frames)))
+        n += sweep.n_frames
+    writer.add_touches(acq.dataset.touches)
+    writer.finish()
+    return Path(directory)
+
+
+# ----------------------------------------------------------------- calibration
+
+
+def axial_scale_of(info: AcquisitionInfo) -> float:
+    """c_medium / c_assumed from the recorded water temperature (1 when the correction is
+    off or the medium is not water)."""
+    if not info.sound_speed_correction or info.medium != "water":
+        return 1.0
+    return water_speed_m_s(info.temperature_c) / info.assumed_speed_m_s
+
+
+@dataclass(frozen=True, eq=False)
+class MarkerCalibrations:
+    """The single-marker calibration (first sphere) and, with three or more spheres and
+    ``markers`` 3, the three-marker one (first three)."""
+
+    targets: list[str]
+    single: AlternationResult | None
+    three: AlternationResult | None
+
+
+def calibrate_markers(
+    dataset: Dataset,
+    radius: float,
+    localizer: LocalizerConfig,
+    axial_scale: float,
+    cad_centres: dict[str, Array],
+    T_coarse: Array,
+    max_alternations: int,
+    markers: tuple[int, ...] = (1, 3),
+) -> MarkerCalibrations:
+    """Localize ↔ calibrate (the paper's alternation) with one and/or three markers."""
+    targets = dataset.targets()
+    by_target = {t: dataset.of(t) for t in targets}
+    if 3 in markers and len(targets) < 3 and 1 not in markers:
+        raise DatasetError(
+            f"dataset {dataset.name}: three-marker calibration needs sweeps of three "
+            f"spheres; it has {', '.join(targets)}"
+        )
+    missing = [t for t in targets[:3] if t not in cad_centres]
+    if 3 in markers and len(targets) >= 3 and missing:
+        raise DatasetError(
+            f"dataset {dataset.name}: no CAD centre for {', '.join(missing)} (acquisition."
+            "landmarks_mm)"
+        )
+    run_three = 3 in markers and len(targets) >= 3
+    n_cal = int(1 in markers) + int(run_three)
+    report("calibrations", 0, n_cal)
+    single = three = None
+    if 1 in markers:
+        single = alternate(
+            {targets[0]: by_target[targets[0]]},
+            radius,
+            localizer,
+            axial_scale,
+            None,
+            T_coarse,
+            max_alternations,
+        )
+        report("calibrations", 1, n_cal)
+    if run_three:
+        three = alternate(
+            {t: by_target[t] for t in targets[:3]},
+            radius,
+            localizer,
+            axial_scale,
+            {t: cad_centres[t] for t in targets[:3]},
+            T_coarse,
+            max_alternations,
+        )
+        report("calibrations", n_cal, n_cal)
+    return MarkerCalibrations(targets, single, three)
+
+
+def calibration_entry(alt: AlternationResult, train: list[str], test: list[str]) -> dict[str, Any]:
+    """What ``metrics.json`` keeps of one calibration, truth aside."""
+    precision = training_precision(alt)
+    return {
+        "precision_mm": float(np.mean([precision[t] for t in train])),
+        "n_retained": int(alt.result.retained.sum()),
+        "iterations": len(alt.history),
+        "rejected": dict(alt.result.rejection_reasons),
+        "T_ee_us": np.round(alt.result.T_ee_us, 9).tolist(),
+        "covariance_rotvec_rad_translation_m": alt.result.covariance.tolist(),
+        "history": alt.history,
+        "trained_on": list(train),
+        "tested_on": list(test),
+    }
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedCalibration:
+    """``uscal calibrate``'s result: metrics, and what they came from."""
+
+    metrics: dict[str, Any]
+    dataset: Dataset
+    info: AcquisitionInfo
+    calibrations: MarkerCalibrations
+
+    @property
+    def axial_scale(self) -> float:
+        return axial_scale_of(self.info)
+
+    def as_run_result(self, settings: Scenario):
+        """The same result as :class:`bench.run.RunResult` (what the report draws)."""
+        from .run import RunResult
+
+        cals = self.calibrations
+        first = cals.single or cals.three
+        snapshot = None
+        if first is not None:
+            snapshot = dataset_snapshot(
+                self.dataset,
+                first,
+                self.info.sphere_radius_mm * 1e-3,
+                settings.localization,
+                self.axial_scale,
+            )
+        return RunResult(self.metrics, None, cals.single, cals.three, snapshot=snapshot)
+
+
+def record_recorded(options, settings: Scenario, result: RecordedCalibration) -> int:
+    """The calibration of a recorded dataset in rerun (:func:`bench.recording.
+    log_acquisition` without truth or scene: the phantom's placement is unknown). The arm
+    is drawn from the settings' robot model at the reported joint angles."""
+    from .experiment import make_twin
+    from .recording import Recorder, log_acquisition, merge_parts
+
+    cals = result.calibrations
+    alternations = {
+        k: v for k, v in (("single", cals.single), ("three", cals.three)) if v is not None
+    }
+    rec = Recorder(options)
+    logged = log_acquisition(
+        rec,
+        "run",
+        [],
+        make_twin(settings).scene.model,
+        result.dataset,
+        alternations,
+        result.info.sphere_radius_mm * 1e-3,
+        settings.localization,
+        result.axial_scale,
+    )
+    merge_parts(options, [], ["run"], main=rec)
+    return logged
+
+
+def calibrate_recorded(
+    directory: str | os.PathLike[str], settings: Scenario, markers: tuple[int, ...] = (1, 3)
+) -> RecordedCalibration:
+    """Read a dataset and calibrate it (no ground truth: precision, the calibrations'
+    own uncertainty, and consistency between the spheres)."""
+    t0 = time.perf_counter()
+    dataset, info = read_dataset(directory)
+    t_read = time.perf_counter() - t0
+    radius = info.sphere_radius_mm * 1e-3
+    scale = axial_scale_of(info)
+    cad = {k: v for k, v in info.landmarks.items() if k.startswith("sphere_")}
+    cals = calibrate_markers(
+        dataset,
+        radius,
+        settings.localization,
+        scale,
+        cad,
+        info.T_ee_us_coarse,
+        settings.calibration.max_alternations,
+        markers,
+    )
+    targets = cals.targets
+    final: dict[str, Any] = {}
+    calibration: dict[str, Any] = {}
+    if cals.single is not None:
+        final.update(cals.single.localizations)
+        calibration["single"] = calibration_entry(cals.single, targets[:1], targets[1:])
+    if cals.three is not None:
+        final.update(cals.three.localizations)
+        calibration["three"] = calibration_entry(cals.three, targets[:3], targets[3:])
+    n_sweeps = sum(len(v) for v in final.values())
+    n_rejected = sum(not loc.accepted for v in final.values() for loc in v)
+    if cals.single is not None and cals.three is not None:
+        a, b = cals.single.result.T_ee_us, cals.three.result.T_ee_us
+        calibration["single_vs_three"] = {
+            "rotation_deg": float(np.degrees(se3.rotation_angle(a, b))),
+            "translation_mm": float(se3.translation_distance(a, b)) * _MM,
+        }
+    sweep0 = dataset.sweeps[0]
+    metrics: dict[str, Any] = {
+        "dataset": {
+            "path": str(Path(directory)),
+            "name": dataset.name,
+            "source": info.source,
+            "n_sweeps": len(dataset.sweeps),
+            "n_frames": int(sum(s.n_frames for s in dataset.sweeps)),
+            "targets": targets,
+            "n_touches": len(dataset.touches),
+            "temperature_c": info.temperature_c,
+            "axial_scale": scale,
+        },
+        "image": {
+            "width_px": int(sweep0.images.shape[2]),
+            "height_px": int(sweep0.images.shape[1]),
+            "spacing_m": [float(v) for v in sweep0.spacing],
+        },
+        "localization": {
+            "method": settings.localization.method,
+            "n_sweeps": n_sweeps,
+            "n_rejected": n_rejected,
+        },
+        "calibration": calibration,
+        "timing_s": {"read": t_read, "total": time.perf_counter() - t0},
+    }
+    return RecordedCalibration(metrics, dataset, info, cals)

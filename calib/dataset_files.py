@@ -1,0 +1,661 @@
+"""Dataset files: what an acquisition recorded, on disk, shareable between labs.
+
+A dataset is a directory:
+
+``dataset.yaml``
+    The manifest: format and version, the acquisition settings a reader needs (image
+    spacing, medium temperature, the speed of sound the scanner assumes, the phantom's
+    CAD landmarks, the holder's coarse ``T_ee_us``, the stylus), the sweeps in
+    acquisition order (file, target, pose id, frame count), the touches, and whether
+    the acquisition is complete.
+``sweeps/<target>_pose<NN>.mha``
+    One PLUS sequence metafile per sweep (opens in 3D Slicer's Sequences module and in
+    PLUS): the frames as one ``MET_UCHAR`` volume (columns, rows, frames), the pixel
+    spacing in millimetres, ``UltrasoundImageOrientation = MF`` (columns lateral, rows
+    away from the transducer) and per frame ``EEToBaseTransform`` (the controller's
+    flange pose ``T_base_ee``, row-major, millimetres), its status, a timestamp and the
+    reported joint angles (``JointAnglesRad``, radians).
+
+Writing is atomic per file (write to a temporary name, then rename), and the manifest
+is rewritten after each sweep: a crash loses at most the sweep in progress, and an
+interrupted acquisition resumes from the sweeps the manifest lists.
+
+Reading never executes or unpickles anything: the manifest is read with YAML's safe
+loader, a metafile is a text header of ``key = value`` lines and raw bytes (optionally
+zlib-compressed, as PLUS writes them). Every check that fails raises one
+:class:`DatasetError` naming the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import time
+import zlib
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from decimal import Decimal
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import DatasetError
+from .records import Dataset, Sweep, Touch
+
+__all__ = [
+    "FORMAT",
+    "VERSION",
+    "AcquisitionInfo",
+    "DatasetWriter",
+    "read_dataset",
+    "read_sequence",
+    "write_sequence",
+]
+
+Array = NDArray[np.float64]
+
+FORMAT = "uscal-dataset"
+VERSION = 1
+MANIFEST = "dataset.yaml"
+_NUMBER = (int, float, Decimal)
+# A metafile header is a few kB per frame; anything far beyond is not a metafile.
+_MAX_HEADER_BYTES = 64 * 2**20
+_MAX_FRAMES = 100_000
+_MAX_SIDE_PX = 16_384
+# A flange pose's rotation part must be a rotation to this tolerance.
+_ROTATION_TOL = 1e-5
+
+
+# ------------------------------------------------------------------------ metafiles
+
+
+def _mm(x: float) -> Decimal:
+    """Metres → millimetres, exactly in decimal: the shortest text that reads back as
+    ``x`` (``repr``), its point moved three places. :func:`_metres` moves it back, so a
+    dataset written from the twin holds the very doubles the twin's own run used (last-bit
+    differences would otherwise turn into µm through the localizer's discrete choices)."""
+    return Decimal(repr(float(x))).scaleb(3)
+
+
+def _mm_text(x: float) -> str:
+    text = format(_mm(x), "f")
+    return text if "." in text else text + ".0"
+
+
+def _metres(value: str | Decimal | int | float) -> float:
+    """Millimetres (text or number as read) → metres, the inverse of :func:`_mm`."""
+    d = value if isinstance(value, Decimal) else Decimal(str(value))
+    return float(d.scaleb(-3))
+
+
+def _pose_text(T: Array) -> str:
+    """A flange pose as PLUS writes transforms: 16 numbers, row-major, millimetres."""
+    return " ".join(
+        _mm_text(T[i, j]) if j == 3 and i < 3 else repr(float(T[i, j]))
+        for i in range(4)
+        for j in range(4)
+    )
+
+
+def _fmt(values: Any) -> str:
+    return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+@contextlib.contextmanager
+def _atomic(path: Path) -> Iterator[Path]:
+    """A temporary sibling of ``path`` that replaces it when the block succeeds."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_sequence(path: str | os.PathLike[str], sweep: Sweep, timestamps: Array) -> None:
+    """Write one sweep as a PLUS sequence metafile (atomically).
+
+    Parameters
+    ----------
+    sweep : its frames, spacing, reported joint angles and flange poses
+    timestamps : (n,) float, seconds (acquisition clock)
+    """
+    path = Path(path)
+    images = np.ascontiguousarray(sweep.images, dtype=np.uint8)
+    n, H, W = images.shape
+    sx, sy = (_mm_text(v) for v in sweep.spacing)
+    lines = [
+        "ObjectType = Image",
+        "NDims = 3",
+        "AnatomicalOrientation = RAI",
+        "BinaryData = True",
+        "BinaryDataByteOrderMSB = False",
+        "CenterOfRotation = 0 0 0",
+        "CompressedData = False",
+        f"DimSize = {W} {H} {n}",
+        "ElementNumberOfChannels = 1",
+        f"ElementSpacing = {sx} {sy} 1",
+        "ElementType = MET_UCHAR",
+        "Offset = 0 0 0",
+        "TransformMatrix = 1 0 0 0 1 0 0 0 1",
+        "UltrasoundImageOrientation = MF",
+        "UltrasoundImageType = BRIGHTNESS",
+        f"uscal_Target = {sweep.target}",
+        f"uscal_PoseId = {int(sweep.pose_id)}",
+    ]
+    for j in range(n):
+        p = f"Seq_Frame{j:04d}_"
+        lines += [
+            f"{p}EEToBaseTransform = {_pose_text(np.asarray(sweep.T_base_ee[j], float))}",
+            f"{p}EEToBaseTransformStatus = OK",
+            f"{p}JointAnglesRad = {_fmt(sweep.q[j])}",
+            f"{p}Timestamp = {float(timestamps[j])!r}",
+            f"{p}ImageStatus = OK",
+        ]
+    lines.append("ElementDataFile = LOCAL")
+    header = ("\n".join(lines) + "\n").encode("ascii")
+    with _atomic(path) as tmp, open(tmp, "wb") as f:
+        f.write(header)
+        f.write(images.tobytes())
+        f.flush()
+        os.fsync(f.fileno())
+
+
+_KEY = re.compile(rb"^([A-Za-z0-9_]+) = (.*)$")
+
+
+def _read_header(path: Path, f) -> tuple[dict[str, str], int]:
+    """The header's ``key = value`` pairs up to ``ElementDataFile``, and where the data
+    starts."""
+    fields: dict[str, str] = {}
+    read = 0
+    while True:
+        line = f.readline(65536)
+        read += len(line)
+        if not line:
+            raise DatasetError(f"{path}: header ends before ElementDataFile (truncated?)")
+        if read > _MAX_HEADER_BYTES:
+            raise DatasetError(f"{path}: header longer than {_MAX_HEADER_BYTES} bytes")
+        m = _KEY.match(line.rstrip(b"\r\n"))
+        if m is None:
+            if line.strip() == b"":
+                continue
+            raise DatasetError(
+                f"{path}: header line {len(fields) + 1} is not 'key = value': {line[:60]!r}"
+            )
+        try:
+            key, value = m.group(1).decode("ascii"), m.group(2).decode("utf-8").strip()
+        except UnicodeDecodeError as e:
+            raise DatasetError(f"{path}: header is not text ({e.reason})") from None
+        fields[key] = value
+        if key == "ElementDataFile":
+            return fields, read
+
+
+def _numbers(path: Path, key: str, text: str | None, n: int) -> Array:
+    if text is None:
+        raise DatasetError(f"{path}: missing header field {key}")
+    try:
+        values = np.array([float(v) for v in text.split()])
+    except ValueError:
+        raise DatasetError(f"{path}: {key} = {text[:80]!r} is not {n} numbers") from None
+    if len(values) != n or not np.all(np.isfinite(values)):
+        raise DatasetError(f"{path}: {key} must be {n} finite numbers, got {text[:80]!r}")
+    return values
+
+
+def _flange_pose(path: Path, key: str, text: str | None) -> Array:
+    T = _numbers(path, key, text, 16).reshape(4, 4)
+    assert text is not None  # checked by _numbers
+    T[:3, 3] = [_metres(v) for v in np.array(text.split()).reshape(4, 4)[:3, 3]]
+    R = T[:3, :3]
+    if not (
+        np.allclose(T[3], [0, 0, 0, 1])
+        and np.allclose(R.T @ R, np.eye(3), atol=_ROTATION_TOL)
+        and np.linalg.det(R) > 0
+    ):
+        raise DatasetError(f"{path}: {key} is not a rigid transform")
+    return T
+
+
+def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
+    """Read a sweep written by :func:`write_sequence` (or by PLUS, with the same frame
+    fields); returns the sweep and its timestamps (s).
+
+    Raises
+    ------
+    DatasetError
+        Naming the file: not a metafile, unsupported element type or layout, a missing
+        or malformed frame field, a frame whose transform status is not OK, or fewer
+        (or more) image bytes than the header announces.
+    """
+    path = Path(path)
+    try:
+        f = open(path, "rb")  # noqa: SIM115 - closed below, errors mapped first
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot open ({e.strerror})") from None
+    with f:
+        fields, _ = _read_header(path, f)
+        expect = {
+            "ObjectType": "Image",
+            "NDims": "3",
+            "ElementType": "MET_UCHAR",
+            "ElementDataFile": "LOCAL",
+        }
+        for key, value in expect.items():
+            if fields.get(key) != value:
+                raise DatasetError(
+                    f"{path}: {key} = {fields.get(key)!r}; this reader needs {value!r}"
+                )
+        if fields.get("ElementNumberOfChannels", "1") != "1":
+            raise DatasetError(f"{path}: only single-channel (grey) images are supported")
+        orientation = fields.get("UltrasoundImageOrientation", "MF")
+        if orientation not in ("MF", "UF"):
+            raise DatasetError(
+                f"{path}: UltrasoundImageOrientation = {orientation!r}; rows must run away "
+                "from the transducer (MF or UF)"
+            )
+        dims = _numbers(path, "DimSize", fields.get("DimSize"), 3)
+        W, H, n = (int(v) for v in dims)
+        if not (
+            np.all(dims == np.round(dims))
+            and 0 < W <= _MAX_SIDE_PX
+            and 0 < H <= _MAX_SIDE_PX
+            and 0 < n <= _MAX_FRAMES
+        ):
+            raise DatasetError(f"{path}: DimSize = {fields['DimSize']!r} is not a frame stack")
+        spacing = _numbers(path, "ElementSpacing", fields.get("ElementSpacing"), 3)
+        if not np.all(spacing[:2] > 0):
+            raise DatasetError(f"{path}: ElementSpacing must be positive")
+        size = W * H * n
+        if fields.get("CompressedData", "False").lower() == "true":
+            data = _decompress(path, f, size)
+        else:
+            data = f.read(size + 1)
+        if len(data) != size:
+            raise DatasetError(
+                f"{path}: {len(data)} image bytes, the header announces {size} "
+                f"({n} frames of {H} × {W}); the file is "
+                + ("truncated" if len(data) < size else "longer than announced")
+            )
+    images = np.frombuffer(data, dtype=np.uint8).reshape(n, H, W)
+    if orientation == "UF":  # lateral axis flipped: mirror to MF
+        images = images[:, :, ::-1]
+    T, q, t = np.empty((n, 4, 4)), np.empty((n, 6)), np.empty(n)
+    for j in range(n):
+        p = f"Seq_Frame{j:04d}_"
+        status = fields.get(f"{p}EEToBaseTransformStatus", "OK")
+        if status != "OK":
+            raise DatasetError(f"{path}: frame {j}: EEToBaseTransformStatus = {status}")
+        T[j] = _flange_pose(path, f"{p}EEToBaseTransform", fields.get(f"{p}EEToBaseTransform"))
+        q[j] = _numbers(path, f"{p}JointAnglesRad", fields.get(f"{p}JointAnglesRad"), 6)
+        t[j] = _numbers(path, f"{p}Timestamp", fields.get(f"{p}Timestamp", "nan"), 1)[0]
+    target = fields.get("uscal_Target", path.stem)
+    try:
+        pose_id = int(fields.get("uscal_PoseId", "-1"))
+    except ValueError:
+        raise DatasetError(f"{path}: uscal_PoseId = {fields['uscal_PoseId']!r}") from None
+    sx_text, sy_text = fields["ElementSpacing"].split()[:2]
+    spacing_m = (_metres(sx_text), _metres(sy_text))
+    return Sweep(target, pose_id, np.array(images), spacing_m, q, T), t
+
+
+def _decompress(path: Path, f, size: int) -> bytes:
+    """zlib-compressed image data (PLUS's ``CompressedData = True``), read in pieces so a
+    forged header cannot make it inflate beyond the announced size."""
+    d = zlib.decompressobj()
+    out = bytearray()
+    try:
+        while len(out) <= size:
+            chunk = f.read(1 << 20)
+            if not chunk:
+                break
+            out += d.decompress(chunk, size + 1 - len(out))
+            if d.unconsumed_tail:
+                break
+        out += d.flush()[: size + 1 - len(out)]
+    except zlib.error as e:
+        raise DatasetError(f"{path}: compressed image data is corrupt ({e})") from None
+    return bytes(out)
+
+
+# ------------------------------------------------------------------------- manifest
+
+
+@dataclass(frozen=True)
+class AcquisitionInfo:
+    """What a reader needs besides the frames and poses (the manifest's settings).
+
+    ``T_ee_us_coarse`` (4, 4) metres: the holder's CAD estimate; ``landmarks`` name ->
+    (3,) metres in the phantom's CAD frame (``sphere_i``, ``vertex_j``);
+    ``sphere_radius_mm`` the CAD radius; ``temperature_c`` the medium's;
+    ``assumed_speed_m_s`` the scanner's; ``sound_speed_correction`` whether the axial
+    spacing is to be rescaled; ``stylus_tip_cad_mm`` the stylus tip in the flange
+    frame (touches only); ``source`` "twin" or "hardware"; ``extra`` anything else.
+    """
+
+    T_ee_us_coarse: Array
+    landmarks: dict[str, Array]
+    sphere_radius_mm: float
+    temperature_c: float
+    assumed_speed_m_s: float
+    sound_speed_correction: bool = True
+    medium: str = "water"
+    stylus_tip_cad_mm: tuple[float, float, float] | None = None
+    source: str = "hardware"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_yaml(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "source": self.source,
+            "medium": self.medium,
+            "temperature_c": float(self.temperature_c),
+            "assumed_speed_m_s": float(self.assumed_speed_m_s),
+            "sound_speed_correction": bool(self.sound_speed_correction),
+            "sphere_radius_mm": float(self.sphere_radius_mm),
+            "T_ee_us_coarse_mm": _matrix_mm(self.T_ee_us_coarse),
+            "landmarks_mm": {k: [_mm(x) for x in v] for k, v in self.landmarks.items()},
+        }
+        if self.stylus_tip_cad_mm is not None:
+            out["stylus_tip_cad_mm"] = [float(v) for v in self.stylus_tip_cad_mm]
+        if self.extra:
+            out["extra"] = self.extra
+        return out
+
+
+def _matrix_mm(T: Array) -> list[list[float | Decimal]]:
+    T = np.asarray(T, dtype=float)
+    return [
+        [_mm(T[i, j]) if j == 3 and i < 3 else float(T[i, j]) for j in range(4)] for i in range(4)
+    ]
+
+
+def _sweep_file(target: str, pose_id: int) -> str:
+    safe = re.sub(r"[^A-Za-z0-9_-]", "_", target)
+    return f"sweeps/{safe}_pose{pose_id:02d}.mha"
+
+
+class DatasetWriter:
+    """Writes a dataset sweep by sweep; each call leaves a consistent dataset on disk.
+
+    ``resume=True`` opens an existing, unfinished dataset and keeps its sweeps
+    (:meth:`has`); otherwise the directory must not hold a dataset yet.
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike[str],
+        name: str,
+        info: AcquisitionInfo,
+        image_meta: Mapping[str, Any] | None = None,
+        resume: bool = False,
+    ) -> None:
+        import yaml  # the manifest: written here, read with the safe loader only
+
+        self._yaml = yaml
+        self.directory = Path(directory)
+        manifest = self.directory / MANIFEST
+        self._sweeps: list[dict[str, Any]] = []
+        self._touches: list[dict[str, Any]] = []
+        if manifest.exists():
+            if not resume:
+                raise DatasetError(
+                    f"{self.directory}: already holds a dataset (resume it, or choose "
+                    "another directory)"
+                )
+            old = _load_manifest(manifest)
+            if old.get("complete"):
+                raise DatasetError(f"{self.directory}: the dataset is already complete")
+            self._sweeps = list(old.get("sweeps") or [])
+            self._touches = list(old.get("touches") or [])
+        elif self.directory.exists() and any(self.directory.iterdir()):
+            raise DatasetError(f"{self.directory}: directory exists and is not a dataset")
+        (self.directory / "sweeps").mkdir(parents=True, exist_ok=True)
+        self._head = {
+            "format": FORMAT,
+            "version": VERSION,
+            "name": name,
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "acquisition": info.to_yaml(),
+            "image": dict(image_meta or {}),
+        }
+        self._complete = False
+        self._write_manifest()
+
+    def has(self, target: str, pose_id: int) -> bool:
+        """Whether a sweep of the plan is already on disk (resume)."""
+        return any(s["target"] == target and s["pose_id"] == pose_id for s in self._sweeps)
+
+    @property
+    def n_sweeps(self) -> int:
+        return len(self._sweeps)
+
+    def add_sweep(self, sweep: Sweep, timestamps: Array | None = None) -> Path:
+        """Write one sweep's metafile, then list it in the manifest."""
+        rel = _sweep_file(sweep.target, int(sweep.pose_id))
+        t = np.arange(sweep.n_frames, dtype=float) if timestamps is None else timestamps
+        write_sequence(self.directory / rel, sweep, t)
+        self._sweeps = [
+            s for s in self._sweeps if (s["target"], s["pose_id"]) != (sweep.target, sweep.pose_id)
+        ]
+        self._sweeps.append(
+            {
+                "file": rel,
+                "target": sweep.target,
+                "pose_id": int(sweep.pose_id),
+                "frames": int(sweep.n_frames),
+            }
+        )
+        self._write_manifest()
+        return self.directory / rel
+
+    def add_touches(self, touches: Sequence[Touch]) -> None:
+        """List touches (vertex, index, joint angles in radians, flange pose in mm)."""
+        for t in touches:
+            self._touches.append(
+                {
+                    "vertex": t.vertex,
+                    "index": int(t.index),
+                    "q_rad": [float(v) for v in t.q],
+                    "T_base_ee_mm": _matrix_mm(t.T_base_ee),
+                }
+            )
+        self._write_manifest()
+
+    def finish(self) -> None:
+        """Mark the acquisition complete."""
+        self._complete = True
+        self._write_manifest()
+
+    def _write_manifest(self) -> None:
+        doc = {
+            **self._head,
+            "complete": self._complete,
+            "sweeps": self._sweeps,
+            "touches": self._touches,
+        }
+        yaml = self._yaml
+
+        class Dumper(yaml.SafeDumper):
+            """Lists of numbers in flow style: a 4 × 4 matrix reads as four rows."""
+
+        def flow_flat(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
+            flat = all(not isinstance(v, (list, dict)) for v in data)
+            return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flat)
+
+        def exact(dumper: yaml.SafeDumper, data: Decimal) -> yaml.Node:
+            text = format(data, "f")
+            return dumper.represent_scalar(
+                "tag:yaml.org,2002:float", text if "." in text else text + ".0"
+            )
+
+        Dumper.add_representer(list, flow_flat)
+        Dumper.add_representer(Decimal, exact)
+        path = self.directory / MANIFEST
+        with _atomic(path) as tmp:
+            text = yaml.dump(doc, Dumper=Dumper, sort_keys=False, width=120, allow_unicode=True)
+            tmp.write_text(text, encoding="utf-8")
+
+
+def _load_manifest(path: Path) -> dict[str, Any]:
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        """The safe loader, with decimal numbers kept as written (mm → m exactly)."""
+
+    def decimal(loader: yaml.SafeLoader, node: yaml.Node) -> Decimal | float:
+        try:
+            return Decimal(loader.construct_scalar(node))
+        except ArithmeticError:  # .inf, .nan
+            return yaml.SafeLoader.construct_yaml_float(loader, node)
+
+    Loader.add_constructor("tag:yaml.org,2002:float", decimal)
+    try:
+        doc = yaml.load(path.read_text(encoding="utf-8"), Loader=Loader)
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read ({e.strerror})") from None
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise DatasetError(f"{path}: not a uscal dataset manifest (format: {FORMAT})")
+    if doc.get("version") != VERSION:
+        raise DatasetError(
+            f"{path}: dataset version {doc.get('version')!r}; this reader reads {VERSION}"
+        )
+    return doc
+
+
+def _get(path: Path, doc: Mapping[str, Any], key: str, kind: type | tuple[type, ...]) -> Any:
+    if key not in doc:
+        raise DatasetError(f"{path}: missing {key}")
+    value = doc[key]
+    if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
+        raise DatasetError(f"{path}: {key} = {value!r} has the wrong type")
+    return value
+
+
+def _matrix(path: Path, key: str, value: Any) -> Array:
+    try:
+        T = np.array(value, dtype=float)
+        T[:3, 3] = [_metres(v) for v in np.array(value, dtype=object)[:3, 3]]
+    except (TypeError, ValueError, IndexError, ArithmeticError):
+        T = np.zeros(0)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise DatasetError(f"{path}: {key} must be a 4 × 4 matrix of numbers")
+    R = T[:3, :3]
+    if not (np.allclose(T[3], [0, 0, 0, 1]) and np.allclose(R.T @ R, np.eye(3), atol=1e-5)):
+        raise DatasetError(f"{path}: {key} is not a rigid transform")
+    return T
+
+
+def _vector(path: Path, key: str, value: Any, n: int, raw: bool = False) -> Any:
+    """``n`` finite numbers as floats (``raw``: as read, after the same checks)."""
+    try:
+        v = np.array(value, dtype=float)
+    except (TypeError, ValueError, ArithmeticError):
+        v = np.zeros(0)
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise DatasetError(f"{path}: {key} must be {n} numbers")
+    return list(value) if raw else v
+
+
+def _info(path: Path, acq: Any) -> AcquisitionInfo:
+    if not isinstance(acq, dict):
+        raise DatasetError(f"{path}: acquisition must be a mapping")
+    landmarks = _get(path, acq, "landmarks_mm", dict)
+    tip = acq.get("stylus_tip_cad_mm")
+    radius = float(_get(path, acq, "sphere_radius_mm", _NUMBER))
+    if not 0 < radius < 1000:
+        raise DatasetError(f"{path}: acquisition.sphere_radius_mm = {radius} is out of range")
+    return AcquisitionInfo(
+        T_ee_us_coarse=_matrix(path, "acquisition.T_ee_us_coarse_mm", acq.get("T_ee_us_coarse_mm")),
+        landmarks={
+            str(k): np.array(
+                [_metres(x) for x in _vector(path, f"acquisition.landmarks_mm.{k}", v, 3, raw=True)]
+            )
+            for k, v in landmarks.items()
+        },
+        sphere_radius_mm=radius,
+        temperature_c=float(_get(path, acq, "temperature_c", _NUMBER)),
+        assumed_speed_m_s=float(_get(path, acq, "assumed_speed_m_s", _NUMBER)),
+        sound_speed_correction=bool(acq.get("sound_speed_correction", True)),
+        medium=str(acq.get("medium", "water")),
+        stylus_tip_cad_mm=(
+            None
+            if tip is None
+            else tuple(float(v) for v in _vector(path, "acquisition.stylus_tip_cad_mm", tip, 3))
+        ),
+        source=str(acq.get("source", "hardware")),
+        extra=dict(acq.get("extra") or {}),
+    )
+
+
+def read_dataset(
+    directory: str | os.PathLike[str], allow_incomplete: bool = False
+) -> tuple[Dataset, AcquisitionInfo]:
+    """Read a dataset directory: its sweeps (in acquisition order), touches and settings.
+
+    An unfinished acquisition (``complete: false``) is an error unless
+    ``allow_incomplete``. Sweep files are checked against the manifest (target, pose id,
+    frame count) and against each other (same image size and spacing).
+    """
+    directory = Path(directory)
+    manifest = directory / MANIFEST
+    if not directory.is_dir():
+        raise DatasetError(f"{directory}: no such dataset directory")
+    if not manifest.is_file():
+        raise DatasetError(f"{directory}: not a dataset (no {MANIFEST})")
+    doc = _load_manifest(manifest)
+    if not doc.get("complete") and not allow_incomplete:
+        raise DatasetError(
+            f"{manifest}: the acquisition is not complete (resume it with `uscal acquire --resume`)"
+        )
+    info = _info(manifest, doc.get("acquisition"))
+    entries = doc.get("sweeps") or []
+    if not isinstance(entries, list) or not entries:
+        raise DatasetError(f"{manifest}: lists no sweeps")
+    sweeps: list[Sweep] = []
+    root = directory.resolve()
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict):
+            raise DatasetError(f"{manifest}: sweeps[{i}] must be a mapping")
+        rel = str(_get(manifest, e, "file", str))
+        p = (directory / rel).resolve()
+        # Files of the dataset only: a shared manifest must not point elsewhere.
+        if root not in p.parents:
+            raise DatasetError(f"{manifest}: sweeps[{i}].file {rel!r} lies outside the dataset")
+        sweep, _ = read_sequence(p)
+        target = str(_get(manifest, e, "target", str))
+        pose_id = int(_get(manifest, e, "pose_id", int))
+        frames = int(_get(manifest, e, "frames", int))
+        if (sweep.target, sweep.pose_id, sweep.n_frames) != (target, pose_id, frames):
+            raise DatasetError(
+                f"{p}: holds {sweep.target} pose {sweep.pose_id} with {sweep.n_frames} "
+                f"frames; the manifest lists {target} pose {pose_id} with {frames}"
+            )
+        if sweeps and (
+            sweep.images.shape[1:] != sweeps[0].images.shape[1:]
+            or not np.allclose(sweep.spacing, sweeps[0].spacing, rtol=1e-9)
+        ):
+            raise DatasetError(f"{p}: image size or spacing differs from {entries[0]['file']}")
+        sweeps.append(sweep)
+    touches = []
+    for i, t in enumerate(doc.get("touches") or []):
+        if not isinstance(t, dict):
+            raise DatasetError(f"{manifest}: touches[{i}] must be a mapping")
+        touches.append(
+            Touch(
+                str(_get(manifest, t, "vertex", str)),
+                int(_get(manifest, t, "index", int)),
+                _vector(manifest, f"touches[{i}].q_rad", t.get("q_rad"), 6),
+                _matrix(manifest, f"touches[{i}].T_base_ee_mm", t.get("T_base_ee_mm")),
+            )
+        )
+    if touches and info.stylus_tip_cad_mm is None:
+        raise DatasetError(f"{manifest}: touches need acquisition.stylus_tip_cad_mm")
+    meta = {"image": doc.get("image") or {}, "complete": bool(doc.get("complete"))}
+    name = str(doc.get("name") or directory.name)
+    return Dataset(name, tuple(sweeps), meta, tuple(touches)), info
