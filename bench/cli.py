@@ -201,6 +201,27 @@ def _parser() -> argparse.ArgumentParser:
 
     twin = sub.add_parser("twin", help="the digital twin")
     twin_sub = twin.add_subparsers(dest="twin_command", required=True)
+    serve = twin_sub.add_parser(
+        "serve",
+        help="a loopback UR controller whose arm is the twin: RTDE (30004), dashboard "
+        "(29999), script port (30003); frames of the simulated scanner to a file",
+    )
+    _add_scenario_args(serve, optional=True)
+    serve.add_argument("--host", default="127.0.0.1", help="address to listen on (127.0.0.x)")
+    serve.add_argument(
+        "--frames",
+        metavar="FILE",
+        help="write the B-mode frame after each move here (PGM; a frame grabber's source)",
+    )
+    serve.add_argument(
+        "--hw-config",
+        metavar="FILE",
+        help="also write a hw config for `uscal acquire` against this controller",
+    )
+    serve.add_argument("--fault-drop-at-move", type=_non_negative_int, default=0, metavar="N")
+    serve.add_argument(
+        "--fault-protective-stop-at-move", type=_non_negative_int, default=0, metavar="N"
+    )
     export = twin_sub.add_parser(
         "export", help="write the scene as MJCF + STL meshes and print the true landmarks"
     )
@@ -309,6 +330,41 @@ def _cmd_plan(args: argparse.Namespace, console: Console) -> int:
         "the nominal image plane; it slides along itself, so it never informs more than "
         "the sphere."
     )
+    return 0
+
+
+def _cmd_twin_serve(args: argparse.Namespace, console: Console) -> int:
+    from twin.ur_controller import ControllerFaults, LoopbackController
+
+    from .experiment import make_imager, make_twin
+
+    scenario = load_scenario(args.scenario, args.overrides)
+    twin = make_twin(scenario)
+    imager = make_imager(scenario, twin) if args.frames else None
+    controller = LoopbackController(
+        twin.robot,
+        imager,
+        args.frames,
+        args.host,
+        ControllerFaults(args.fault_drop_at_move, args.fault_protective_stop_at_move),
+    )
+    controller.start()
+    if args.hw_config:
+        from .hw_config import loopback_hw_config
+
+        loopback_hw_config(args.hw_config, scenario, twin, args.host, args.frames)
+    console.print(
+        f"loopback UR controller (the twin of {scenario.source}) on {args.host}: RTDE 30004, "
+        f"dashboard 29999, script 30003"
+        + (f"; frames to {args.frames}" if args.frames else "")
+        + (f"; hw config {args.hw_config}" if args.hw_config else "")
+        + ". Ctrl-C stops it."
+    )
+    sys.stdout.flush()
+    try:
+        controller.serve_forever()
+    except KeyboardInterrupt:
+        controller.close()
     return 0
 
 
@@ -747,6 +803,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     try:
         if args.command == "twin":
+            if args.twin_command == "serve":
+                return _cmd_twin_serve(args, console)
             return _cmd_twin_export(args, console)
         return handlers[args.command](args, console)
     except UscalError as exc:
