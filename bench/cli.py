@@ -135,6 +135,32 @@ def _parser() -> argparse.ArgumentParser:
         "dataset.yaml) for `uscal calibrate`; one-acquisition scenarios only",
     )
 
+    acquire = sub.add_parser(
+        "acquire",
+        help="run the sphere protocol on a real rig (UR via RTDE + frame grabber) into a dataset",
+    )
+    acquire.add_argument(
+        "hw_config", help="hw config YAML (robot, grabber, rig, phantom, protocol)"
+    )
+    acquire.add_argument("--out", required=True, help="dataset directory to write")
+    acquire.add_argument(
+        "--resume", action="store_true", help="continue an interrupted acquisition in --out"
+    )
+    acquire.add_argument(
+        "--dry-run", action="store_true", help="plan and check every pose; move nothing"
+    )
+    acquire.add_argument(
+        "--yes", action="store_true", help="do not ask for confirmation before the first motion"
+    )
+    acquire.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY.PATH=VALUE",
+        help="override a hw config key, e.g. protocol.spheres=[1]; repeatable",
+    )
+
     calibrate = sub.add_parser(
         "calibrate",
         help="localize and calibrate a recorded dataset (hardware or twin), offline",
@@ -507,6 +533,42 @@ def _check_new_directory(path: str, option: str) -> None:
         raise UscalError(f"{option} {path}: exists and is not an empty directory")
 
 
+def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
+    from .acquire import acquire_dataset
+    from .hw_config import load_hw_config
+
+    cfg = load_hw_config(args.hw_config, args.overrides)
+    out = Path(args.out)
+    if not args.resume and not args.dry_run:
+        _check_new_directory(args.out, "--out")
+
+    def confirm(message: str) -> bool:
+        if not sys.stdin.isatty():
+            raise UscalError(
+                "the first motion needs a confirmation and there is no terminal to ask; "
+                "pass --yes once the workspace is clear"
+            )
+        return console.input(f"{message} [y/N] ").strip().lower() in ("y", "yes")
+
+    with _progress_bars(console) as bars, reporting(bars.update):
+        summary = acquire_dataset(
+            cfg,
+            out,
+            resume=args.resume,
+            dry_run=args.dry_run,
+            confirm=None if args.yes or args.dry_run else confirm,
+            say=lambda msg: bars.console.print(f"[dim]{msg}[/dim]"),
+        )
+    if summary.dry_run:
+        console.print(f"dry run: {summary.planned} sweeps planned and checked; nothing moved")
+    else:
+        console.print(
+            f"acquired {summary.acquired} sweeps ({summary.skipped} from before) into {out} "
+            f"in {summary.seconds:.0f} s; calibrate with `uscal calibrate {out}`"
+        )
+    return 0
+
+
 def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     import json
 
@@ -793,6 +855,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for package in ("bench", "calib", "twin", "sim_us", "hw"):
             logging.getLogger(package).setLevel(logging.DEBUG)
     handlers = {
+        "acquire": _cmd_acquire,
         "calibrate": _cmd_calibrate,
         "check": _cmd_check,
         "docs": _cmd_docs,

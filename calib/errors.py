@@ -10,8 +10,10 @@ __all__ = [
     "CalibrationError",
     "CollisionError",
     "DatasetError",
+    "FrameGrabberError",
     "LocalizationError",
     "RobotConnectionError",
+    "RobotStoppedError",
     "ScenarioError",
     "UnreachablePoseError",
     "UscalError",
@@ -79,3 +81,11 @@ class DatasetError(UscalError):
 
 class RobotConnectionError(UscalError):
     """The robot controller cannot be reached, or the connection was lost."""
+
+
+class RobotStoppedError(UscalError):
+    """The robot stopped on its own: a protective or emergency stop, or its program ended."""
+
+
+class FrameGrabberError(UscalError):
+    """The frame grabber cannot be opened or delivers no frames."""

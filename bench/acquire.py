@@ -1,0 +1,168 @@
+"""``uscal acquire``: the sphere protocol on a real rig (a UR through RTDE and a frame
+grabber), recorded sweep by sweep into a dataset (:mod:`calib.dataset_files`).
+
+The same protocol code as the twin's (:func:`calib.protocol.plan_sweeps`,
+:func:`calib.protocol.acquire`) drives :class:`hw.robot.URRobot` and
+:class:`hw.grabber.FrameGrabber`. Before anything moves the whole plan is checked
+(workspace box, step between consecutive poses), ``--dry-run`` stops there, and the
+operator confirms the first motion. Each finished sweep is on disk at once; when the
+robot stops, the connection drops or the grabber goes quiet, the acquisition ends with
+one message and ``--resume`` continues with the sweeps still missing.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calib.dataset_files import DatasetWriter
+from calib.dh import NOMINAL_TABLES, forward_kinematics
+from calib.errors import (
+    FrameGrabberError,
+    RobotConnectionError,
+    RobotStoppedError,
+    UscalError,
+)
+from calib.protocol import PlannedSweep, acquire, plan_sweeps
+
+from .hw_config import HwConfig
+from .progress import report
+
+__all__ = ["AcquisitionSummary", "acquire_dataset"]
+
+
+@dataclass(frozen=True)
+class AcquisitionSummary:
+    directory: Path
+    planned: int
+    acquired: int
+    skipped: int
+    dry_run: bool
+    seconds: float
+
+
+def _plans(cfg: HwConfig, taught_T: dict[str, np.ndarray]) -> list[PlannedSweep]:
+    plan: list[PlannedSweep] = []
+    for target, T in taught_T.items():
+        plan += plan_sweeps(target, T, cfg.rig.T_ee_us_coarse, cfg.protocol)
+    return plan
+
+
+def _check(robot, cfg: HwConfig, taught_T: dict[str, np.ndarray], plan) -> None:
+    """Workspace and step checks of every pose of the plan, in the order they are
+    visited (each sphere's sweeps start from its taught pose)."""
+    previous = None
+    for sweep in plan:
+        if previous is None or previous[0] != sweep.target:
+            previous = (sweep.target, taught_T[sweep.target])
+        for j, T in enumerate(sweep.T_base_ee):
+            label = f"{sweep.target} sweep {sweep.pose_id} frame {j}"
+            robot.check_pose(T, label)
+            robot.check_step(previous[1], T, label)
+            previous = (sweep.target, T)
+
+
+def acquire_dataset(
+    cfg: HwConfig,
+    out: str | os.PathLike[str],
+    resume: bool = False,
+    dry_run: bool = False,
+    confirm: Callable[[str], bool] | None = None,
+    say: Callable[[str], None] = lambda _m: None,
+) -> AcquisitionSummary:
+    """Run the protocol on the rig of ``cfg`` into the dataset directory ``out``.
+
+    ``confirm(message)`` is asked once before the first motion (None: no question).
+    """
+    from hw.grabber import FrameGrabber
+    from hw.robot import URRobot
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    spheres = [f"sphere_{i}" for i in cfg.protocol.spheres]
+    missing = [
+        t
+        for t, i in zip(spheres, cfg.protocol.spheres, strict=True)
+        if cfg.rig.taught_deg(i) is None
+    ]
+    if missing:
+        raise UscalError(
+            f"{cfg.source}: no taught pose for {', '.join(missing)} (rig.taught_<sphere>_deg: "
+            "jog the probe over each sphere and record the joint angles)"
+        )
+    taught_q = {
+        t: np.radians(cfg.rig.taught_deg(i))
+        for t, i in zip(spheres, cfg.protocol.spheres, strict=True)
+    }
+    # The plan from the controller's own model at the taught joint angles (for the real
+    # move the controller's reported pose there is used: the same up to its factory
+    # calibration, which the plan's ±10° corners do not notice).
+    nominal = NOMINAL_TABLES[cfg.robot.model]
+    taught_T = {t: forward_kinematics(nominal, q) for t, q in taught_q.items()}
+    robot = URRobot(cfg.robot, dry_run=True)
+    plan = _plans(cfg, taught_T)
+    _check(robot, cfg, taught_T, plan)
+    say(
+        f"plan: {len(plan)} sweeps of {cfg.protocol.frames_per_sweep} frames over "
+        f"{', '.join(spheres)}: every pose inside the workspace, every step within the limits"
+    )
+    if dry_run:
+        return AcquisitionSummary(out, len(plan), 0, 0, True, time.perf_counter() - t0)
+
+    writer = DatasetWriter(
+        out, cfg.rig.name, cfg.acquisition_info(), {"grabber": cfg.grabber.source}, resume=resume
+    )
+    todo = [p for p in plan if not writer.has(p.target, p.pose_id)]
+    skipped = len(plan) - len(todo)
+    if skipped:
+        say(f"resuming: {skipped} sweeps already recorded, {len(todo)} to go")
+    if (
+        confirm is not None
+        and todo
+        and not confirm(
+            f"The robot at {cfg.robot.host} will move through {len(todo)} sweeps. Is the "
+            "workspace clear and the emergency stop at hand?"
+        )
+    ):
+        raise UscalError("acquisition cancelled before any motion")
+    done = 0
+    try:
+        with URRobot(cfg.robot) as robot, FrameGrabber(cfg.grabber) as grabber:
+            report("acquire sweeps", skipped, len(plan))
+            current = None
+            for planned in todo:
+                if planned.target != current:
+                    current = planned.target
+                    say(f"to the taught pose of {current}")
+                    robot.move_joints(taught_q[current], f"taught pose of {current}")
+                    # Re-plan this sphere's remaining sweeps from the reported taught pose.
+                    T_taught = robot.read().T_base_ee
+                    replanned = {
+                        p.pose_id: p
+                        for p in plan_sweeps(
+                            current, T_taught, cfg.rig.T_ee_us_coarse, cfg.protocol
+                        )
+                    }
+                sweep_plan = replanned[planned.pose_id]
+                stamps: list[float] = []
+                (sweep,) = acquire(
+                    robot,
+                    grabber,
+                    [sweep_plan],
+                    on_frame=lambda _p, _j, log=stamps: log.append(time.time()),
+                )
+                writer.add_sweep(sweep, np.array(stamps))
+                done += 1
+                report("acquire sweeps", skipped + done, len(plan))
+    except (RobotConnectionError, RobotStoppedError, FrameGrabberError) as e:
+        raise type(e)(
+            f"{e}. {writer.n_sweeps} of {len(plan)} sweeps are saved in {out}; "
+            "`uscal acquire --resume` continues"
+        ) from None
+    writer.finish()
+    return AcquisitionSummary(out, len(plan), done, skipped, False, time.perf_counter() - t0)

@@ -1,0 +1,205 @@
+"""The real UR3 behind the :class:`calib.protocol.Robot` protocol, through ``ur_rtde``.
+
+Poses cross this boundary as UR controllers speak them ([x, y, z, rx, ry, rz]: metres and
+a rotation vector) and become (4, 4) ``T_base_ee`` here; the controller's TCP offset must
+be zero (the flange is the tool frame). Every move is checked first against the
+configured workspace box and maximum step, blocks until the controller reports it done,
+then waits ``settle_s`` before the pose is read. A protective or emergency stop, the
+controller's program ending, or a lost connection raise one clear error; the caller
+decides what to keep (the acquisition keeps every finished sweep).
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calib import se3
+from calib.errors import RobotConnectionError, RobotStoppedError, UnreachablePoseError
+from calib.records import RobotReading
+
+from .config import URRobotConfig
+
+__all__ = ["URRobot", "check_reachable"]
+
+Array = NDArray[np.float64]
+_RTDE_PORT = 30004
+
+
+def check_reachable(host: str, timeout_s: float) -> None:
+    """Raise :class:`RobotConnectionError` unless the controller's RTDE port accepts a
+    connection within ``timeout_s`` (the client library itself can block for minutes on
+    an address that does not answer)."""
+    try:
+        with socket.create_connection((host, _RTDE_PORT), timeout=timeout_s):
+            pass
+    except OSError as e:
+        reason = "no answer" if isinstance(e, TimeoutError) else (e.strerror or str(e))
+        raise RobotConnectionError(
+            f"robot controller {host}:{_RTDE_PORT} unreachable within {timeout_s:g} s "
+            f"({reason}); check the address, the cable and that the robot is powered on"
+        ) from None
+
+
+class URRobot:
+    """A UR controller driven through RTDE.
+
+    Parameters
+    ----------
+    cfg : URRobotConfig
+    dry_run : bool
+        Plan and check only: no connection, no motion (``read`` then fails).
+    """
+
+    def __init__(self, cfg: URRobotConfig, dry_run: bool = False) -> None:
+        self.cfg = cfg
+        self.dry_run = dry_run
+        self._control = self._receive = None
+        self._last: Array | None = None  # the last commanded (or read) flange pose
+        if dry_run:
+            return
+        check_reachable(cfg.host, cfg.connect_timeout_s)
+        import rtde_control
+        import rtde_receive
+
+        try:
+            self._receive = rtde_receive.RTDEReceiveInterface(cfg.host)
+            self._control = rtde_control.RTDEControlInterface(cfg.host)
+        except RuntimeError as e:
+            self.close()
+            raise RobotConnectionError(f"robot controller {cfg.host}: {e}") from None
+        self._last = self.read().T_base_ee
+
+    # ---------------------------------------------------------------- checks
+
+    def check_pose(self, T_base_ee: ArrayLike, pose_label: str = "") -> None:
+        """Raise :class:`UnreachablePoseError` if a pose leaves the workspace box."""
+        p_mm = np.asarray(T_base_ee, dtype=float)[:3, 3] * 1e3
+        lo, hi = np.array(self.cfg.workspace_min_mm), np.array(self.cfg.workspace_max_mm)
+        if np.any(p_mm < lo) or np.any(p_mm > hi):
+            raise UnreachablePoseError(
+                f"pose {pose_label or ''} at {np.round(p_mm, 1).tolist()} mm lies outside the "
+                f"workspace box {lo.tolist()}…{hi.tolist()} mm (hw config robot.workspace_*)"
+            )
+
+    def check_step(self, T_from: ArrayLike, T_to: ArrayLike, pose_label: str = "") -> None:
+        """Raise :class:`UnreachablePoseError` if one move would exceed the max step."""
+        d_mm = 1e3 * float(se3.translation_distance(T_from, T_to))
+        d_deg = float(np.degrees(se3.rotation_angle(T_from, T_to)))
+        if d_mm > self.cfg.max_step_mm or d_deg > self.cfg.max_step_deg:
+            raise UnreachablePoseError(
+                f"move to {pose_label or 'the pose'} is a step of {d_mm:.1f} mm and "
+                f"{d_deg:.1f}°, more than robot.max_step_mm = {self.cfg.max_step_mm:g} / "
+                f"max_step_deg = {self.cfg.max_step_deg:g}"
+            )
+
+    # ---------------------------------------------------------------- motion
+
+    def move_to(self, T_base_ee: ArrayLike, pose_label: str = "") -> RobotReading:
+        """Linear move to a flange pose; returns the settled reading."""
+        T = np.asarray(T_base_ee, dtype=float)
+        self.check_pose(T, pose_label)
+        if self._last is not None:
+            self.check_step(self._last, T, pose_label)
+        if self.dry_run:
+            self._last = T
+            return RobotReading(np.full(6, np.nan), T)
+        pose = [float(v) for v in se3.pose6_from_matrix(T)]
+        ok = self._call(
+            lambda: self._control.moveL(pose, self.cfg.speed_m_s, self.cfg.acceleration_m_s2),
+            pose_label,
+        )
+        self._after_move(ok, pose_label)
+        self._last = T
+        return self._settled()
+
+    def move_joints(self, q: ArrayLike, pose_label: str = "") -> RobotReading:
+        """Joint move (to a taught configuration, radians); returns the settled reading."""
+        q = [float(v) for v in np.asarray(q, dtype=float)]
+        if self.dry_run:
+            return RobotReading(np.asarray(q), np.full((4, 4), np.nan))
+        ok = self._call(
+            lambda: self._control.moveJ(
+                q, self.cfg.joint_speed_rad_s, self.cfg.joint_acceleration_rad_s2
+            ),
+            pose_label,
+        )
+        self._after_move(ok, pose_label)
+        reading = self._settled()
+        self._last = reading.T_base_ee
+        return reading
+
+    def read(self) -> RobotReading:
+        """Reported joint angles and flange pose (the controller's own kinematics)."""
+        if self._receive is None:
+            raise RobotConnectionError("no robot connection (dry run)")
+        q = self._call(self._receive.getActualQ, "reading the pose")
+        pose = self._call(self._receive.getActualTCPPose, "reading the pose")
+        if len(q) != 6 or len(pose) != 6:
+            raise RobotConnectionError(f"robot controller {self.cfg.host}: no state received")
+        return RobotReading(np.asarray(q, dtype=float), se3.matrix_from_pose6(pose))
+
+    def close(self) -> None:
+        """Stop the control script and disconnect (safe to call twice)."""
+        control, receive = self._control, self._receive
+        self._control = self._receive = None
+        for iface, stop in ((control, True), (receive, False)):
+            if iface is None:
+                continue
+            try:
+                if stop and iface.isConnected():
+                    iface.stopScript()
+                iface.disconnect()
+            except RuntimeError:
+                pass
+
+    def __enter__(self) -> URRobot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- helpers
+
+    def _call(self, fn, what: str):
+        try:
+            return fn()
+        except RuntimeError as e:
+            raise RobotConnectionError(
+                f"robot controller {self.cfg.host}: connection lost while {what or 'moving'} ({e})"
+            ) from None
+
+    def _after_move(self, ok: bool, pose_label: str) -> None:
+        """Turn a failed move into the reason: a stop, a lost connection, or a refusal."""
+        if ok:
+            return
+        r = self._receive
+        if not self._connected():
+            raise RobotConnectionError(
+                f"robot controller {self.cfg.host}: connection lost during the move to "
+                f"{pose_label or 'the pose'}"
+            )
+        if r.isEmergencyStopped():
+            raise RobotStoppedError(f"emergency stop during the move to {pose_label}")
+        if r.isProtectiveStopped():
+            raise RobotStoppedError(
+                f"protective stop during the move to {pose_label}: check the rig, release "
+                "the stop on the teach pendant, then resume"
+            )
+        raise RobotStoppedError(
+            f"the controller did not complete the move to {pose_label} (its program stopped)"
+        )
+
+    def _connected(self) -> bool:
+        try:
+            return bool(self._control.isConnected() and self._receive.isConnected())
+        except RuntimeError:
+            return False
+
+    def _settled(self) -> RobotReading:
+        if self.cfg.settle_s:
+            time.sleep(self.cfg.settle_s)
+        return self.read()
