@@ -22,6 +22,7 @@ from calib.errors import RobotConnectionError, RobotStoppedError, UnreachablePos
 from calib.records import RobotReading
 
 from .config import URRobotConfig
+from .rtde_process import RtdeProcess
 
 __all__ = ["URRobot", "check_reachable"]
 
@@ -44,6 +45,14 @@ def check_reachable(host: str, timeout_s: float) -> None:
         ) from None
 
 
+def _answers(host: str, timeout_s: float) -> bool:
+    try:
+        check_reachable(host, timeout_s)
+    except RobotConnectionError:
+        return False
+    return True
+
+
 class URRobot:
     """A UR controller driven through RTDE.
 
@@ -57,20 +66,17 @@ class URRobot:
     def __init__(self, cfg: URRobotConfig, dry_run: bool = False) -> None:
         self.cfg = cfg
         self.dry_run = dry_run
-        self._control = self._receive = None
+        self._rtde: RtdeProcess | None = None
         self._last: Array | None = None  # the last commanded (or read) flange pose
         if dry_run:
             return
         check_reachable(cfg.host, cfg.connect_timeout_s)
-        import rtde_control
-        import rtde_receive
-
-        try:
-            self._receive = rtde_receive.RTDEReceiveInterface(cfg.host)
-            self._control = rtde_control.RTDEControlInterface(cfg.host)
-        except RuntimeError as e:
+        self._rtde = RtdeProcess(cfg.host)
+        if self._rtde.call("receive", "isProtectiveStopped"):
             self.close()
-            raise RobotConnectionError(f"robot controller {cfg.host}: {e}") from None
+            raise RobotStoppedError(
+                f"robot {cfg.host} is in a protective stop: release it on the teach pendant"
+            )
         self._last = self.read().T_base_ee
 
     # ---------------------------------------------------------------- checks
@@ -108,9 +114,10 @@ class URRobot:
             self._last = T
             return RobotReading(np.full(6, np.nan), T)
         pose = [float(v) for v in se3.pose6_from_matrix(T)]
+        v, a = self.cfg.speed_m_s, self.cfg.acceleration_m_s2
+        step = float(se3.translation_distance(self._last, T)) if self._last is not None else 1.0
         ok = self._call(
-            lambda: self._control.moveL(pose, self.cfg.speed_m_s, self.cfg.acceleration_m_s2),
-            pose_label,
+            "control", "moveL", pose, v, a, what=pose_label, duration_s=step / v + v / a
         )
         self._after_move(ok, pose_label)
         self._last = T
@@ -121,12 +128,9 @@ class URRobot:
         q = [float(v) for v in np.asarray(q, dtype=float)]
         if self.dry_run:
             return RobotReading(np.asarray(q), np.full((4, 4), np.nan))
-        ok = self._call(
-            lambda: self._control.moveJ(
-                q, self.cfg.joint_speed_rad_s, self.cfg.joint_acceleration_rad_s2
-            ),
-            pose_label,
-        )
+        w, a = self.cfg.joint_speed_rad_s, self.cfg.joint_acceleration_rad_s2
+        travel = float(np.max(np.abs(np.asarray(q) - self.read().q)))
+        ok = self._call("control", "moveJ", q, w, a, what=pose_label, duration_s=travel / w + w / a)
         self._after_move(ok, pose_label)
         reading = self._settled()
         self._last = reading.T_base_ee
@@ -134,27 +138,19 @@ class URRobot:
 
     def read(self) -> RobotReading:
         """Reported joint angles and flange pose (the controller's own kinematics)."""
-        if self._receive is None:
-            raise RobotConnectionError("no robot connection (dry run)")
-        q = self._call(self._receive.getActualQ, "reading the pose")
-        pose = self._call(self._receive.getActualTCPPose, "reading the pose")
+        if self._rtde is None:
+            raise RobotConnectionError("no robot connection (dry run, or closed)")
+        q = self._call("receive", "getActualQ", what="reading the pose")
+        pose = self._call("receive", "getActualTCPPose", what="reading the pose")
         if len(q) != 6 or len(pose) != 6:
             raise RobotConnectionError(f"robot controller {self.cfg.host}: no state received")
         return RobotReading(np.asarray(q, dtype=float), se3.matrix_from_pose6(pose))
 
     def close(self) -> None:
         """Stop the control script and disconnect (safe to call twice)."""
-        control, receive = self._control, self._receive
-        self._control = self._receive = None
-        for iface, stop in ((control, True), (receive, False)):
-            if iface is None:
-                continue
-            try:
-                if stop and iface.isConnected():
-                    iface.stopScript()
-                iface.disconnect()
-            except RuntimeError:
-                pass
+        rtde, self._rtde = self._rtde, None
+        if rtde is not None:
+            rtde.close()
 
     def __enter__(self) -> URRobot:
         return self
@@ -164,39 +160,59 @@ class URRobot:
 
     # ---------------------------------------------------------------- helpers
 
-    def _call(self, fn, what: str):
+    def _call(self, target: str, method: str, *args, what: str = "", duration_s: float = 0.0):
+        """Forward a call to the client; a move may take ``duration_s`` (its expected
+        motion time): no reply within three times that plus 5 s means the connection is
+        lost (the client library can wait forever on a pending move)."""
+        if self._rtde is None:
+            raise RobotConnectionError("no robot connection (dry run, or closed)")
+        host, timeout = self.cfg.host, self.cfg.connect_timeout_s
         try:
-            return fn()
-        except RuntimeError as e:
-            raise RobotConnectionError(
-                f"robot controller {self.cfg.host}: connection lost while {what or 'moving'} ({e})"
-            ) from None
+            return self._rtde.call(
+                target,
+                method,
+                *args,
+                alive=lambda: _answers(host, min(timeout, 1.0)),
+                grace_s=timeout,
+                timeout_s=5.0 + 3.0 * duration_s,
+            )
+        except RobotConnectionError as e:
+            self._lost()
+            raise RobotConnectionError(f"{e}: connection lost while {what or 'moving'}") from None
+
+    def _lost(self) -> None:
+        """The connection is gone: end the client process without ceremony."""
+        rtde, self._rtde = self._rtde, None
+        if rtde is not None:
+            rtde.kill()
 
     def _after_move(self, ok: bool, pose_label: str) -> None:
         """Turn a failed move into the reason: a stop, a lost connection, or a refusal."""
         if ok:
             return
-        r = self._receive
-        if not self._connected():
-            raise RobotConnectionError(
-                f"robot controller {self.cfg.host}: connection lost during the move to "
-                f"{pose_label or 'the pose'}"
-            )
-        if r.isEmergencyStopped():
-            raise RobotStoppedError(f"emergency stop during the move to {pose_label}")
-        if r.isProtectiveStopped():
+        where = f"during the move to {pose_label or 'the pose'}"
+        # The client notices a dead connection only after a while: ask the network too.
+        if not self._connected() or not _answers(self.cfg.host, self.cfg.connect_timeout_s):
+            self._lost()
+            raise RobotConnectionError(f"robot controller {self.cfg.host}: connection lost {where}")
+        if self._call("receive", "isEmergencyStopped"):
+            raise RobotStoppedError(f"emergency stop {where}")
+        if self._call("receive", "isProtectiveStopped"):
             raise RobotStoppedError(
-                f"protective stop during the move to {pose_label}: check the rig, release "
-                "the stop on the teach pendant, then resume"
+                f"protective stop {where}: check the rig, release the stop on the teach "
+                "pendant, then resume"
             )
         raise RobotStoppedError(
-            f"the controller did not complete the move to {pose_label} (its program stopped)"
+            f"the controller did not complete the move to {pose_label or 'the pose'} "
+            "(its program stopped)"
         )
 
     def _connected(self) -> bool:
         try:
-            return bool(self._control.isConnected() and self._receive.isConnected())
-        except RuntimeError:
+            return bool(
+                self._call("control", "isConnected") and self._call("receive", "isConnected")
+            )
+        except RobotConnectionError:
             return False
 
     def _settled(self) -> RobotReading:

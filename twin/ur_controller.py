@@ -139,12 +139,14 @@ _FORMATS = {
 class ControllerFaults:
     """Faults to inject (moves counted from 1 over the controller's life; 0: never).
 
-    ``drop_at_move``: close every connection when that move command arrives (a network
-    loss); ``protective_stop_at_move``: that move stops halfway with a protective stop
-    (the safety bits say so; the program stops)."""
+    ``drop_at_move``: a network outage of ``outage_s`` when that move command arrives
+    (every connection drops, none is accepted meanwhile); ``protective_stop_at_move``:
+    that move stops halfway with a protective stop (the safety bits say so; the program
+    stops)."""
 
     drop_at_move: int = 0
     protective_stop_at_move: int = 0
+    outage_s: float = 3.0
 
 
 def write_pgm(path: str | os.PathLike[str], image: NDArray[np.uint8]) -> None:
@@ -207,7 +209,7 @@ class LoopbackController:
 
     # ------------------------------------------------------------------ lifecycle
 
-    def start(self) -> None:
+    def start(self, executor: bool = True) -> None:
         """Listen on the three ports (raises :class:`UscalError` if one is taken)."""
         handlers = {
             RTDE_PORT: self._rtde_handler(),
@@ -224,8 +226,10 @@ class LoopbackController:
                     "controller running there? Use another 127.0.0.x address"
                 ) from None
             self._servers.append(server)
-            threading.Thread(target=server.serve_forever, daemon=True).start()
-        threading.Thread(target=self._execute_loop, daemon=True).start()
+            # A short poll interval: an outage closes the ports within 50 ms.
+            threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
+        if executor:
+            threading.Thread(target=self._execute_loop, daemon=True).start()
 
     def close(self) -> None:
         self._stop.set()
@@ -244,6 +248,22 @@ class LoopbackController:
                 pass
         finally:
             self.close()
+
+    def _outage(self) -> None:
+        """A network outage: every connection drops and none is accepted for
+        ``faults.outage_s`` (the client's reconnection attempts fail, as on a pulled
+        cable); then the controller listens again."""
+        for s in self._servers:
+            s.shutdown()
+            s.server_close()
+        self._servers.clear()
+        self._drop_connections()
+
+        def back() -> None:
+            if not self._stop.wait(self.faults.outage_s):
+                self.start(executor=False)
+
+        threading.Thread(target=back, daemon=True).start()
 
     def _drop_connections(self) -> None:
         with self._lock:
@@ -345,10 +365,10 @@ class LoopbackController:
         if cmd in (_MOVEJ, _MOVEL):
             self._moves += 1
             if self.faults.drop_at_move and self._moves == self.faults.drop_at_move:
-                log.warning("fault: dropping every connection at move %d", self._moves)
-                with self._lock:
-                    self._runtime = _RUNTIME_STOPPED
-                self._drop_connections()
+                log.warning(
+                    "fault: network outage of %g s at move %d", self.faults.outage_s, self._moves
+                )
+                self._outage()
                 return
             if self.faults.protective_stop_at_move == self._moves:
                 log.warning("fault: protective stop at move %d", self._moves)
@@ -457,6 +477,7 @@ class LoopbackController:
             if self._safety & _SAFETY_PROTECTIVE_STOP:
                 return  # a stopped arm does not start programs
             self._out_int[0] = 0
+            self._inputs.clear()  # a new program: no command of an earlier session is pending
             self._runtime = _RUNTIME_PLAYING
 
     def _rtde_handler(self):

@@ -1,0 +1,243 @@
+"""The hw adapters against a real client and a loopback controller: `uscal twin serve`
+(a separate process: the twin behind RTDE, the dashboard and the script port, its
+scanner writing frames to a file) driven by the unmodified ur_rtde client through
+hw.URRobot / `uscal acquire`, read by hw.FrameGrabber (OpenCV), then `uscal calibrate`
+against the twin's truth; and the faults."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.dataset_files import read_dataset
+from calib.errors import FrameGrabberError, RobotConnectionError
+from hw.config import GrabberConfig, URRobotConfig
+from hw.grabber import FrameGrabber
+from hw.robot import URRobot
+
+from .conftest import QUICK
+from .test_cli import uscal
+
+# One sphere, the whole 45-sweep protocol: the claim. The fault tests use short sweeps.
+ONE_SPHERE = ["--set", "protocol.spheres=[1]"]
+SHORT = [*ONE_SPHERE, "--set", "protocol.frames_per_sweep=3"]
+
+
+class Controller:
+    """`uscal twin serve` in its own process group on a loopback address."""
+
+    def __init__(self, tmp: Path, host: str, *extra: str) -> None:
+        self.host, self.frames, self.hw = host, tmp / "live.pgm", tmp / "hw.yaml"
+        script = Path(sys.executable).parent / "uscal"
+        cmd = [str(script)] if script.exists() else [sys.executable, "-m", "bench.cli"]
+        self.proc = subprocess.Popen(
+            [*cmd, "twin", "serve", str(QUICK), "--host", host, "--frames", str(self.frames),
+             "--hw-config", str(self.hw), *extra],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        )  # fmt: skip
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"controller exited: {self.proc.stdout.read()}")
+            if self.hw.exists() and self.frames.exists() and _listening(host, 30004):
+                return
+            time.sleep(0.2)
+        self.stop()
+        raise RuntimeError("controller did not start within 60 s")
+
+    def dashboard(self, command: str) -> str:
+        with socket.create_connection((self.host, 29999), timeout=5) as s:
+            f = s.makefile("rw")
+            f.readline()
+            f.write(command + "\n")
+            f.flush()
+            return f.readline().strip()
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+
+
+def _listening(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.fixture
+def controller(tmp_path, request):
+    host, *extra = request.param
+    c = Controller(tmp_path, host, *extra)
+    yield c
+    c.stop()
+
+
+def _one_line_error(r: subprocess.CompletedProcess) -> str:
+    """The CLI's error: exit code 2 and exactly one `uscal: error:` line, no traceback."""
+    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
+    lines = [line for line in r.stderr.splitlines() if line.startswith("uscal: error:")]
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("controller", [("127.0.0.3",)], indirect=True)
+def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(controller, tmp_path):
+    dataset, out = tmp_path / "ds", tmp_path / "cal"
+    r = uscal("acquire", str(controller.hw), "--out", str(dataset), "--yes", *ONE_SPHERE)
+    assert r.returncode == 0, r.stderr
+    ds, info = read_dataset(dataset)
+    assert len(ds.sweeps) == 45 and all(s.n_frames == 21 for s in ds.sweeps)
+    assert info.source == "hardware"
+    # The reported poses are the controller's: RTDE's actual_TCP_pose, the nominal model.
+    assert all(np.isfinite(s.T_base_ee).all() for s in ds.sweeps)
+    r = uscal(
+        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
+        "--out", str(out), "--no-rrd",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    T = np.array(json.loads((out / "metrics.json").read_text())["calibration"]["single"]["T_ee_us"])
+    from bench.experiment import image_error_mm, make_twin
+    from bench.scenario import load_scenario
+
+    scenario = load_scenario(QUICK)
+    T_true = make_twin(scenario).truth.T_ee_us  # the served twin's truth (same seed)
+    # The tolerance of `uscal run` on the same scenario (tests/test_run.py).
+    assert image_error_mm(scenario, T, T_true) <= 0.5
+    assert np.degrees(se3.rotation_angle(T, T_true)) <= 0.6
+
+
+@pytest.mark.parametrize("controller", [("127.0.0.4",)], indirect=True)
+def test_robot_and_grabber_adapters_move_read_and_grab(controller):
+    cfg = URRobotConfig(host=controller.host, settle_s=0.0)
+    grabber_cfg = GrabberConfig(source=str(controller.frames), pixel_spacing_mm=(0.2, 0.1))
+    with URRobot(cfg) as robot, FrameGrabber(grabber_cfg) as grabber:
+        start = robot.read()
+        before = grabber.grab().image
+        target = start.T_base_ee.copy()
+        target[2, 3] -= 0.01  # 10 mm down
+        reading = robot.move_to(target, "10 mm down")
+        # The controller reaches the commanded pose in its own model (encoder noise only).
+        assert se3.translation_distance(reading.T_base_ee, target) < 0.1e-3
+        after = grabber.grab()
+        assert after.spacing == (0.2e-3, 0.1e-3) and after.image.dtype == np.uint8
+        assert after.image.shape == before.shape and not np.array_equal(after.image, before)
+        far = reading.T_base_ee.copy()
+        far[0, 3] += 0.3
+        with pytest.raises(Exception, match=r"outside the workspace|max_step"):
+            robot.move_to(far, "a jump")  # refused before anything moves
+        assert se3.translation_distance(robot.read().T_base_ee, reading.T_base_ee) < 0.1e-3
+    roi = FrameGrabber(GrabberConfig(source=str(controller.frames), roi_px=(10, 5, 40, 30)))
+    assert roi.grab().image.shape == (30, 40)
+    assert controller.dashboard("PolyscopeVersion").startswith("URSoftware 5.")
+
+
+@pytest.mark.parametrize("controller", [("127.0.0.5", "--fault-drop-at-move", "30")], indirect=True)
+def test_connection_lost_mid_sweep_keeps_finished_sweeps_and_resumes(controller, tmp_path):
+    dataset = tmp_path / "ds"
+    args = ["acquire", str(controller.hw), "--out", str(dataset), "--yes", *SHORT]
+    t0 = time.monotonic()
+    r = uscal(*args)
+    line = _one_line_error(r)
+    assert "connection lost" in line and "--resume" in line
+    assert time.monotonic() - t0 < 60
+    # Move 1 goes to the taught pose, then 3 moves per sweep: move 30 is in sweep 10.
+    partial, _ = read_dataset(dataset, allow_incomplete=True)
+    assert [s.pose_id for s in partial.sweeps] == list(range(9))
+    deadline = time.monotonic() + 30  # the outage ends after 3 s
+    while not _listening(controller.host, 30004) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    r = uscal(*args, "--resume")
+    assert r.returncode == 0, r.stderr
+    assert "9 from before" in r.stdout
+    full, _ = read_dataset(dataset)
+    assert [s.pose_id for s in full.sweeps] == list(range(45))
+    # The sweeps written before the fault are untouched by the resume.
+    assert all(
+        np.array_equal(a.images, b.images)
+        for a, b in zip(partial.sweeps, full.sweeps[:9], strict=True)
+    )
+
+
+@pytest.mark.parametrize(
+    "controller", [("127.0.0.6", "--fault-protective-stop-at-move", "20")], indirect=True
+)
+def test_protective_stop_mid_move_ends_the_acquisition_cleanly(controller, tmp_path):
+    dataset = tmp_path / "ds"
+    args = ["acquire", str(controller.hw), "--out", str(dataset), "--yes", *SHORT]
+    line = _one_line_error(uscal(*args))
+    assert "protective stop" in line and "6 of 45 sweeps are saved" in line
+    assert controller.dashboard("safetystatus") == "Safetystatus: PROTECTIVE_STOP"
+    # The operator clears the stop; the acquisition resumes where it ended.
+    assert controller.dashboard("unlock protective stop") == "Protective stop releasing"
+    r = uscal(*args, "--resume")
+    assert r.returncode == 0, r.stderr
+    assert len(read_dataset(dataset)[0].sweeps) == 45
+
+
+@pytest.mark.parametrize("controller", [("127.0.0.7",)], indirect=True)
+def test_a_grabber_without_frames_fails_with_one_line(controller, tmp_path):
+    r = uscal(
+        "acquire", str(controller.hw), "--out", str(tmp_path / "ds"), "--yes", *SHORT,
+        "--set", f"grabber.source={tmp_path / 'no-such-frame.pgm'}",
+        "--set", "grabber.timeout_s=0.5",
+    )  # fmt: skip
+    line = _one_line_error(r)
+    assert "no frame for 0.5 s" in line and "0 of 45 sweeps are saved" in line
+    with pytest.raises(FrameGrabberError, match="cannot be opened"):
+        FrameGrabber(GrabberConfig(source="rtsp://127.0.0.7:1/none"))
+
+
+def test_an_unreachable_controller_fails_within_seconds(tmp_path):
+    hw = tmp_path / "hw.yaml"
+    hw.write_text(
+        "robot:\n  host: 127.0.0.9\n  connect_timeout_s: 1\n"
+        "rig:\n  taught_sphere_1_deg: [0, -90, -90, -90, 90, 0]\n"
+    )
+    t0 = time.monotonic()
+    line = _one_line_error(
+        uscal("acquire", str(hw), "--out", str(tmp_path / "ds"), "--yes", *SHORT)
+    )
+    assert "unreachable" in line and time.monotonic() - t0 < 15
+    assert not (tmp_path / "ds").exists() or not any((tmp_path / "ds" / "sweeps").iterdir())
+    # An address outside this machine (it may not answer at all, or a firewall may): the
+    # timeout bounds the wait either way.
+    t0 = time.monotonic()
+    with pytest.raises(RobotConnectionError, match=r"10\.255\.255\.1"):
+        URRobot(URRobotConfig(host="10.255.255.1", connect_timeout_s=1.0))
+    assert time.monotonic() - t0 < 5
+
+
+def test_hw_config_mistakes_are_one_line(tmp_path):
+    hw = tmp_path / "hw.yaml"
+    cases = {
+        "robot:\n  hots: 1.2.3.4\n": "robot.hots",
+        "grabber:\n  source: '0'\n": "robot.host",
+        "robot:\n  host: h\n  speed_m_s: 9\n": "speed_m_s",
+        "robot:\n  host: h\n  workspace_min_mm: [0, 0, 900]\n": "workspace box is empty",
+        "robot:\n  host: h\nrig:\n  taught_sphere_1_deg: [1, 2]\n": "expected 6 values",
+    }
+    for text, message in cases.items():
+        hw.write_text(text)
+        line = _one_line_error(
+            uscal("acquire", str(hw), "--out", str(tmp_path / "ds"), "--dry-run")
+        )
+        assert message in line, (text, line)
+    hw.write_text("robot:\n  host: h\n")
+    line = _one_line_error(uscal("acquire", str(hw), "--out", str(tmp_path / "ds"), "--dry-run"))
+    assert "no taught pose for sphere_1" in line
