@@ -145,9 +145,9 @@ def load_hw_config(path: str | os.PathLike[str], overrides: list[str] | tuple = 
             raise ScenarioError(
                 "unknown section", source=source, key=str(key), allowed=", ".join(_SECTIONS)
             )
-    if "robot" not in data or "host" not in (data["robot"] or {}):
-        raise ScenarioError("the controller's address is required", source=source, key="robot.host")
     sections = {k: _build_section(cls, data.get(k), k, source) for k, cls in _SECTIONS.items()}
+    if "host" not in (data.get("robot") or {}):
+        raise ScenarioError("the controller's address is required", source=source, key="robot.host")
     cfg = HwConfig(**sections, source=source)
     lo, hi = np.array(cfg.robot.workspace_min_mm), np.array(cfg.robot.workspace_max_mm)
     if np.any(lo >= hi):
