@@ -73,8 +73,9 @@ class GrabberConfig:
     source: str = field(
         default="0",
         metadata={
-            "doc": "Capture device index (e.g. '0'), a video/image file, or a stream URL. A "
-            "file is re-read at every grab (a scanner that writes its current frame)."
+            "doc": "Capture device index (e.g. '0'), a stream URL, a video file, or an image "
+            "file (.pgm, .png, ...) that the scanner keeps overwriting with its current "
+            "frame: re-read at every grab."
         },
     )
     roi_px: tuple[int, int, int, int] | None = field(

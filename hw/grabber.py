@@ -1,11 +1,11 @@
 """A frame grabber behind the :class:`calib.protocol.Imager` protocol: OpenCV
-``VideoCapture`` of the scanner's video output (a capture device), a stream URL, or a
-file the scanner keeps overwriting with its current frame.
+``VideoCapture`` of the scanner's video output (a capture device), a stream URL, a video
+file, or a still image the scanner keeps overwriting with its current frame.
 
 Each grab returns a frame captured after the call: a device or stream is drained of
 ``flush_frames`` buffered frames first (they may show the probe before the robot
-settled); a file is opened afresh. The B-mode region is cropped (``roi_px``) and turned
-grey; its pixel spacing comes from the config (a capture carries none).
+settled); a still image is read afresh. The B-mode region is cropped (``roi_px``) and
+turned grey; its pixel spacing comes from the config (a capture carries none).
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from .config import GrabberConfig
 
 __all__ = ["FrameGrabber"]
 
+_STILL_IMAGES = {".pgm", ".ppm", ".pnm", ".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg"}
+
 
 class FrameGrabber:
     """Frames of the scanner, as the pipeline consumes them (uint8, rows = depth)."""
@@ -32,7 +34,10 @@ class FrameGrabber:
         self.cfg = cfg
         self.spacing = (cfg.pixel_spacing_mm[0] * 1e-3, cfg.pixel_spacing_mm[1] * 1e-3)
         src = cfg.source.strip()
-        self._file = None if src.isdigit() or "://" in src else Path(src)
+        # A still image the scanner keeps overwriting is read afresh at each grab; a
+        # device, a stream URL or a video file is a stream of frames.
+        still = Path(src).suffix.lower() in _STILL_IMAGES and "://" not in src
+        self._file = Path(src) if still else None
         self._capture: cv2.VideoCapture | None = None
         if self._file is None:
             self._capture = cv2.VideoCapture(int(src) if src.isdigit() else src)
