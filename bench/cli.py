@@ -190,7 +190,11 @@ def _parser() -> argparse.ArgumentParser:
     crrd.add_argument("--rrd", metavar="FILE", help="rerun recording (default: OUT/recording.rrd)")
     crrd.add_argument("--no-rrd", action="store_true", help="write no rerun recording")
     calibrate.add_argument(
-        "--rrd-frames", type=_non_negative_int, default=420, metavar="N", help=argparse.SUPPRESS
+        "--rrd-frames",
+        type=_non_negative_int,
+        default=420,
+        metavar="N",
+        help="B-mode frames recorded at most, as whole sweeps spread over the dataset",
     )
 
     sweep = sub.add_parser(

@@ -7,12 +7,14 @@ is a subtree, in metres and in the robot base frame::
 
     /<session>/world/scene/<part>          phantom and tank meshes (static)
     /<session>/world/robot/<geom>          arm and tool at the reported joint angles
-    /<session>/world/image/true            the B-mode frame, a textured quad at its true pose
+    /<session>/world/image/frame           the B-mode frame, a textured quad at its true pose
+                                           (recorded data: at the estimated pose)
     /<session>/world/image/estimated       outline of the image under the estimated T_ee_us
     /<session>/world/touches               stylus tip at each touch (controller's model)
     /<session>/world/centres/<method>      localized sphere centres
     /<session>/bmode/image                 the current frame
     /<session>/bmode/section/{detected,true}   sphere section: red = found, green = truth
+                                           (no true sections in recorded data)
     /<session>/localization/<sphere>/{profile,crossings}   radial brightness profile
     /<session>/calibration/<method>/{loss_mm2,change_mm,change_deg}   per iteration
     /<session>/calibration/<method>/residuals_mm   per-sweep residuals (bar chart)
@@ -170,14 +172,14 @@ class Recorder:
         return self._frame - 1
 
     def image_quad(self, session: str, image: NDArray[np.uint8], spacing) -> None:
-        """The frame as a textured quad in the ``us`` frame of ``world/image/true``."""
+        """The frame as a textured quad in the ``us`` frame of ``world/image/frame``."""
         H, W = image.shape
         corners = pixel_to_us(
             np.array([0, 0, H - 1, H - 1]), np.array([0, W - 1, W - 1, 0]), W, spacing
         )
         small = image[::2, ::2]
         self.stream.log(
-            f"/{session}/world/image/true",
+            f"/{session}/world/image/frame",
             rr.Mesh3D(
                 vertex_positions=corners.astype(np.float32),
                 triangle_indices=[[0, 1, 2], [0, 2, 3]],
@@ -196,7 +198,8 @@ class Recorder:
         textured: bool,
     ) -> None:
         """One B-mode frame: 2D, and in 3D at its true pose (the textured quad when
-        ``textured``, else the previous texture moves along) and the estimated outline."""
+        ``textured``, else the previous texture moves along) and the estimated outline.
+        Recorded data has no true pose: the quad then sits at the estimated one."""
         s = self.stream
         s.log(
             f"/{session}/bmode/image",
@@ -205,10 +208,11 @@ class Recorder:
         H, W = image.shape
         if textured:
             self.image_quad(session, image, spacing)
-        if T_base_us_true is not None:
+        T_quad = T_base_us_true if T_base_us_true is not None else T_base_us_estimated
+        if T_quad is not None:
             s.log(
-                f"/{session}/world/image/true",
-                rr.Transform3D(translation=T_base_us_true[:3, 3], mat3x3=T_base_us_true[:3, :3]),
+                f"/{session}/world/image/frame",
+                rr.Transform3D(translation=T_quad[:3, 3], mat3x3=T_quad[:3, :3]),
             )
         if T_base_us_estimated is not None:
             corners = pixel_to_us(
@@ -226,10 +230,14 @@ class Recorder:
         spacing: tuple[float, float],
         detected: tuple[Array, float] | None,
         true: tuple[Array, float] | None,
+        with_truth: bool = True,
     ) -> None:
         """Sphere sections in the current frame: (centre in the frame's ``us`` coordinates,
-        radius), metres; a circle where the sphere cuts the image plane."""
+        radius), metres; a circle where the sphere cuts the image plane. ``with_truth``
+        False (recorded data): no true section is logged at all."""
         for name, value, colour in (("detected", detected, _RED), ("true", true, _GREEN)):
+            if name == "true" and not with_truth:
+                continue
             path = f"/{session}/bmode/section/{name}"
             strips = []
             section = sphere_section(*value) if value is not None else None
@@ -391,7 +399,9 @@ def log_sweeps(
             if true_centres is not None and key in true_centres:
                 true = (true_centres[key][j], radius)
             if radius > 0:
-                rec.sections(session, W, true_spacing, detected, true)
+                rec.sections(
+                    session, W, true_spacing, detected, true, with_truth=true_centres is not None
+                )
             logged += 1
     return logged
 

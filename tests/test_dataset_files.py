@@ -23,6 +23,7 @@ from calib.errors import DatasetError
 from calib.records import Sweep, Touch
 
 from .conftest import QUICK
+from .rrd import Recording
 from .test_cli import uscal
 
 
@@ -206,7 +207,7 @@ def test_calibrate_reproduces_the_runs_calibration_from_the_saved_dataset(quick_
     dataset = out.parent / "dataset"
     dest = tmp_path / "cal"
     r = uscal(
-        "calibrate", str(dataset), "--markers", "1", "--out", str(dest), "--no-rrd",
+        "calibrate", str(dataset), "--markers", "1", "--out", str(dest), "--rrd-frames", "42",
         "--settings", str(QUICK),
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
@@ -220,6 +221,16 @@ def test_calibrate_reproduces_the_runs_calibration_from_the_saved_dataset(quick_
     assert "true_error" not in got["calibration"]["single"]  # no truth offline
     assert (dest / "calibration.yaml").exists() and (dest / "report.html").exists()
     assert "Precision" in (dest / "report.md").read_text()
+    # The recording: the arm at the reported joint angles, the frames and the sections
+    # found; no truth and no scene (the phantom's placement is unknown offline).
+    rec = Recording(dest / "recording.rrd")
+    assert rec.rows("/run/bmode/image") == 42
+    assert rec.rows("/run/bmode/section/detected") == 42
+    assert not any("true" in e for e in rec.entities)
+    assert not any(e.startswith("/run/world/scene/") for e in rec.entities)
+    loss = rec.values("/run/calibration/single/loss_mm2", "Scalars:scalars", index="iteration")
+    history = got["calibration"]["single"]["history"]
+    assert np.allclose([v[0] for v in loss], [h["cost_mm2"] for h in history])
 
 
 def test_calibrate_errors_are_one_line(tmp_path):
