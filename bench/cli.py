@@ -132,7 +132,8 @@ def _parser() -> argparse.ArgumentParser:
         "--save-dataset",
         metavar="DATASET",
         help="also write the acquisition as dataset files (PLUS .mha per sweep + "
-        "dataset.yaml) for `uscal calibrate`; one-acquisition scenarios only",
+        "dataset.yaml) for `uscal calibrate`; the paper's experiment writes one per "
+        "dataset, with its touches, as DATASET/<name>",
     )
 
     acquire = sub.add_parser(
@@ -172,6 +173,14 @@ def _parser() -> argparse.ArgumentParser:
         help="single-marker (first sphere) or three-marker (first three) only; default both",
     )
     calibrate.add_argument("--out", help="output directory (default: DATASET-calibration)")
+    calibrate.add_argument(
+        "--dh-from",
+        metavar="DATASET",
+        action="append",
+        default=[],
+        help="refine the DH model from these datasets' touches (the paper's leave-one-out); "
+        "default: the dataset's own touches, when it has any; repeatable",
+    )
     calibrate.add_argument("--force", action="store_true", help="replace an existing directory")
     calibrate.add_argument(
         "--settings",
@@ -476,12 +485,6 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     out = args.out or scenario.output.dir
     if args.save_dataset:
         _check_new_directory(args.save_dataset, "--save-dataset")
-        if len(scenario.evaluation.datasets) >= 2:
-            raise UscalError(
-                f"--save-dataset: {scenario.source} is the paper's experiment "
-                f"({len(scenario.evaluation.datasets)} datasets); save one acquisition "
-                "(--set evaluation.datasets=[]) instead"
-            )
     rrd_target = None
     if not args.no_rrd:
         rrd_target = Path(args.rrd) if args.rrd else Path(out) / "recording.rrd"
@@ -525,7 +528,8 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
         f"{Path(out) / 'figures'} (open {Path(out) / 'report.html'})"
     )
     if args.save_dataset:
-        console.print(f"wrote the dataset {args.save_dataset} (uscal calibrate reads it)")
+        what = "datasets in" if result.evaluation is not None else "the dataset"
+        console.print(f"wrote {what} {args.save_dataset} (uscal calibrate reads them)")
     if args.spawn and rrd_target is not None:
         _spawn_viewer(rrd_target, console)
     return 0
@@ -589,7 +593,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     markers = (int(args.markers),) if args.markers else (1, 3)
     with atomic_output_dir(out, force=args.force) as tmp:
         with _progress_bars(console) as bars, reporting(bars.update):
-            result = calibrate_recorded(dataset_dir, settings, markers)
+            result = calibrate_recorded(dataset_dir, settings, markers, tuple(args.dh_from))
         (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
         written = ["metrics.json"]
         if not args.no_rrd:
@@ -639,6 +643,18 @@ def _print_recorded(m: dict, console: Console) -> None:
             f"single vs three-marker: {both['rotation_deg']:.3f} °, "
             f"{both['translation_mm']:.3f} mm apart"
         )
+    ev = m.get("evaluation")
+    if ev:
+        console.print(
+            f"touches: {ev['touches']}, DH refined from {ev['dh_from']}, touch residual "
+            f"RMS {ev['touch_residual_rms_mm']:.3f} mm"
+        )
+        for kind, v in ev.get("summary", {}).items():
+            a, p = v["accuracy_mm"], v["precision_mm"]
+            console.print(
+                f"{kind}-marker folds: accuracy {a['mean']:.3f} ± {a['sd']:.3f} mm, "
+                f"precision {p['mean']:.3f} ± {p['sd']:.3f} mm (against the touch reference)"
+            )
 
 
 class _Bars:

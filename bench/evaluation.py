@@ -103,6 +103,7 @@ class _DatasetTask:
     reference: TouchReference
     touches: tuple[Touch, ...]
     recording: RecordingOptions | None = None
+    save_dir: Path | None = None  # write the acquisition (with its touches) here
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,6 +138,10 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
         progress=f"{task.name}: acquire sweeps",
     )
     t_sim = time.perf_counter() - t0
+    if task.save_dir is not None:
+        from .offline import save_dataset
+
+        save_dataset(task.save_dir, scenario, twin, acq)
     truth = twin.truth
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
     # What a recording shows of the scene (small: meshes and the MuJoCo model).
@@ -328,10 +333,12 @@ def run_evaluation(
     scenario: Scenario,
     progress: Callable[[str], None] | None = None,
     recording: RecordingOptions | None = None,
+    save_dataset: Path | None = None,
 ) -> EvaluationResult:
     """The paper's experiment: touches, leave-one-out DH, folds, Tables I and II; the
     reconstruction (Table III). ``recording``: a rerun recording of it
-    (:mod:`bench.recording`)."""
+    (:mod:`bench.recording`). ``save_dataset``: a directory that receives each dataset's
+    acquisition, touches included, as ``<dir>/<name>`` (:mod:`calib.dataset_files`)."""
     say = progress or (lambda _msg: None)
     t_start = time.perf_counter()
     ev = scenario.evaluation
@@ -381,6 +388,7 @@ def run_evaluation(
             references[name],
             tuple(touches[name]),
             recording,
+            Path(save_dataset) / name if save_dataset is not None else None,
         )
         for i, (name, sc) in enumerate(zip(names, scenarios, strict=True))
     ]

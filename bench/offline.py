@@ -22,9 +22,11 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.calibrate import AlternationResult, alternate
 from calib.dataset_files import AcquisitionInfo, DatasetWriter, read_dataset
+from calib.dh import DHTable
 from calib.errors import DatasetError
-from calib.evaluate import training_precision
-from calib.localize import LocalizerConfig
+from calib.evaluate import evaluate_fold, folds, training_precision
+from calib.kinematics import TouchReference, fit_reference, refine_dh, with_kinematics
+from calib.localize import LocalizerConfig, localize_sphere
 from calib.records import Dataset
 from sim_us.materials import water_speed_m_s
 
@@ -202,6 +204,7 @@ class RecordedCalibration:
     dataset: Dataset
     info: AcquisitionInfo
     calibrations: MarkerCalibrations
+    dh_table: DHTable | None = None  # refined from touches, when the dataset has them
 
     @property
     def axial_scale(self) -> float:
@@ -252,17 +255,78 @@ def record_recorded(options, settings: Scenario, result: RecordedCalibration) ->
     return logged
 
 
+def _touch_kinematics(
+    dataset: Dataset,
+    info: AcquisitionInfo,
+    settings: Scenario,
+    dh_from: list[tuple[Dataset, AcquisitionInfo]],
+) -> tuple[DHTable, TouchReference, str]:
+    """The paper's touch-based steps on recorded data: DH corrections from the touches of
+    ``dh_from`` (the paper's leave-one-dataset-out; this dataset's own when empty), then
+    this dataset's tip offset and phantom pose with that model frozen."""
+    vertices = {k: v for k, v in info.landmarks.items() if k.startswith("vertex_")}
+    if not vertices:
+        raise DatasetError(f"dataset {dataset.name}: touches but no vertex_* landmarks")
+    tip = np.asarray(info.stylus_tip_cad_mm, dtype=float) * 1e-3
+    ev = settings.evaluation
+    sources = dh_from or [(dataset, info)]
+    table = refine_dh(
+        settings.robot.nominal_table,
+        [d.touches for d, _ in sources],
+        vertices,
+        tip,
+        ev.dh_regularizer,
+        ev.initialisations,
+        ev.dh_bound,
+    ).table
+    origin = ", ".join(d.name for d, _ in sources)
+    return table, fit_reference(table, dataset.touches, vertices, tip), origin
+
+
 def calibrate_recorded(
-    directory: str | os.PathLike[str], settings: Scenario, markers: tuple[int, ...] = (1, 3)
+    directory: str | os.PathLike[str],
+    settings: Scenario,
+    markers: tuple[int, ...] = (1, 3),
+    dh_from: tuple[str | os.PathLike[str], ...] = (),
 ) -> RecordedCalibration:
     """Read a dataset and calibrate it (no ground truth: precision, the calibrations'
-    own uncertainty, and consistency between the spheres)."""
+    own uncertainty, and consistency between the spheres).
+
+    With touches in the dataset, the paper's evaluation follows: the DH model refined from
+    the touches of the ``dh_from`` datasets (this dataset's own when none), every frame's
+    flange pose recomputed from its joint angles with it, this dataset's touch reference,
+    and the paper's folds (each sphere trained alone and tested on the others, then
+    leave-one-out) scored by precision and accuracy against the touch reference."""
     t0 = time.perf_counter()
     dataset, info = read_dataset(directory)
+    others = [read_dataset(d) for d in dh_from]
+    for d, _ in others:
+        if not d.touches:
+            raise DatasetError(f"--dh-from: dataset {d.name} has no touches")
+    if others and not dataset.touches:
+        raise DatasetError(f"--dh-from: dataset {dataset.name} itself has no touches")
     t_read = time.perf_counter() - t0
     radius = info.sphere_radius_mm * 1e-3
     scale = axial_scale_of(info)
     cad = {k: v for k, v in info.landmarks.items() if k.startswith("sphere_")}
+    evaluation: dict[str, Any] | None = None
+    dh_table: DHTable | None = None
+    if dataset.touches:
+        t1 = time.perf_counter()
+        dh_table, reference, origin = _touch_kinematics(dataset, info, settings, others)
+        # Every frame's flange pose from its joint angles through the refined model.
+        dataset = Dataset(
+            dataset.name,
+            tuple(s for t in dataset.targets() for s in with_kinematics(dataset.of(t), dh_table)),
+            dataset.meta,
+            dataset.touches,
+        )
+        evaluation = {"dh_from": origin, "touches": len(dataset.touches)}
+        evaluation["touch_residual_rms_mm"] = float(np.sqrt(np.mean(reference.residuals_mm**2)))
+        evaluation["tool_precision_mm"] = {
+            k: float(v) for k, v in reference.tool_precision_mm.items()
+        }
+        evaluation["seconds_dh"] = time.perf_counter() - t1
     cals = calibrate_markers(
         dataset,
         radius,
@@ -290,6 +354,10 @@ def calibrate_recorded(
             "rotation_deg": float(np.degrees(se3.rotation_angle(a, b))),
             "translation_mm": float(se3.translation_distance(a, b)) * _MM,
         }
+    if evaluation is not None and len(targets) >= 2:
+        evaluation.update(
+            _folds(dataset, reference, radius, settings, scale, cad, info.T_ee_us_coarse)
+        )
     sweep0 = dataset.sweeps[0]
     metrics: dict[str, Any] = {
         "dataset": {
@@ -316,4 +384,54 @@ def calibrate_recorded(
         "calibration": calibration,
         "timing_s": {"read": t_read, "total": time.perf_counter() - t0},
     }
-    return RecordedCalibration(metrics, dataset, info, cals)
+    if evaluation is not None:
+        metrics["evaluation"] = evaluation
+        metrics["dh_table_refined"] = dh_table.as_array().tolist()
+    return RecordedCalibration(metrics, dataset, info, cals, dh_table)
+
+
+def _folds(dataset, reference, radius, settings, scale, cad, T_coarse) -> dict[str, Any]:
+    """The paper's folds of one dataset against its touch reference."""
+    targets = dataset.targets()
+    sweeps = {t: dataset.of(t) for t in targets}
+    cfg = settings.localization
+    initial = {t: localize_sphere(sweeps[t], None, radius, cfg, scale) for t in targets}
+    references = reference.reference_points({t: cad[t] for t in targets})
+    fold_list = folds(dataset.name, targets)
+    rows = []
+    for k, fold in enumerate(fold_list):
+        report("folds", k, len(fold_list))
+        r = evaluate_fold(
+            fold,
+            sweeps,
+            initial,
+            references,
+            radius,
+            cfg,
+            scale,
+            cad,
+            T_coarse,
+            settings.calibration.max_alternations,
+        )
+        rows.append(
+            {
+                "fold": fold.name,
+                "kind": fold.kind,
+                "train": list(fold.train),
+                "test": list(fold.test),
+                "precision_mm": r.precision_mm,
+                "accuracy_mm": r.accuracy_mm,
+                "T_ee_us": np.round(r.T_ee_us, 9).tolist(),
+            }
+        )
+    report("folds", len(fold_list), len(fold_list))
+    summary = {}
+    for kind in ("single", "three"):
+        acc = [v for row in rows if row["kind"] == kind for v in row["accuracy_mm"].values()]
+        prec = [v for row in rows if row["kind"] == kind for v in row["precision_mm"].values()]
+        if acc:
+            summary[kind] = {
+                "accuracy_mm": {"mean": float(np.mean(acc)), "sd": float(np.std(acc))},
+                "precision_mm": {"mean": float(np.mean(prec)), "sd": float(np.std(prec))},
+            }
+    return {"folds": rows, "summary": summary}

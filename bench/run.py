@@ -7,6 +7,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,7 +15,6 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibrate import AlternationResult
-from calib.errors import UscalError
 from calib.evaluate import training_precision
 from calib.localize import localize_sphere
 
@@ -172,15 +172,12 @@ def run(
     acquisition calibrated with the controller's kinematics. ``recording`` writes a
     rerun recording of it (:mod:`bench.recording`). ``save_dataset``: a directory to write
     the acquisition to in the dataset format (:mod:`calib.dataset_files`), which
-    ``uscal calibrate`` reads back (one acquisition only).
+    ``uscal calibrate`` reads back (the paper's experiment: one per dataset,
+    ``<dir>/<name>``, with its touches).
     """
     if len(scenario.evaluation.datasets) >= 2:
-        if save_dataset is not None:
-            raise UscalError(
-                "--save-dataset: the paper's experiment has several datasets; save one "
-                "acquisition (evaluation.datasets=[]) instead"
-            )
-        ev = run_evaluation(scenario, progress, recording)
+        save = Path(save_dataset) if save_dataset is not None else None
+        ev = run_evaluation(scenario, progress, recording, save)
         return RunResult(ev.metrics, evaluation=ev, snapshot=ev.outcomes[0].snapshot)
     t_start = time.perf_counter()
     twin = make_twin(scenario)

@@ -13,6 +13,7 @@ import yaml
 
 from bench.experiment import dataset_scenario
 from bench.scenario import load_scenario
+from calib.dataset_files import read_dataset
 
 from .rrd import Recording
 from .test_cli import uscal
@@ -36,6 +37,7 @@ SMALL = [
 def small_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("eval") / "run"
     args = ["run", str(ROOT / "scenarios" / "paper.yaml"), "--out", str(out)]
+    args += ["--save-dataset", str(out.parent / "datasets")]
     for o in SMALL:
         args += ["--set", o]
     r = uscal(*args)
@@ -168,3 +170,36 @@ def test_report_carries_the_papers_tables_and_the_refined_dh_model(small_run):
     doc = yaml.safe_load((out / "calibration.yaml").read_text(encoding="utf-8"))
     assert doc["dh_table"]["source"].startswith("refined from the touches of datasets B")
     assert np.allclose(doc["T_ee_us"]["matrix_m"], m["calibration"]["three"]["T_ee_us"])
+
+
+def test_saved_datasets_evaluate_offline_as_in_the_run(small_run, tmp_path):
+    """Each dataset is saved with its touches; `uscal calibrate A --dh-from B` repeats the
+    run's leave-one-dataset-out evaluation of A from the files alone: the same folds give
+    the same precision and accuracy against the touch reference."""
+    out, m, _ = small_run
+    datasets = out.parent / "datasets"
+    assert sorted(p.name for p in datasets.iterdir()) == ["A", "B"]
+    dest = tmp_path / "A-cal"
+    args = ["calibrate", str(datasets / "A"), "--dh-from", str(datasets / "B"), "--out", str(dest)]
+    args += ["--no-rrd", "--settings", str(ROOT / "scenarios" / "paper.yaml")]
+    for o in SMALL:
+        args += ["--set", o]
+    r = uscal(*args)
+    assert r.returncode == 0, r.stderr
+    got = json.loads((dest / "metrics.json").read_text())
+    ev = got["evaluation"]
+    assert ev["dh_from"] == "B" and ev["touches"] == len(read_dataset(datasets / "A")[0].touches)
+    kin = m["kinematics"]["datasets"]["A"]
+    assert ev["touch_residual_rms_mm"] == pytest.approx(kin["reference_residual_rms_mm"], abs=1e-6)
+    run_folds = {f["fold"]: f for f in m["evaluation"]["folds"] if f["dataset"] == "A"}
+    assert [f["fold"] for f in ev["folds"]] == list(run_folds)
+    for f in ev["folds"]:
+        want = run_folds[f["fold"]]["per_sphere"]
+        for sphere, v in f["accuracy_mm"].items():
+            assert v == pytest.approx(want[sphere]["accuracy_mm"], abs=1e-6)
+            assert f["precision_mm"][sphere] == pytest.approx(
+                want[sphere]["precision_mm"], abs=1e-6
+            )
+    doc = yaml.safe_load((dest / "calibration.yaml").read_text())
+    assert "refined from the touches of B" in doc["dh_table"]["source"]
+    assert "accuracy" in r.stdout and "touch reference" in r.stdout
