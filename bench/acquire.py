@@ -114,9 +114,13 @@ def acquire_dataset(
     if dry_run:
         return AcquisitionSummary(out, len(plan), 0, 0, True, time.perf_counter() - t0)
 
-    writer = DatasetWriter(
-        out, cfg.rig.name, cfg.acquisition_info(), {"grabber": cfg.grabber.source}, resume=resume
-    )
+    image_meta = {
+        "grabber": cfg.grabber.source,
+        "roi_px": list(cfg.grabber.roi_px) if cfg.grabber.roi_px else None,
+        "pixel_spacing_mm": list(cfg.grabber.pixel_spacing_mm),
+        "depth_mm": cfg.rig.probe_depth_mm,
+    }
+    writer = DatasetWriter(out, cfg.rig.name, cfg.acquisition_info(), image_meta, resume)
     todo = [p for p in plan if not writer.has(p.target, p.pose_id)]
     skipped = len(plan) - len(todo)
     if skipped:

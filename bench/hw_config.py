@@ -52,6 +52,10 @@ class RigConfig:
         default=(90.0, 0.0, 0.0),
         metadata={"doc": "Probe mount orientation from the CAD (x-y-z Euler angles)."},
     )
+    probe_depth_mm: float = field(
+        default=40.0,
+        metadata={"doc": "Imaging depth set on the scanner (recorded with the data).", "gt": 0},
+    )
     medium: str = field(default="water", metadata={"doc": "Tank medium ('water' or other)."})
     temperature_c: float = field(
         default=20.0, metadata={"doc": "Water temperature (thermometer).", "ge": 0, "le": 60}
@@ -214,6 +218,7 @@ def loopback_hw_config(
             "name": "loopback",
             "coarse_position_mm": _plain(coarse[:3, 3] * 1e3),
             "coarse_rotation_xyz_deg": _plain(np.degrees(se3.euler_from_matrix(coarse[:3, :3]))),
+            "probe_depth_mm": float(scenario.imaging.depth_mm),
             "medium": scenario.medium.kind,
             "temperature_c": scenario.medium.temperature_c,
             "assumed_speed_m_s": scenario.imaging.assumed_speed_m_s,

@@ -192,6 +192,11 @@ def test_protective_stop_mid_move_ends_the_acquisition_cleanly(controller, tmp_p
 
 @pytest.mark.parametrize("controller", [("127.0.0.7",)], indirect=True)
 def test_a_grabber_without_frames_fails_with_one_line(controller, tmp_path):
+    # Without --yes the first motion waits for a confirmation: none can be given here.
+    line = _one_line_error(
+        uscal("acquire", str(controller.hw), "--out", str(tmp_path / "ds0"), *SHORT)
+    )
+    assert "pass --yes" in line and controller.dashboard("running") == "Program running: false"
     r = uscal(
         "acquire", str(controller.hw), "--out", str(tmp_path / "ds"), "--yes", *SHORT,
         "--set", f"grabber.source={tmp_path / 'no-such-frame.pgm'}",
