@@ -248,16 +248,26 @@ def release_memory() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
 
 
-def axial_scale(scenario: Scenario) -> float:
+def speed_ratio(
+    correction: bool, medium: str, temperature_c: float, assumed_speed_m_s: float
+) -> float:
     """c_medium / c_assumed when the speed-of-sound correction is on (the pipeline knows
-    the water temperature a user reads off a thermometer), else 1."""
-    if not scenario.imaging.sound_speed_correction:
+    the water temperature a user reads off a thermometer), else 1; a medium other than
+    water is taken at 1540 m/s."""
+    if not correction:
         return 1.0
-    if scenario.medium.kind == "water":
-        c = water_speed_m_s(scenario.medium.temperature_c)
-    else:
-        c = 1540.0
-    return c / scenario.imaging.assumed_speed_m_s
+    c = water_speed_m_s(temperature_c) if medium == "water" else 1540.0
+    return c / assumed_speed_m_s
+
+
+def axial_scale(scenario: Scenario) -> float:
+    """The axial spacing's correction factor of a scenario (:func:`speed_ratio`)."""
+    return speed_ratio(
+        scenario.imaging.sound_speed_correction,
+        scenario.medium.kind,
+        scenario.medium.temperature_c,
+        scenario.imaging.assumed_speed_m_s,
+    )
 
 
 def image_points(scenario: Scenario, n: int = 21) -> NDArray[np.float64]:

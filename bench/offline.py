@@ -28,9 +28,8 @@ from calib.evaluate import evaluate_fold, folds, training_precision
 from calib.kinematics import TouchReference, fit_reference, refine_dh, with_kinematics
 from calib.localize import LocalizerConfig, localize_sphere
 from calib.records import Dataset
-from sim_us.materials import water_speed_m_s
 
-from .experiment import SimulatedAcquisition
+from .experiment import SimulatedAcquisition, speed_ratio
 from .figures import dataset_snapshot
 from .progress import report
 from .scenario import Scenario
@@ -110,11 +109,10 @@ def save_dataset(
 
 
 def axial_scale_of(info: AcquisitionInfo) -> float:
-    """c_medium / c_assumed from the recorded water temperature (1 when the correction is
-    off or the medium is not water)."""
-    if not info.sound_speed_correction or info.medium != "water":
-        return 1.0
-    return water_speed_m_s(info.temperature_c) / info.assumed_speed_m_s
+    """The axial spacing's correction factor from the recorded water temperature."""
+    return speed_ratio(
+        info.sound_speed_correction, info.medium, info.temperature_c, info.assumed_speed_m_s
+    )
 
 
 @dataclass(frozen=True, eq=False)

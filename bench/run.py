@@ -15,7 +15,6 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibrate import AlternationResult
-from calib.evaluate import training_precision
 from calib.localize import localize_sphere
 
 from .evaluation import EvaluationResult, run_evaluation
@@ -29,7 +28,7 @@ from .experiment import (
     true_centre_in_sweep,
 )
 from .figures import LocalizationSnapshot, dataset_snapshot
-from .offline import calibrate_markers
+from .offline import calibrate_markers, calibration_entry
 from .offline import save_dataset as save_dataset_files
 from .recording_options import RecordingOptions
 from .scenario import Scenario
@@ -93,8 +92,6 @@ def _calibration_metrics(
     scenario, acq, truth, alt: AlternationResult, train, test, radius, scale, localizer
 ) -> dict[str, Any]:
     T_est = alt.result.T_ee_us
-    keep = alt.result.retained
-    precision = training_precision(alt)
     # Accuracy on spheres not used for calibration (re-localized with this estimate);
     # on the training spheres when there are none.
     accuracy = []
@@ -114,16 +111,8 @@ def _calibration_metrics(
             "translation_mm": 1e3 * float(se3.translation_distance(T_est, truth.T_ee_us)),
             "image_mm": image_error_mm(scenario, T_est, truth.T_ee_us),
         },
-        "precision_mm": float(np.mean([precision[t] for t in train])),
         "accuracy_mm": 1e3 * float(np.mean(accuracy)) if accuracy else float("nan"),
-        "n_retained": int(keep.sum()),
-        "iterations": len(alt.history),
-        "rejected": dict(alt.result.rejection_reasons),
-        "T_ee_us": np.round(T_est, 9).tolist(),
-        "covariance_rotvec_rad_translation_m": alt.result.covariance.tolist(),
-        "history": alt.history,
-        "trained_on": list(train),
-        "tested_on": list(test),
+        **calibration_entry(alt, list(train), list(test)),
     }
 
 

@@ -526,6 +526,8 @@ class _RtdeSession:
                 self.handle(kind, self.recv_exact(size - 3))
         except (ConnectionError, OSError):
             pass
+        except (struct.error, UnicodeDecodeError, ValueError) as e:
+            log.warning("malformed RTDE packet (%s): connection closed", e)
         finally:
             self.closed.set()
 
