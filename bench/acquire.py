@@ -13,10 +13,12 @@ one message and ``--resume`` continues with the sweeps still missing.
 from __future__ import annotations
 
 import os
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,12 +30,19 @@ from calib.errors import (
     RobotStoppedError,
     UscalError,
 )
-from calib.protocol import PlannedSweep, acquire, plan_sweeps
+from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan
+from calib.records import Touch
 
 from .hw_config import HwConfig
 from .progress import report
 
-__all__ = ["AcquisitionSummary", "acquire_dataset"]
+__all__ = [
+    "AcquisitionSummary",
+    "Operator",
+    "acquire_dataset",
+    "console_operator",
+    "dashboard_operator",
+]
 
 
 @dataclass(frozen=True)
@@ -67,6 +76,84 @@ def _check(robot, cfg: HwConfig, taught_T: dict[str, np.ndarray], plan) -> None:
             previous = (sweep.target, T)
 
 
+class Operator:
+    """Who hand-guides the arm for the touches: ``tell(action, detail)`` returns once the
+    operator has done it. ``action`` is "mount" (detail: the tool) or "touch" (detail:
+    (vertex, index, description)). :func:`console_operator` asks a person at the
+    terminal; :func:`dashboard_operator` asks the loopback rig's emulated operator."""
+
+    def __init__(self, tell: Callable[[str, Any], None]) -> None:
+        self.tell = tell
+
+    def place(self, vertex: str, index: int, R_base_ee: np.ndarray) -> None:
+        """calib.protocol.TouchGuide: the stylus tip onto a vertex, at about the planned
+        orientation (the record is whatever the controller then reports)."""
+        axis = R_base_ee[:3, 2]  # the stylus runs along the flange z axis
+        tilt = np.degrees(np.arccos(np.clip(-axis[2], -1.0, 1.0)))
+        azimuth = np.degrees(np.arctan2(-axis[1], -axis[0])) % 360
+        how = f"stylus tilted {tilt:.0f}° with its top towards {azimuth:.0f}°"
+        self.tell("touch", (vertex, index, how))
+
+
+def console_operator(ask: Callable[[str], None]) -> Operator:
+    """Prompts at the terminal; ``ask(message)`` returns when the person presses Enter."""
+
+    def tell(action: str, detail: Any) -> None:
+        if action == "mount":
+            ask(f"Mount the {detail} on the flange, then press Enter")
+        else:
+            vertex, index, how = detail
+            ask(
+                f"Hand-guide the stylus tip onto {vertex} (touch {index + 1}; {how}) and hold "
+                "it there, then press Enter"
+            )
+
+    return Operator(tell)
+
+
+def dashboard_operator(host: str) -> Operator:
+    """The loopback rig's emulated operator, through the controller's dashboard
+    (``uscal twin serve``): for rehearsing the touch step without a person."""
+
+    def tell(action: str, detail: Any) -> None:
+        if action == "mount":
+            command = f"twin mount {detail}"
+        else:
+            command = f"twin touch {detail[0]} {detail[1]}"
+        try:
+            with socket.create_connection((host, 29999), timeout=10) as s:
+                f = s.makefile("rw")
+                f.readline()
+                f.write(command + "\n")
+                f.flush()
+                answer = f.readline().strip()
+        except OSError as e:
+            raise RobotConnectionError(f"loopback operator at {host}:29999: {e}") from None
+        if not answer.startswith("twin: ") or answer.startswith("twin: error"):
+            raise UscalError(f"loopback operator: {command!r} → {answer!r} (is this the twin?)")
+
+    return Operator(tell)
+
+
+def _touches(cfg: HwConfig, robot, writer: DatasetWriter, operator: Operator) -> int:
+    """The touch step: each planned touch not yet recorded, saved as it is taken."""
+    vertices = sorted(k for k in cfg.acquisition_info().landmarks if k.startswith("vertex_"))
+    plan = [
+        t for t in touch_plan(vertices, cfg.protocol) if not writer.has_touch(t.vertex, t.index)
+    ]
+    if not plan:
+        return 0
+    operator.tell("mount", "stylus")
+    for done, planned in enumerate(plan):
+        report("touches", done, len(plan))
+        operator.place(planned.vertex, planned.index, planned.R_base_ee)
+        reading = robot.read()
+        writer.add_touches([Touch(planned.vertex, planned.index, reading.q, reading.T_base_ee)])
+    report("touches", len(plan), len(plan))
+    operator.tell("mount", "probe")
+    return len(plan)
+
+
 def acquire_dataset(
     cfg: HwConfig,
     out: str | os.PathLike[str],
@@ -74,10 +161,13 @@ def acquire_dataset(
     dry_run: bool = False,
     confirm: Callable[[str], bool] | None = None,
     say: Callable[[str], None] = lambda _m: None,
+    operator: Operator | None = None,
 ) -> AcquisitionSummary:
     """Run the protocol on the rig of ``cfg`` into the dataset directory ``out``.
 
     ``confirm(message)`` is asked once before the first motion (None: no question).
+    ``operator``: after the sweeps, the touches of every cone vertex (the protocol's
+    ``touches_per_vertex`` each), hand-guided by it; None: no touches.
     """
     from hw.grabber import FrameGrabber
     from hw.robot import URRobot
@@ -127,7 +217,7 @@ def acquire_dataset(
         say(f"resuming: {skipped} sweeps already recorded, {len(todo)} to go")
     if (
         confirm is not None
-        and todo
+        and (todo or operator is not None)
         and not confirm(
             f"The robot at {cfg.robot.host} will move through {len(todo)} sweeps. Is the "
             "workspace clear and the emergency stop at hand?"
@@ -163,6 +253,8 @@ def acquire_dataset(
                 writer.add_sweep(sweep, np.array(stamps))
                 done += 1
                 report("acquire sweeps", skipped + done, len(plan))
+            if operator is not None:
+                say(f"{_touches(cfg, robot, writer, operator)} touches recorded")
     except (RobotConnectionError, RobotStoppedError, FrameGrabberError) as e:
         raise type(e)(
             f"{e}. {writer.n_sweeps} of {len(plan)} sweeps are saved in {out}; "

@@ -154,6 +154,15 @@ def _parser() -> argparse.ArgumentParser:
         "--yes", action="store_true", help="do not ask for confirmation before the first motion"
     )
     acquire.add_argument(
+        "--touches",
+        nargs="?",
+        const="console",
+        choices=["console", "loopback"],
+        help="after the sweeps, touch every cone vertex with the stylus (for the DH "
+        "refinement): hand-guided, confirmed at the terminal; 'loopback': by the loopback "
+        "rig's emulated operator (uscal twin serve)",
+    )
+    acquire.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -380,12 +389,15 @@ def _cmd_twin_serve(args: argparse.Namespace, console: Console) -> int:
     scenario = load_scenario(args.scenario, args.overrides)
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin) if args.frames else None
+    from .hw_config import emulated_operator
+
     controller = LoopbackController(
         twin.robot,
         imager,
         args.frames,
         args.host,
         ControllerFaults(args.fault_drop_at_move, args.fault_protective_stop_at_move),
+        emulated_operator(scenario, twin),
     )
     controller.start()
     if args.hw_config:
@@ -542,7 +554,7 @@ def _check_new_directory(path: str, option: str) -> None:
 
 
 def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
-    from .acquire import acquire_dataset
+    from .acquire import acquire_dataset, console_operator, dashboard_operator
     from .hw_config import load_hw_config
 
     cfg = load_hw_config(args.hw_config, args.overrides)
@@ -558,6 +570,16 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
             )
         return console.input(f"{message} [y/N] ").strip().lower() in ("y", "yes")
 
+    operator = None
+    if args.touches == "loopback":
+        operator = dashboard_operator(cfg.robot.host)
+    elif args.touches == "console":
+        if not sys.stdin.isatty() and not args.dry_run:
+            raise UscalError(
+                "--touches: hand-guided touches are confirmed at a terminal, and there is "
+                "none ('--touches loopback' rehearses them on the loopback rig)"
+            )
+        operator = console_operator(lambda message: console.input(message + " "))
     with _progress_bars(console) as bars, reporting(bars.update):
         summary = acquire_dataset(
             cfg,
@@ -566,6 +588,7 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
             dry_run=args.dry_run,
             confirm=None if args.yes or args.dry_run else confirm,
             say=lambda msg: bars.console.print(f"[dim]{msg}[/dim]"),
+            operator=operator,
         )
     if summary.dry_run:
         console.print(f"dry run: {summary.planned} sweeps planned and checked; nothing moved")

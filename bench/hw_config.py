@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,14 +28,15 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.dataset_files import AcquisitionInfo
 from calib.errors import ScenarioError
-from calib.protocol import ProtocolConfig, facing_pose
+from calib.protocol import ProtocolConfig, facing_pose, touch_plan
 from hw.config import GrabberConfig, URRobotConfig
 from twin.phantoms import PhantomConfig, build_phantom
+from twin.touch import SimTouchGuide
 
 from .experiment import coarse_estimate, make_twin, stage_rngs
 from .scenario import Scenario, _build_section, _read_yaml, apply_overrides
 
-__all__ = ["HwConfig", "RigConfig", "load_hw_config", "loopback_hw_config"]
+__all__ = ["HwConfig", "RigConfig", "emulated_operator", "load_hw_config", "loopback_hw_config"]
 
 Array = NDArray[np.float64]
 
@@ -238,3 +240,36 @@ def loopback_hw_config(
     tmp.write_text(header + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     os.replace(tmp, path)
     return path
+
+
+def emulated_operator(scenario: Scenario, twin) -> Callable[[list[str]], str]:
+    """The loopback rig's emulated operator (dashboard ``twin ...`` commands of
+    :class:`twin.ur_controller.LoopbackController`): ``mount stylus|probe`` changes the
+    tool; ``touch <vertex> <index>`` hand-guides the true stylus tip onto the true vertex,
+    leaning towards the phantom's middle, with the scenario's contact noise — as
+    :func:`bench.experiment.simulate_touches` does."""
+    vertices = {k: v for k, v in twin.truth.landmarks_base.items() if k.startswith("vertex_")}
+    middle = np.mean(list(vertices.values()), axis=0)
+    lean = {k: (middle - v) * np.array([1.0, 1.0, 0.0]) for k, v in vertices.items()}
+    plan = {
+        (t.vertex, t.index): t.R_base_ee
+        for t in touch_plan(sorted(vertices), scenario.protocol, lean)
+    }
+    rng = np.random.default_rng(np.random.SeedSequence(scenario.seed, spawn_key=(300,)))
+    guide = SimTouchGuide(
+        twin.robot, vertices, twin.truth.p_ee_tip, scenario.tools.contact_noise_mm, rng
+    )
+
+    def operator(args: list[str]) -> str:
+        if len(args) == 2 and args[0] == "mount" and args[1] in ("probe", "stylus"):
+            twin.mount(args[1])
+            return f"twin: {args[1]} mounted"
+        if len(args) == 3 and args[0] == "touch":
+            vertex, index = args[1], int(args[2])
+            if (vertex, index) not in plan:
+                raise ValueError(f"no touch {index} of {vertex} in the touch plan")
+            guide.place(vertex, index, plan[(vertex, index)])
+            return f"twin: tip on {vertex} (touch {index})"
+        raise ValueError("commands: mount probe|stylus, touch <vertex> <index>")
+
+    return operator

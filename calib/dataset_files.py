@@ -429,6 +429,10 @@ class DatasetWriter:
         """Whether a sweep of the plan is already on disk (resume)."""
         return any(s["target"] == target and s["pose_id"] == pose_id for s in self._sweeps)
 
+    def has_touch(self, vertex: str, index: int) -> bool:
+        """Whether a touch of the plan is already recorded (resume)."""
+        return any(t["vertex"] == vertex and t["index"] == index for t in self._touches)
+
     @property
     def n_sweeps(self) -> int:
         return len(self._sweeps)

@@ -185,9 +185,21 @@ def test_protective_stop_mid_move_ends_the_acquisition_cleanly(controller, tmp_p
     assert controller.dashboard("safetystatus") == "Safetystatus: PROTECTIVE_STOP"
     # The operator clears the stop; the acquisition resumes where it ended.
     assert controller.dashboard("unlock protective stop") == "Protective stop releasing"
-    r = uscal(*args, "--resume")
+    # The resume also takes the touches, hand-guided by the rig's emulated operator.
+    r = uscal(*args, "--resume", "--touches", "loopback")
     assert r.returncode == 0, r.stderr
-    assert len(read_dataset(dataset)[0].sweeps) == 45
+    ds, _ = read_dataset(dataset)
+    assert len(ds.sweeps) == 45 and len(ds.touches) == 4 * 6  # vertices × touches each
+    # The touches, recorded through RTDE, fix the phantom within the contact noise (0.2 mm).
+    out = tmp_path / "cal"
+    r = uscal(
+        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK), "--out", str(out),
+        "--no-rrd", "--set", "evaluation.initialisations=2",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    ev = json.loads((out / "metrics.json").read_text())["evaluation"]
+    assert ev["touches"] == 24 and ev["touch_residual_rms_mm"] < 0.6
+    assert max(ev["tool_precision_mm"].values()) < 0.6
 
 
 @pytest.mark.parametrize("controller", [("127.0.0.7",)], indirect=True)

@@ -27,8 +27,10 @@ After each settled move the controller renders the B-mode frame the probe sees a
 true pose (``sim_us``) and writes it, atomically, to a frame file (binary PGM) that a
 frame grabber's file source reads: the scanner of this loopback rig.
 
-Faults, for tests of the client side: drop every connection when a given move starts,
-or raise a protective stop in the middle of one.
+Faults, for tests of the client side: a network outage when a given move starts, or a
+protective stop in the middle of one. The dashboard also takes the loopback rig's own
+commands (``twin mount stylus|probe``, ``twin touch <vertex> <index>``): an emulated
+operator hand-guiding the arm, as :mod:`twin.touch` does in simulation.
 
 Only one controller may listen per address (the ports are fixed): run several on
 127.0.0.2, 127.0.0.3, …
@@ -44,6 +46,7 @@ import socketserver
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -184,8 +187,10 @@ class LoopbackController:
         frame_path: str | os.PathLike[str] | None = None,
         host: str = "127.0.0.1",
         faults: ControllerFaults = ControllerFaults(),
+        operator: Callable[[list[str]], str] | None = None,
     ) -> None:
         self.robot = robot
+        self.operator = operator
         self.imager = imager
         self.frame_path = Path(frame_path) if frame_path else None
         self.host = host
@@ -437,6 +442,21 @@ class LoopbackController:
             with self._lock:
                 self._safety = _SAFETY_NORMAL
             return "Protective stop releasing"
+        if cmd.startswith("twin ") and self.operator is not None:
+            # The emulated operator (hand-guiding, tool changes) of the loopback rig.
+            with self._lock:
+                busy = self._out_int[0] == 0 and self._runtime == _RUNTIME_PLAYING
+            if busy:
+                return "twin: the arm is moving"
+            try:
+                answer = self.operator(line.split()[1:])
+            except (UscalError, ValueError, KeyError, IndexError) as e:
+                return f"twin: error: {e}"
+            self._update_reading()
+            # Answer once the streams have carried the new pose (a person holding the
+            # stylus still before pressing Enter gives the same).
+            time.sleep(5.0 / _MAX_STREAM_HZ)
+            return answer
         if cmd == "close safety popup":
             return "closing safety popup"
         if cmd == "stop":
