@@ -390,6 +390,9 @@ class LoopbackController:
                 return
             self._update_reading()
             self._render()
+            # Signal done only once every stream has carried the settled pose: a client
+            # reading actual_q right after the move (another RTDE session) gets the new one.
+            time.sleep(3.0 / _MAX_STREAM_HZ)
         elif cmd == _STOP_SCRIPT:
             with self._lock:
                 self._runtime = _RUNTIME_STOPPED
