@@ -36,6 +36,8 @@ from calib.records import Touch
 from .hw_config import HwConfig
 from .progress import report
 
+_HOLD_S = 0.3  # s between the operator's "done" and the touch reading
+
 __all__ = [
     "AcquisitionSummary",
     "Operator",
@@ -147,6 +149,8 @@ def _touches(cfg: HwConfig, robot, writer: DatasetWriter, operator: Operator) ->
     for done, planned in enumerate(plan):
         report("touches", done, len(plan))
         operator.place(planned.vertex, planned.index, planned.R_base_ee)
+        # The arm is still now; give the controller's state stream a moment to show it.
+        time.sleep(_HOLD_S)
         reading = robot.read()
         writer.add_touches([Touch(planned.vertex, planned.index, reading.q, reading.T_base_ee)])
     report("touches", len(plan), len(plan))

@@ -208,7 +208,9 @@ def loopback_hw_config(
             "host": host,
             "speed_m_s": 0.25,
             "acceleration_m_s2": 1.5,
-            "settle_s": 0.0,
+            # The controller's state stream may trail its command handshake by a few
+            # packets under load: a short settle keeps the recorded pose the new one.
+            "settle_s": 0.02,
             "connect_timeout_s": 3.0,
         },
         "grabber": {

@@ -28,6 +28,7 @@ __all__ = ["URRobot", "check_reachable"]
 
 Array = NDArray[np.float64]
 _RTDE_PORT = 30004
+_SAFETY_WAIT_S = 0.5
 
 
 def check_reachable(host: str, timeout_s: float) -> None:
@@ -195,13 +196,20 @@ class URRobot:
         if not self._connected() or not _answers(self.cfg.host, self.cfg.connect_timeout_s):
             self._lost()
             raise RobotConnectionError(f"robot controller {self.cfg.host}: connection lost {where}")
-        if self._call("receive", "isEmergencyStopped"):
-            raise RobotStoppedError(f"emergency stop {where}")
-        if self._call("receive", "isProtectiveStopped"):
-            raise RobotStoppedError(
-                f"protective stop {where}: check the rig, release the stop on the teach "
-                "pendant, then resume"
-            )
+        # The safety bits arrive on the receive stream, which may trail the control
+        # session that saw the move fail by a few packets: watch them for a moment.
+        deadline = time.monotonic() + _SAFETY_WAIT_S
+        while True:
+            if self._call("receive", "isEmergencyStopped"):
+                raise RobotStoppedError(f"emergency stop {where}")
+            if self._call("receive", "isProtectiveStopped"):
+                raise RobotStoppedError(
+                    f"protective stop {where}: check the rig, release the stop on the teach "
+                    "pendant, then resume"
+                )
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.02)
         raise RobotStoppedError(
             f"the controller did not complete the move to {pose_label or 'the pose'} "
             "(its program stopped)"
