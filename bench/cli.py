@@ -642,24 +642,20 @@ def _print_recorded(m: dict, console: Console) -> None:
         f"dataset {d['name']} ({d['source']}): {d['n_sweeps']} sweeps of "
         f"{', '.join(d['targets'])}; {loc['n_sweeps']} localized, {loc['n_rejected']} rejected"
     )
-    table = Table(title="calibration (no ground truth)")
-    for col in ("method", "x mm", "y mm", "z mm", "1σ rot °", "1σ mm", "prec mm", "kept"):
-        table.add_column(col, justify="right" if col != "method" else "left")
-    for name in ("single", "three"):
-        c = m["calibration"].get(name)
-        if c is None:
-            continue
+
+    def cells(c: dict) -> list[str]:
         t = np.array(c["T_ee_us"])[:3, 3] * 1e3
         std = np.sqrt(np.clip(np.diag(np.array(c["covariance_rotvec_rad_translation_m"])), 0, None))
-        table.add_row(
-            name,
+        return [
             *(f"{v:.2f}" for v in t),
             f"{np.degrees(std[:3]).max():.3f}",
             f"{1e3 * std[3:].max():.3f}",
             f"{c['precision_mm']:.3f}",
             str(c["n_retained"]),
-        )
-    console.print(table)
+        ]
+
+    columns = ("x mm", "y mm", "z mm", "1σ rot °", "1σ mm", "prec mm", "kept")
+    console.print(_calibration_table(m, "calibration (no ground truth)", columns, cells))
     both = m["calibration"].get("single_vs_three")
     if both:
         console.print(
@@ -825,6 +821,19 @@ def _print_reconstruction(m: dict, console: Console) -> None:
     )
 
 
+def _calibration_table(m: dict, title: str, columns: Sequence[str], cells) -> Table:
+    """One row per calibration method of ``metrics.json`` (``cells(entry)`` → texts)."""
+    table = Table(title=title)
+    table.add_column("method", justify="left")
+    for col in columns:
+        table.add_column(col, justify="right")
+    for name in ("single", "three"):
+        c = m["calibration"].get(name)
+        if c is not None:
+            table.add_row(name, *cells(c))
+    return table
+
+
 def _print_run(m: dict, console: Console) -> None:
     loc = m["localization"]
     console.print(
@@ -832,17 +841,10 @@ def _print_run(m: dict, console: Console) -> None:
         f"rejected; error vs truth median {loc['error_mm']['median']:.3f} mm, "
         f"p95 {loc['error_mm']['p95']:.3f} mm, max {loc['error_mm']['max']:.3f} mm"
     )
-    table = Table(title="calibration against ground truth")
-    # Short headers: the table must fit an 80-column terminal.
-    for col in ("method", "rot °", "trans mm", "image mm", "prec mm", "acc mm", "kept", "iter"):
-        table.add_column(col, justify="right" if col != "method" else "left")
-    for name in ("single", "three"):
-        c = m["calibration"].get(name)
-        if c is None:
-            continue
+
+    def cells(c: dict) -> list[str]:
         e = c["true_error"]
-        table.add_row(
-            name,
+        return [
             f"{e['rotation_deg']:.3f}",
             f"{e['translation_mm']:.3f}",
             f"{e['image_mm']:.3f}",
@@ -850,8 +852,11 @@ def _print_run(m: dict, console: Console) -> None:
             f"{c['accuracy_mm']:.3f}",
             str(c["n_retained"]),
             str(c["iterations"]),
-        )
-    console.print(table)
+        ]
+
+    # Short headers: the table must fit an 80-column terminal.
+    columns = ("rot °", "trans mm", "image mm", "prec mm", "acc mm", "kept", "iter")
+    console.print(_calibration_table(m, "calibration against ground truth", columns, cells))
     t = m["timing_s"]
     summed = f" (summed over {t['workers']} workers)" if "workers" in t else ""
     console.print(
