@@ -21,6 +21,18 @@ def uscal(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[st
     return subprocess.run([*cmd, *args], capture_output=True, text=True, cwd=cwd, timeout=300)
 
 
+def uscal_here(capsys: pytest.CaptureFixture[str], *args: str) -> subprocess.CompletedProcess[str]:
+    """The same command through ``bench.cli.main`` in this process: for the many
+    one-line-error cases, which would each spend seconds importing in a new process (the
+    console script itself is exercised by the tests that use :func:`uscal`)."""
+    from bench.cli import main
+
+    capsys.readouterr()
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(["uscal", *args], code, out, err)
+
+
 def test_check_valid_scenario():
     r = uscal("check", QUICK)
     assert r.returncode == 0, r.stderr

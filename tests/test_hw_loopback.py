@@ -26,7 +26,7 @@ from hw.grabber import FrameGrabber
 from hw.robot import URRobot
 
 from .conftest import QUICK
-from .test_cli import uscal
+from .test_cli import uscal, uscal_here
 
 # One sphere, the whole 45-sweep protocol: the claim. The fault tests use short sweeps.
 ONE_SPHERE = ["--set", "protocol.spheres=[1]"]
@@ -240,7 +240,7 @@ def test_an_unreachable_controller_fails_within_seconds(tmp_path):
     assert time.monotonic() - t0 < 5
 
 
-def test_hw_config_mistakes_are_one_line(tmp_path):
+def test_hw_config_mistakes_are_one_line(tmp_path, capsys):
     hw = tmp_path / "hw.yaml"
     cases = {
         "robot:\n  hots: 1.2.3.4\n": "robot.hots",
@@ -252,7 +252,7 @@ def test_hw_config_mistakes_are_one_line(tmp_path):
     for text, message in cases.items():
         hw.write_text(text)
         line = _one_line_error(
-            uscal("acquire", str(hw), "--out", str(tmp_path / "ds"), "--dry-run")
+            uscal_here(capsys, "acquire", str(hw), "--out", str(tmp_path / "ds"), "--dry-run")
         )
         assert message in line, (text, line)
     hw.write_text("robot:\n  host: h\n")
