@@ -19,6 +19,7 @@ import concurrent.futures as cf
 import logging
 import multiprocessing
 import os
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -73,12 +74,16 @@ from .experiment import (
 )
 from .figures import LocalizationSnapshot
 from .reconstruction import (
+    METHODS,
     PhantomReconstruction,
     PhantomScan,
     Recalibration,
+    RemountScan,
+    recalibration_scenario,
     reconstruct_phantom,
     reconstruction_metrics,
     run_recalibration,
+    run_remount_scan,
     run_scan,
 )
 from .recording_options import RecordingOptions
@@ -402,49 +407,80 @@ def run_evaluation(
     recon_parts: list[PhantomReconstruction] = []
     scans: list[PhantomScan] = []
     recal: Recalibration | None = None
-    if workers == 1:
-        outcomes = [_run_dataset(t) for t in tasks]
-        if phantoms:
-            recal = run_recalibration(scenario, tables)
-            for kind in phantoms:
-                scan = run_scan(scenario, kind, recording)
-                scans.append(scan)
-                recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
-    else:
-        ctx = multiprocessing.get_context("spawn")
-        counts = ctx.Queue()  # the workers' progress reports
-        with cf.ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=ctx,
-            initializer=progress_report.worker_initializer,
-            initargs=(counts,),
-        ) as pool:
+    spheres = recalibration_scenario(scenario).protocol.spheres if phantoms else ()
+    # The re-calibration scan's frames go to a scratch directory, mapped by each
+    # calibration task (removed when the pool is done).
+    with tempfile.TemporaryDirectory(prefix="uscal-remount-") as tmp:
+        scratch = Path(tmp)
+        if workers == 1:
+            outcomes = [_run_dataset(t) for t in tasks]
+            if phantoms:
+                remount = [run_remount_scan(scenario, k, scratch) for k in spheres]
+                recal = Recalibration.merge(
+                    [run_recalibration(scenario, m, tables, remount) for m in METHODS], remount
+                )
+                for kind in phantoms:
+                    scan = run_scan(scenario, kind, recording)
+                    scans.append(scan)
+                    recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            counts = ctx.Queue()  # the workers' progress reports
+            with cf.ProcessPoolExecutor(
+                max_workers=workers,
+                mp_context=ctx,
+                initializer=progress_report.worker_initializer,
+                initargs=(counts,),
+            ) as pool:
 
-            def result(future: cf.Future):
-                while not future.done():
-                    cf.wait([future], timeout=0.2)
-                    progress_report.drain(counts)
-                return future.result()
+                def result(future: cf.Future):
+                    while not future.done():
+                        cf.wait([future], timeout=0.2)
+                        progress_report.drain(counts)
+                    return future.result()
 
-            # Long tasks first, so that none is left running alone at the end: the
-            # re-calibration (a scan of spheres 1-3 and six calibrations), the datasets,
-            # then the phantom scans and their registrations.
-            def submit(fn: Callable[..., Any], *args: Any) -> cf.Future:
-                return pool.submit(_pool_task, fn, *args)
+                def submit(fn: Callable[..., Any], *args: Any) -> cf.Future:
+                    return pool.submit(_pool_task, fn, *args)
 
-            recal_future = submit(run_recalibration, scenario, tables) if phantoms else None
-            dataset_futures = [submit(_run_dataset, t) for t in tasks]
-            scan_futures = [submit(run_scan, scenario, kind, recording) for kind in phantoms]
-            if recal_future is not None:
-                recal = result(recal_future)
-                recon_futures = [
-                    submit(reconstruct_phantom, scenario, result(f), recal, tables)
-                    for f in scan_futures
-                ]
-                recon_parts = [result(f) for f in recon_futures]
-                scans = [f.result() for f in scan_futures]
-            outcomes = [result(f) for f in dataset_futures]
-            progress_report.drain(counts)
+                # The datasets first: each is a long serial task, and one started late
+                # would run alone at the end. The reconstruction's small tasks follow,
+                # each queued as soon as what it needs is done: the sphere scans, a
+                # method's calibrations once its spheres are scanned (single-marker
+                # ahead of the phantom scans), the registrations.
+                dataset_futures = [submit(_run_dataset, t) for t in tasks]
+                if phantoms:
+                    remount_futures = [
+                        submit(run_remount_scan, scenario, k, scratch) for k in spheres
+                    ]
+                    remount: list[RemountScan] = []
+                    recal_futures: dict[str, cf.Future] = {}
+                    scan_futures: list[cf.Future] = []
+                    for f in remount_futures:
+                        remount.append(result(f))
+                        scanned = {s.target for s in remount}
+                        for method, used in METHODS.items():
+                            if method not in recal_futures and set(used) <= scanned:
+                                # The last calibrations run mostly alone: two threads.
+                                threads = 2 if len(recal_futures) == len(METHODS) - 1 else 1
+                                recal_futures[method] = submit(
+                                    run_recalibration, scenario, method, tables,
+                                    list(remount), threads,
+                                )  # fmt: skip
+                        if not scan_futures:
+                            scan_futures = [
+                                submit(run_scan, scenario, kind, recording) for kind in phantoms
+                            ]
+                    recal = Recalibration.merge(
+                        [result(f) for f in recal_futures.values()], remount
+                    )
+                    recon_futures = [
+                        submit(reconstruct_phantom, scenario, result(f), recal, tables)
+                        for f in scan_futures
+                    ]
+                    recon_parts = [result(f) for f in recon_futures]
+                    scans = [f.result() for f in scan_futures]
+                outcomes = [result(f) for f in dataset_futures]
+                progress_report.drain(counts)
     t_datasets = time.perf_counter() - t0
     log.debug("touches and DH refinement: %.1f s; pool: %.1f s", t_touch, t_datasets)
     for o in outcomes:

@@ -13,9 +13,15 @@ Beyond the paper, the same distances are computed without ICP, through the true 
 pose the twin knows (expressed in each DH model's gauge): this separates the calibration
 and kinematic error from shape consistency, which is all the post-ICP residual shows.
 
-The stages are process-pool tasks that run beside the evaluation's datasets:
-:func:`run_recalibration` and one :func:`run_scan` per phantom (each keeps its frames and
-returns metrics or samples), then one :func:`reconstruct_phantom` per phantom.
+The stages are process-pool tasks, queued after the evaluation's datasets and cut small
+enough to keep every core busy once those are done (a single 50 CPU-second
+re-calibration task left one core idle for half a minute at the end):
+- one :func:`run_remount_scan` per sphere (the frames go to a scratch file) and one
+  :func:`run_scan` per phantom (its frames are dropped per sweep, only boundary samples
+  come back);
+- :func:`run_recalibration` per method, as soon as the scans of its spheres are done
+  (single-marker: sphere 1's), mapping their frames;
+- then one :func:`reconstruct_phantom` per phantom.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from calib.calibrate import alternate
 from calib.dh import DHTable, forward_kinematics
 from calib.image import pixel_to_us
 from calib.kinematics import kinematic_gauge, with_kinematics
-from calib.localize import localize_sphere
+from calib.localize import SweepLocalization, localize_sphere
 from calib.protocol import (
     acquire,
     check_plan,
@@ -43,6 +49,7 @@ from calib.protocol import (
     plan_sweeps,
 )
 from calib.reconstruct import distance_stats, extract_boundaries, register_icp, surface_distances
+from calib.records import Sweep
 from twin.imager import acoustic_scene
 from twin.phantoms import build_phantom
 
@@ -67,11 +74,13 @@ __all__ = [
     "PhantomReconstruction",
     "PhantomScan",
     "Recalibration",
+    "RemountScan",
     "nominal_placement",
     "recalibration_scenario",
     "reconstruct_phantom",
     "reconstruction_metrics",
     "run_recalibration",
+    "run_remount_scan",
     "run_scan",
     "scan_scenario",
 ]
@@ -83,8 +92,9 @@ _MM = 1e3
 METHODS = {"single": ("sphere_1",), "three": ("sphere_1", "sphere_2", "sphere_3")}
 
 #: Session indices of the reconstruction's own random streams (``dataset_rngs``), past
-#: any evaluation dataset's: the four-sphere re-calibration scan, then one per phantom.
-_SESSION = {"recalibration": 50, "cone": 51, "prism": 52}
+#: any evaluation dataset's: one per phantom, and the re-calibration scan's sphere N has
+#: ``recalibration + N``.
+_SESSION = {"cone": 51, "prism": 52, "recalibration": 60}
 #: Spawn key of the remount's own stream.
 _REMOUNT_KEY = 150
 
@@ -138,7 +148,80 @@ def nominal_placement(scenario: Scenario) -> Array:
     return se3.make(R, np.array(ph.position_mm) * 1e-3)
 
 
-# ------------------------------------------------------------------ re-calibration task
+# ----------------------------------------------------------------- re-calibration tasks
+
+
+@dataclass(frozen=True, eq=False)
+class RemountScan:
+    """One sphere of the re-calibration scan after the remount: its sweeps and their
+    first localization (under the coarse ``T_ee_us``). The frames are in the file
+    ``images`` (one array, sweep by sweep), which every calibration task maps instead of
+    receiving its own copy; :meth:`sweeps_with_frames` puts them back."""
+
+    target: str
+    sweeps: tuple[Sweep, ...]  # their ``images`` are empty: the frames are in the file
+    images: Path
+    first: tuple[SweepLocalization, ...]
+    cad_centre: Array  # the sphere's centre in the phantom's CAD (three-marker)
+    T_ee_us_coarse: Array
+    T_ee_us_true: Array  # truth: kept apart, for the error against it
+    dh_true: DHTable  # truth: the true arm, for the error in each model's gauge
+    timing_s: dict[str, float]
+
+    def sweeps_with_frames(self) -> tuple[Sweep, ...]:
+        # Copy-on-write mapping: the pages are the page cache's, shared by every task
+        # that maps them; writable, so the localizer's compiled kernels take them as
+        # they take any frame array.
+        frames = np.asarray(np.load(self.images, mmap_mode="c"))
+        return tuple(replace(s, images=frames[i]) for i, s in enumerate(self.sweeps))
+
+
+def run_remount_scan(scenario: Scenario, index: int, scratch: Path) -> RemountScan:
+    """Scan sphere ``index`` with the remounted probe (the re-calibration's protocol), save
+    its frames to ``scratch`` and localize it once under the coarse ``T_ee_us`` (a
+    process-pool task: one per sphere, so the scan spreads over the workers)."""
+    t0 = time.perf_counter()
+    sc = recalibration_scenario(scenario)
+    sc = replace(sc, protocol=replace(sc.protocol, spheres=(index,)))
+    rngs = dataset_rngs(scenario, _SESSION["recalibration"] + index)
+    twin = make_twin(sc, rngs["joints"])
+    imager = make_imager(sc, twin, rngs["imaging"])
+    target = f"sphere_{index}"
+    acq = simulate_acquisition(
+        sc, twin, imager, "remount", rngs["protocol"], progress=f"remount: scan {target}"
+    )
+    truth, coarse = twin.truth, acq.T_ee_us_coarse
+    cad_centre = twin.phantom_cad.landmarks[target]
+    del imager, twin
+    t_sim = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sweeps = acq.dataset.of(target)
+    # The first localization (under the coarse T_ee_us) is done once, on the poses the
+    # controller recorded: it depends only on the flange's motion within each 20 mm
+    # sweep, on which the DH models differ by a turn of the flange frame of a degree or
+    # two (≈ 0.3 mm over 10 mm) — well inside the coarse T_ee_us's own error (up to
+    # 10°), and absorbed by the calibration. Every model's alternation starts from it and
+    # re-localizes with its own poses.
+    first = localize_sphere(
+        sweeps, None, sc.phantom.sphere_radius_mm * 1e-3, sc.localization, axial_scale(sc)
+    )
+    path = scratch / f"remount_{target}.npy"
+    np.save(path, np.stack([s.images for s in sweeps]))
+    empty = np.zeros((0, *sweeps[0].images.shape[1:]), dtype=np.uint8)
+    scan = RemountScan(
+        target,
+        tuple(replace(s, images=empty) for s in sweeps),
+        path,
+        tuple(first),
+        cad_centre,
+        coarse,
+        truth.T_ee_us,
+        truth.dh_table,
+        {"simulate": t_sim, "localize": time.perf_counter() - t0},
+    )
+    del acq, sweeps
+    release_memory()
+    return scan
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,69 +234,80 @@ class Recalibration:
     truth: dict[tuple[str, str], dict[str, float]]
     timing_s: dict[str, float]
 
+    @staticmethod
+    def merge(parts: list[Recalibration], scans: list[RemountScan]) -> Recalibration:
+        """The per-method tasks' results as one, timed with the scans: ``simulate`` and
+        ``calibrate`` (the first localizations included), seconds summed over the tasks."""
+        timing = {
+            "simulate": sum(s.timing_s["simulate"] for s in scans),
+            "calibrate": sum(s.timing_s["localize"] for s in scans)
+            + sum(p.timing_s["calibrate"] for p in parts),
+        }
+        return Recalibration(
+            {k: v for p in parts for k, v in p.T_ee_us.items()},
+            {k: v for p in parts for k, v in p.n_retained.items()},
+            {k: v for p in parts for k, v in p.truth.items()},
+            timing,
+        )
 
-def run_recalibration(scenario: Scenario, tables: dict[str, DHTable]) -> Recalibration:
-    """Scan spheres 1-3 with the remounted probe and calibrate single- and three-marker
-    with every DH model (a process-pool task; the frames stay here)."""
+
+def run_recalibration(
+    scenario: Scenario,
+    method: str,
+    tables: dict[str, DHTable],
+    scans: list[RemountScan],
+    threads: int = 1,
+) -> Recalibration:
+    """Calibrate with ``method`` (of :data:`METHODS`) from the re-calibration scan of its
+    spheres, with each DH model of ``tables`` (a process-pool task, mapping the scans'
+    frames). ``threads`` > 1 localizes the spheres side by side (the localizer's kernels
+    release the GIL): the three-marker task is the last of the run, mostly alone."""
     t0 = time.perf_counter()
     sc = recalibration_scenario(scenario)
-    rngs = dataset_rngs(scenario, _SESSION["recalibration"])
-    twin = make_twin(sc, rngs["joints"])
-    imager = make_imager(sc, twin, rngs["imaging"])
-    acq = simulate_acquisition(
-        sc, twin, imager, "remount", rngs["protocol"], progress="remount: acquire sweeps"
-    )
-    truth = twin.truth
-    cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
-    del imager, twin
-    release_memory()
-    t_sim = time.perf_counter() - t0
-    radius = sc.phantom.sphere_radius_mm * 1e-3
-    scale = axial_scale(sc)
-    cfg = sc.localization
-    q_frames = np.concatenate([s.q[::10] for s in acq.dataset.sweeps])
-    tool_points = se3.apply(truth.T_ee_us, image_points(sc, 3))
+    by_target = {s.target: s for s in scans}
+    spheres = METHODS[method]
+    missing = [t for t in spheres if t not in by_target]
+    assert not missing, f"re-calibration scan lacks {missing}"
+    frames = {t: by_target[t].sweeps_with_frames() for t in spheres}
+    truth = by_target[spheres[0]]
+    cad = {t: by_target[t].cad_centre for t in spheres} if len(spheres) > 1 else None
+    # The truth in each model's gauge: over the frames this calibration used.
+    q_frames = np.concatenate([s.q[::10] for t in spheres for s in frames[t]])
+    tool_points = se3.apply(truth.T_ee_us_true, image_points(sc, 3))
     T_ee_us, n_retained, errors = {}, {}, {}
-    t0 = time.perf_counter()
-    # The first localization (under the coarse T_ee_us) is done once, on the poses the
-    # controller recorded: it depends only on the flange's motion within each 20 mm
-    # sweep, on which the DH models differ by a turn of the flange frame of a degree or
-    # two (≈ 0.3 mm over 10 mm) — well inside the coarse T_ee_us's own error (up to
-    # 10°), and absorbed by the calibration. Every model's alternation starts from it and
-    # re-localizes with its own poses. Each later model's alternation starts from the
-    # previous model's final localizations: it reaches the same estimate (within 0.02 mm
-    # over the image, measured) in fewer re-localizations.
-    targets = acq.dataset.targets()
-    first = {t: localize_sphere(acq.dataset.of(t), None, radius, cfg, scale) for t in targets}
-    start = {m: first for m in METHODS}
-    n_cal = len(tables) * len(METHODS)
-    report("remount: calibrations", 0, n_cal)
+    # Every model's alternation would reach its estimate from the first localizations;
+    # each later model's starts from the previous model's final ones instead and gets
+    # there (within 0.02 mm over the image, measured) in fewer re-localizations, which
+    # is why one task calibrates with every model.
+    start = {t: by_target[t].first for t in spheres}
+    label = f"remount: {method}-marker calibrations"
+    report(label, 0, len(tables))
     for name, table in tables.items():
-        sweeps = {t: with_kinematics(acq.dataset.of(t), table) for t in targets}
-        X_equiv = kinematic_gauge(table, truth.dh_table, q_frames, tool_points).G @ truth.T_ee_us
-        for method, spheres in METHODS.items():
-            alt = alternate(
-                {t: sweeps[t] for t in spheres},
-                radius,
-                cfg,
-                scale,
-                cad if len(spheres) > 1 else None,
-                acq.T_ee_us_coarse,
-                sc.calibration.max_alternations,
-                initial={t: start[method][t] for t in spheres},
-            )
-            start[method] = alt.localizations
-            X = alt.result.T_ee_us
-            T_ee_us[(name, method)] = X
-            n_retained[(name, method)] = int(alt.result.retained.sum())
-            errors[(name, method)] = {
-                "rotation_deg": float(np.degrees(se3.rotation_angle(X, X_equiv))),
-                "translation_mm": float(se3.translation_distance(X, X_equiv)) * _MM,
-                "image_mm": image_error_mm(sc, X, X_equiv),
-            }
-            report("remount: calibrations", len(T_ee_us), n_cal)
-    timing = {"simulate": t_sim, "calibrate": time.perf_counter() - t0}
-    return Recalibration(T_ee_us, n_retained, errors, timing)
+        X_equiv = (
+            kinematic_gauge(table, truth.dh_true, q_frames, tool_points).G @ truth.T_ee_us_true
+        )
+        alt = alternate(
+            {t: with_kinematics(frames[t], table) for t in spheres},
+            sc.phantom.sphere_radius_mm * 1e-3,
+            sc.localization,
+            axial_scale(sc),
+            cad,
+            truth.T_ee_us_coarse,
+            sc.calibration.max_alternations,
+            initial=start,
+            threads=threads,
+        )
+        start = alt.localizations
+        X = alt.result.T_ee_us
+        T_ee_us[(name, method)] = X
+        n_retained[(name, method)] = int(alt.result.retained.sum())
+        errors[(name, method)] = {
+            "rotation_deg": float(np.degrees(se3.rotation_angle(X, X_equiv))),
+            "translation_mm": float(se3.translation_distance(X, X_equiv)) * _MM,
+            "image_mm": image_error_mm(sc, X, X_equiv),
+        }
+        report(label, len(errors), len(tables))
+    return Recalibration(T_ee_us, n_retained, errors, {"calibrate": time.perf_counter() - t0})
 
 
 # ------------------------------------------------------------------------- scan tasks

@@ -4,7 +4,7 @@ Runs ``scenarios/paper.yaml`` (3 datasets × 4 spheres × 45 sweeps × 21 frames
 401 × 381 px, touches, 24 folds; then the reconstruction: a 3-sphere re-calibration scan,
 six calibrations, 45 cone and 45 prism sweeps, 12 ICP registrations) as ``uscal run``
 does, while a thread samples the memory (proportional set size) of this process and all
-its children (the pool's workers) every 0.2 s. ``--no-reconstruction`` leaves the
+its children (the pool's workers) every second. ``--no-reconstruction`` leaves the
 reconstruction out, to measure what it adds.
 Targets: ≤ 3 GB peak; the reconstruction adds ≤ 1/3 to the wall time. The last line is
 ``total_s=<value>``.
@@ -75,7 +75,9 @@ def main() -> None:
         nonlocal peak
         while not done.is_set():
             peak = max(peak, _tree_pss_bytes(os.getpid()))
-            time.sleep(0.2)
+            # Reading smaps_rollup walks each process's page tables: every 0.2 s this
+            # thread took a fifth of a core from the run it measures (py-spy).
+            done.wait(1.0)
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()

@@ -303,6 +303,7 @@ def alternate(
     tol_mm: float = 0.01,
     tol_deg: float = 0.01,
     initial: Mapping[str, Sequence[SweepLocalization]] | None = None,
+    threads: int = 1,
 ) -> AlternationResult:
     """Localize → calibrate → re-stack with the new ``T_ee_us`` → re-localize, until the
     estimate changes by less than ``tol_mm`` and ``tol_deg`` or ``max_iterations``.
@@ -318,12 +319,18 @@ def alternate(
         T: Array | None, previous: Mapping[str, Sequence[SweepLocalization | None]] | None
     ) -> tuple[dict[str, list[SweepLocalization]], float]:
         t0 = time.perf_counter()
-        out = {
-            t: localize_sphere(
-                ss, T, radius, localizer, axial_scale, previous[t] if previous else None
-            )
-            for t, ss in sweeps.items()
-        }
+
+        def one(t: str) -> list[SweepLocalization]:
+            prev = previous[t] if previous else None
+            return localize_sphere(sweeps[t], T, radius, localizer, axial_scale, prev)
+
+        if threads > 1 and len(sweeps) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(min(threads, len(sweeps))) as ex:
+                out = dict(zip(sweeps, ex.map(one, sweeps), strict=True))
+        else:
+            out = {t: one(t) for t in sweeps}
         return out, time.perf_counter() - t0
 
     if initial is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,10 +16,16 @@ ROOT = Path(__file__).resolve().parents[1]
 QUICK = str(ROOT / "scenarios" / "quick.yaml")
 
 
-def uscal(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+def uscal(
+    *args: str, cwd: Path | None = None, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    """``env``: variables set on top of this process's environment."""
     script = Path(sys.executable).parent / "uscal"
     cmd = [str(script)] if script.exists() else [sys.executable, "-m", "bench.cli"]
-    return subprocess.run([*cmd, *args], capture_output=True, text=True, cwd=cwd, timeout=300)
+    return subprocess.run(
+        [*cmd, *args], capture_output=True, text=True, cwd=cwd, timeout=300,
+        env={**os.environ, **env} if env else None,
+    )  # fmt: skip
 
 
 def uscal_here(capsys: pytest.CaptureFixture[str], *args: str) -> subprocess.CompletedProcess[str]:

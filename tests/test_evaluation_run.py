@@ -40,8 +40,12 @@ def small_run(tmp_path_factory):
     args += ["--save-dataset", str(out.parent / "datasets")]
     for o in SMALL:
         args += ["--set", o]
-    r = uscal(*args)
+    scratch = out.parent / "tmp"
+    scratch.mkdir()
+    r = uscal(*args, env={"TMPDIR": str(scratch)})
     assert r.returncode == 0, r.stderr
+    # The re-calibration scan's frames went through a scratch directory: removed.
+    assert not any(scratch.iterdir()), list(scratch.iterdir())
     return out, json.loads((out / "metrics.json").read_text()), r.stdout
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench.run import run
@@ -95,3 +96,31 @@ def test_speed_of_sound_correction_removes_a_real_bias():
     off = run(load_scenario(QUICK, [*ONE_SPHERE, "imaging.sound_speed_correction=false"]))
     err_off = off.metrics["calibration"]["single"]["true_error"]["image_mm"]
     assert err_off > 0.3  # water at 20 °C: depths 3.9 % too large
+
+
+def test_localizing_spheres_on_threads_changes_nothing():
+    """`alternate(threads=2)` (the re-calibration's last task) localizes the spheres side
+    by side: the same estimate, bit for bit, as one after the other."""
+    from bench.experiment import axial_scale, make_imager, make_twin, simulate_acquisition
+    from calib.calibrate import alternate
+
+    sc = load_scenario(
+        QUICK,
+        ["protocol.spheres=[1, 2]", "protocol.frames_per_sweep=11",
+         "imaging.pixel_spacing_mm=[0.2, 0.2]", "imaging.width_mm=30", "imaging.depth_mm=35"],
+    )  # fmt: skip
+    twin = make_twin(sc)
+    acq = simulate_acquisition(sc, twin, make_imager(sc, twin))
+    sweeps = {t: acq.dataset.of(t) for t in acq.dataset.targets()}
+    cad = {t: twin.phantom_cad.landmarks[t] for t in sweeps}
+    args = (sweeps, sc.phantom.sphere_radius_mm * 1e-3, sc.localization, axial_scale(sc), cad)
+    serial = alternate(*args, acq.T_ee_us_coarse, threads=1)
+    threaded = alternate(*args, acq.T_ee_us_coarse, threads=2)
+    assert len(serial.history) == len(threaded.history) >= 2
+    assert (serial.result.T_ee_us == threaded.result.T_ee_us).all()
+    centres = [
+        np.array([loc.centre for t in sweeps for loc in alt.localizations[t]])
+        for alt in (serial, threaded)
+    ]
+    assert np.isfinite(centres[0]).all(axis=1).mean() > 0.8
+    np.testing.assert_array_equal(*centres)
