@@ -402,7 +402,7 @@ def run_evaluation(
     workers = _workers(scenario, len(tasks))
     say(f"{len(tasks)} datasets on {workers} worker process(es)")
     if phantoms:
-        say(f"reconstruction of the {' and '.join(phantoms)} beside them")
+        say(f"reconstruction of the {' and '.join(phantoms)} after them")
     t0 = time.perf_counter()
     recon_parts: list[PhantomReconstruction] = []
     scans: list[PhantomScan] = []
