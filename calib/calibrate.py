@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -325,8 +326,6 @@ def alternate(
             return localize_sphere(sweeps[t], T, radius, localizer, axial_scale, prev)
 
         if threads > 1 and len(sweeps) > 1:
-            from concurrent.futures import ThreadPoolExecutor
-
             with ThreadPoolExecutor(min(threads, len(sweeps))) as ex:
                 out = dict(zip(sweeps, ex.map(one, sweeps), strict=True))
         else:
