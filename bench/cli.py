@@ -231,6 +231,28 @@ def _parser() -> argparse.ArgumentParser:
         "--workers", type=_non_negative_int, default=0, help="local processes (default: cores)"
     )
 
+    budget = sub.add_parser(
+        "budget",
+        help="error budget: each error source alone on an error-free rig and left out of "
+        "the full scenario, over seeds; tornado charts of what limits the rig",
+    )
+    _add_scenario_args(budget)
+    budget.add_argument("--out", help="output directory (default: out/<scenario>-budget)")
+    budget.add_argument(
+        "--sources",
+        metavar="NAME,...",
+        help="only these sources, comma-separated (default: all; an unknown name lists them)",
+    )
+    budget.add_argument(
+        "--seeds", type=_non_negative_int, default=3, help="seeds per run (default 3)"
+    )
+    budget.add_argument(
+        "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (tcp://host:8786)"
+    )
+    budget.add_argument(
+        "--workers", type=_non_negative_int, default=0, help="local processes (default: cores)"
+    )
+
     check = sub.add_parser("check", help="validate a scenario and print a summary")
     _add_scenario_args(check, optional=True)
 
@@ -880,6 +902,22 @@ def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
     return 1 if result.failed else 0
 
 
+def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
+    from .budget import plan_budget, run_budget
+
+    sources = [n.strip() for n in args.sources.split(",") if n.strip()] if args.sources else None
+    spec = plan_budget(args.scenario, args.overrides, sources, args.seeds)
+    out = Path(args.out or Path("out") / f"{Path(args.scenario).stem}-budget")
+    with _progress_bars(console) as bars, reporting(bars.update):
+        result = run_budget(spec, out, args.scheduler, args.workers or None)
+    console.print(
+        f"{len(result.runs)} runs: {result.computed} computed, {result.cached} from the "
+        f"cache, {result.failed} failed, in {result.seconds:.0f} s"
+    )
+    console.print(f"wrote {out / 'budget.csv'}, {out / 'budget.md'} and {out / 'budget.html'}")
+    return 1 if result.failed else 0
+
+
 def _cmd_docs(args: argparse.Namespace, console: Console) -> int:
     text = scenarios_markdown()
     if args.output:
@@ -904,6 +942,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             logging.getLogger(package).setLevel(logging.DEBUG)
     handlers = {
         "acquire": _cmd_acquire,
+        "budget": _cmd_budget,
         "calibrate": _cmd_calibrate,
         "check": _cmd_check,
         "docs": _cmd_docs,

@@ -52,7 +52,17 @@ from .experiment import (
 )
 from .scenario import load_scenario
 
-__all__ = ["SweepError", "SweepSpec", "load_sweep", "run_point", "run_sweep"]
+__all__ = [
+    "SweepError",
+    "SweepSpec",
+    "as_completed",
+    "code_version",
+    "executor",
+    "load_sweep",
+    "run_point",
+    "run_sweep",
+    "write_atomic",
+]
 
 STAGES = ("localize", "calibrate")
 METHODS = ("paper", "refined", "fixed_threshold")
@@ -258,13 +268,13 @@ class SweepResult:
     seconds: float
 
 
-def _write_atomic(path: Path, text: str) -> None:
+def write_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, path)
 
 
-def _executor(scheduler: str | None, workers: int | None):
+def executor(scheduler: str | None, workers: int | None):
     """(submit, wait-for-any, close) on a local process pool or a Dask cluster."""
     if scheduler is None:
         n = workers or os.cpu_count() or 1
@@ -308,7 +318,7 @@ def run_sweep(
     n_cached = len(done)
     progress_report.report("sweep points", n_cached, len(points))
     if todo:
-        submit, close = _executor(scheduler, workers)
+        submit, close = executor(scheduler, workers)
         try:
             futures = {
                 submit(_safe_point, str(spec.base), overrides, seed, spec.stages, spec.methods): (
@@ -318,25 +328,25 @@ def run_sweep(
                 )
                 for key, overrides, seed in todo
             }
-            for future in _as_completed(futures, scheduler is not None):
+            for future in as_completed(futures, scheduler is not None):
                 key, overrides, seed = futures[future]
                 doc = {"overrides": [[k, v] for k, v in overrides], "seed": seed}
                 doc.update(future.result())
-                _write_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
+                write_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
                 done[key] = doc
                 progress_report.report("sweep points", len(done), len(points))
         finally:
             close()
     ordered = [done[point_key(spec, o, s)] for o, s in points]
-    _write_atomic(out / "results.csv", results_csv(spec, ordered))
+    write_atomic(out / "results.csv", results_csv(spec, ordered))
     from .sweep_report import sweep_html
 
-    _write_atomic(out / "sweep.html", sweep_html(spec, ordered, out))
+    write_atomic(out / "sweep.html", sweep_html(spec, ordered, out))
     failed = sum("error" in d for d in ordered)
     return SweepResult(spec, ordered, len(todo), n_cached, failed, time.perf_counter() - t0)
 
 
-def _as_completed(futures, dask: bool):
+def as_completed(futures, dask: bool):
     if dask:
         from distributed import as_completed
 

@@ -1,0 +1,85 @@
+"""Every error source of the twin, declared in one place.
+
+A source is a physical imperfection of the real rig that the twin can switch on and off:
+one or more scenario keys and the value of each that turns the source off (an ideal rig in
+that respect). ``uscal budget`` switches them one at a time; ``docs/scenarios.md`` and
+``docs/paper-comparison.md`` give each key's plausible range and where it comes from.
+
+What is *not* here is the measurement itself (probe resolution, speckle, pixel size,
+the acquisition plan): those stay as the scenario sets them in every budget run, so the
+error-free rig still images through a real beam.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from .scenario import Scenario
+
+__all__ = ["ERROR_SOURCES", "ErrorSource", "source_named", "value_at"]
+
+
+@dataclass(frozen=True)
+class ErrorSource:
+    """One source: ``name`` (as ``--sources`` takes it), a short ``title``, and the
+    scenario keys with the value that switches the source off."""
+
+    name: str
+    title: str
+    off: tuple[tuple[str, Any], ...]
+
+    def present_in(self, scenario: Scenario) -> bool:
+        """Whether any of the source's keys differs from its off value in ``scenario``."""
+        return any(not _same(value_at(scenario, key), value) for key, value in self.off)
+
+    def overrides(self) -> list[tuple[str, Any]]:
+        """``(key path, off value)`` pairs that switch the source off."""
+        return list(self.off)
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def value_at(scenario: Scenario, key: str) -> Any:
+    """The value of a key path (``section.key``) in a validated scenario."""
+    node: Any = scenario
+    for part in key.split("."):
+        node = getattr(node, part)
+    return node
+
+
+#: The twin's error sources, grouped as the rig is: arm, tools and touches, the image
+#: against the pose, scanner and medium, printed phantom.
+ERROR_SOURCES: tuple[ErrorSource, ...] = (
+    # ---- the arm
+    ErrorSource("kinematics", "arm kinematics (DH) off nominal", (("robot.dh_error_scale", 0.0),)),
+    ErrorSource("repeatability", "joint repeatability", (("robot.joint_repeatability_deg", 0.0),)),
+    ErrorSource("encoder_noise", "joint encoder noise", (("robot.encoder_noise_deg", 0.0),)),
+    # ---- tools and touches
+    ErrorSource("stylus_contact", "stylus seating on a vertex", (("tools.contact_noise_mm", 0.0),)),
+    # ---- scanner and medium
+    ErrorSource(
+        "speed_of_sound",
+        "speed of sound not corrected (water vs the scanner's 1540 m/s)",
+        (("imaging.sound_speed_correction", True),),
+    ),
+    ErrorSource("electronic_noise", "electronic noise", (("imaging.noise_db", -200.0),)),
+    # ---- printed phantom
+    ErrorSource(
+        "print_tolerance",
+        "sphere radii and positions off the CAD",
+        (("phantom.tolerance_radius_mm", 0.0), ("phantom.tolerance_position_mm", 0.0)),
+    ),
+)
+
+
+def source_named(name: str) -> ErrorSource:
+    """The source called ``name`` (KeyError when there is none)."""
+    for s in ERROR_SOURCES:
+        if s.name == name:
+            return s
+    raise KeyError(name)

@@ -1,0 +1,116 @@
+"""`uscal budget`: every declared error source switches off through the scenario schema;
+a source's effect measured alone and left out matches its physics (the uncorrected speed
+of sound shifts the image by ≈ 4 % of the depth); runs that configure the same rig are
+computed once; a Dask LocalCluster gives the local pool's figures; a second call resumes
+from the cache; bad options give one line."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import pytest
+
+from bench.budget import MODES, plan_budget, run_budget
+from bench.error_sources import ERROR_SOURCES, value_at
+from bench.scenario import load_scenario
+
+from .test_cli import uscal_here
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = ROOT / "scenarios" / "quick.yaml"
+PAPER = ROOT / "scenarios" / "paper.yaml"
+# One sphere, short sweeps, the speed of sound left uncorrected: a run takes ≈ 1 s.
+SMALL = (
+    "protocol.spheres=[1]",
+    "protocol.frames_per_sweep=9",
+    "imaging.sound_speed_correction=false",
+)
+
+
+def _rows(out: Path) -> list[dict[str, str]]:
+    return list(csv.DictReader(io.StringIO((out / "budget.csv").read_text())))
+
+
+def test_every_source_switches_off_through_the_schema():
+    names = [s.name for s in ERROR_SOURCES]
+    assert len(names) == len(set(names))
+    paper = load_scenario(PAPER, check_reach=False)
+    for s in ERROR_SOURCES:
+        assert s.off, s.name
+        sets = [f"{k}={json.dumps(v)}" for k, v in s.off]
+        off = load_scenario(PAPER, sets, check_reach=False)
+        assert not s.present_in(off), s.name
+        for key, value in s.off:
+            value_at(paper, key)  # the key exists
+            assert value_at(off, key) == (tuple(value) if isinstance(value, list) else value)
+
+
+def test_budget_measures_a_source_alone_and_left_out_and_resumes(tmp_path):
+    # encoder_noise is on in quick.yaml (0.001°), speed_of_sound is switched on above,
+    # print_tolerance is on; kinematics is off in quick.yaml (dh_error_scale 0).
+    spec = plan_budget(QUICK, SMALL, ["speed_of_sound", "kinematics"], seeds=2)
+    out = tmp_path / "budget"
+    first = run_budget(spec, out, workers=2)
+    assert first.failed == 0
+    # none + all + 2 sources × (alone, all_but), per seed; kinematics is off in the
+    # scenario, so its all_but run is the 'all' run and its alone run the 'none' run.
+    assert len(first.runs) == 2 * (2 + 2 * 2)
+    assert first.computed == 2 * 4
+    rows = _rows(out)
+    assert {r["mode"] for r in rows} == set(MODES)
+    by = {(r["source"], r["mode"], r["seed"]): r for r in rows}
+    for seed in ("1", "2"):
+        none, full = by[("-", "none", seed)], by[("-", "all", seed)]
+        assert by[("kinematics", "alone", seed)] == {
+            **none,
+            "source": "kinematics",
+            "mode": "alone",
+        }
+        assert by[("kinematics", "all_but", seed)]["image_mm"] == full["image_mm"]
+        # Uncorrected: the image reads 1540/1482 - 1 = 3.9 % deep, ≈ 0.8 mm at 20 mm:
+        # alone it adds most of that to the image error; removing it saves as much.
+        alone = float(by[("speed_of_sound", "alone", seed)]["image_mm"])
+        assert alone - float(none["image_mm"]) > 0.4
+        assert (
+            float(full["image_mm"]) - float(by[("speed_of_sound", "all_but", seed)]["image_mm"])
+            > 0.4
+        )
+        assert float(none["image_mm"]) < 0.4
+    md = (out / "budget.md").read_text()
+    assert "Largest: **speed_of_sound**" in md
+    html = (out / "budget.html").read_text()
+    assert html.count("<img") >= 4 and (out / "figures" / "tornado_image_mm.png").stat().st_size
+    again = run_budget(spec, out, workers=2)
+    assert again.computed == 0 and again.cached == first.computed
+    assert _rows(out) == rows
+
+
+def test_a_dask_cluster_gives_the_local_pools_budget(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    spec = plan_budget(QUICK, SMALL, ["speed_of_sound"], seeds=1)
+    local = run_budget(spec, tmp_path / "local", workers=2)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        remote = run_budget(spec, tmp_path / "dask", scheduler=cluster.scheduler_address)
+    assert local.computed == remote.computed == 4 and not remote.failed
+    assert _rows(tmp_path / "local") == _rows(tmp_path / "dask")
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--sources", "gravity"), "unknown source(s) gravity; known: kinematics"),
+        (("--seeds", "0"), "needs at least one seed"),
+        (("--set", "robot.dh_error_scale=-1"), "robot.dh_error_scale"),
+    ],
+)
+def test_bad_budget_options_give_one_line(capsys, tmp_path, args, message):
+    r = uscal_here(capsys, "budget", str(QUICK), "--out", str(tmp_path / "o"), *args)
+    assert r.returncode == 2
+    assert message in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
