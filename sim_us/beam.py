@@ -3,7 +3,8 @@
 Lateral and axial resolution are the configured FWHM of the envelope PSF (Gaussian,
 σ = FWHM / 2.355). The elevation profile is Gaussian with a depth-dependent FWHM, the
 slice thickness ``ST(y) = sqrt(ST_f² + (H · |y − F| / F)²)``: the aperture height ``H`` at
-the face, ``ST_f`` at the focus ``F``, growing linearly past it (geometric beam).
+the face, ``ST_f`` at the focus ``F``, growing linearly past it (geometric beam). Laterally
+the first side lobe of the aperture sits at a fixed multiple of the lateral FWHM.
 """
 
 from __future__ import annotations

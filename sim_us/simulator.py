@@ -3,7 +3,12 @@
 For each frame one ray per scanline (one scanline per image column) is cast along the
 axial direction in each elevation sub-plane; the echoes are weighted by the elevation
 beam profile at their depth and summed incoherently over the sub-planes (partial
-volume), splatted at their apparent depth and blurred with the PSF. Backscatter speckle
+volume), splatted at their apparent depth — spread over the depth interval the surface
+covers across each sub-plane's slab of elevation (continuous elevation integration) —
+and blurred with the PSF (with its side lobes and the transducer's ring-down when
+configured). The scanner may draw at a geometry other than the one its frames report
+(pixel scale error, image origin and centre off the transducer face), and the medium
+may be rendered at another true temperature than the configured one. Backscatter speckle
 of a scattering medium is summed *coherently* over the elevation beam (scatterers at
 different elevations add as waves in one A-line, which keeps fully developed Rayleigh
 statistics) and blurred with the complex PSF. The display chain adds noise, gain, TGC
@@ -21,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import correlate1d, gaussian_filter1d
 
-from calib.image import pixel_to_us
+from calib.image import pixel_to_us, us_to_pixel
 
 from .beam import (
     FWHM_PER_SIGMA,
@@ -126,7 +131,9 @@ class BmodeSimulator:
         sx, sy = self.true_spacing
         self.max_depth = self.offset[1] + (H - 1) * sy  # apparent depth below the face
         self.z, dz = elevation_offsets(probe, self.max_depth)
-        rows_y = self.offset[1] + np.arange(H) * sy
+        # The face-frame point each pixel shows, through the one pixel ↔ image mapping.
+        self._pixel_y = self.offset[1] + pixel_to_us(np.arange(H), 0, W, self.true_spacing)[:, 1]
+        rows_y = self._pixel_y
         self.weights = elevation_weights(probe, rows_y, self.z, dz).astype(np.float32)  # (K, H)
         # Continuous elevation: the slab each sub-plane stands for (none with one plane)
         # and the beam profile's share at the slab's low-z edge, per row.
@@ -135,7 +142,8 @@ class BmodeSimulator:
         self._edge_share = slab_edge_shares(probe, rows_y, self.z, dz)
         # Scanlines on the nearest columns to an even spacing; each stands for the columns
         # nearest to it (its weight) and the lateral PSF (σ ≳ spacing) fills them in.
-        step = max(1.0, probe.scanline_spacing_mm * 1e-3 / sx)
+        # (The simulator's own sampling choice: on the reported pixel grid.)
+        step = max(1.0, probe.scanline_spacing_mm * 1e-3 / self.spacing[0])
         self.columns = np.unique(np.rint(np.arange(0.0, W - 1 + 1e-9, step)).astype(np.int64))
         mids = (self.columns[1:] + self.columns[:-1]) / 2
         bounds = np.concatenate([[-0.5], mids, [W - 0.5]])
@@ -221,7 +229,9 @@ class BmodeSimulator:
         frame, rem = np.divmod(echoes.ray, K * L)
         plane, line = np.divmod(rem, L)
         col = self.columns[line]
-        row_f = (echoes.depth - self.offset[1]) / self.true_spacing[1]
+        P_image = np.zeros((len(echoes.depth), 3))
+        P_image[:, 1] = echoes.depth - self.offset[1]
+        row_f = us_to_pixel(P_image, W, self.true_spacing)[0]
         slabs = None
         if self._smear:
             # Half the depth span (rows) of each hit's slab along its tangent plane.
@@ -332,7 +342,7 @@ class BmodeSimulator:
         """
         H, W = self.shape
         n = len(T_scene_us)
-        depth = self.offset[1] + np.arange(H) * self.true_spacing[1]
+        depth = self._pixel_y
         x = pixel_to_us(0, np.arange(W), W, self.true_spacing)[:, 0] + self.offset[0]
         assert medium.backscatter_db is not None
         level = 10.0 ** (medium.backscatter_db / 20.0)
