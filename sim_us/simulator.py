@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import correlate1d, gaussian_filter1d
 
+from calib import se3
 from calib.image import pixel_to_us, us_to_pixel
 
 from .beam import (
@@ -167,6 +168,14 @@ class BmodeSimulator:
         # strongest interface of the scene reflects r_max, so a path weaker than
         # floor / r_max cannot show.
         self.floor_db = self._floor_db(self.medium)
+
+    @property
+    def T_face_image(self) -> Array:
+        """(4, 4): the frame the pixels are really drawn in (``calib.image`` mapping with the
+        true spacing) in the transducer-face frame: the image origin and centre offsets.
+        A calibration absorbs them (it finds the pixels' frame); compared with the face
+        frame they show as a translation of ``T_ee_us``. Identity when they are off."""
+        return se3.make(np.eye(3), [self.offset[0], self.offset[1], 0.0])
 
     def _floor_db(self, medium: Material) -> float:
         """Trace budget (dB) with this medium around the parts."""

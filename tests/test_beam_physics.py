@@ -229,6 +229,7 @@ def test_lateral_scale_error_and_offsets():
     col = round(4.0 / 0.1) + (sim.shape[1] - 1) // 2
     shallower = cap_depth_mm(simulator(parts), col=col) - cap_depth_mm(sim, col=col)
     assert shallower == pytest.approx(1.5, abs=0.02)
+    np.testing.assert_allclose(sim.T_face_image[:3, 3], [0.0, 1.5 * MM, 0.0])
 
 
 def test_frames_report_the_nominal_spacing():
