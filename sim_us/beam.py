@@ -3,7 +3,8 @@
 Lateral and axial resolution are the configured FWHM of the envelope PSF (Gaussian,
 σ = FWHM / 2.355). The elevation profile is Gaussian with a depth-dependent FWHM, the
 slice thickness ``ST(y) = sqrt(ST_f² + (H · |y − F| / F)²)``: the aperture height ``H`` at
-the face, ``ST_f`` at the focus ``F``, growing linearly past it (geometric beam).
+the face, ``ST_f`` at the focus ``F``, growing linearly past it (geometric beam). Laterally
+the first side lobe of the aperture sits at a fixed multiple of the lateral FWHM.
 """
 
 from __future__ import annotations
@@ -13,9 +14,24 @@ from numpy.typing import NDArray
 
 from .probe import ProbeConfig
 
-__all__ = ["FWHM_PER_SIGMA", "elevation_offsets", "elevation_weights", "slice_thickness"]
+__all__ = [
+    "FWHM_PER_SIGMA",
+    "SIDE_LOBE_OFFSET_PER_FWHM",
+    "elevation_offsets",
+    "elevation_weights",
+    "slab_edge_shares",
+    "slice_thickness",
+]
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))  # 2.355
+
+# Lateral beam of a rectangular aperture D at depth z: one-way amplitude sinc(π D x / λz).
+# The first side lobe sits at the first maximum of |sinc|, u = 4.4934 (tan u = u), i.e.
+# x = 1.4303 λz/D; the two-way (transmit × receive) envelope sinc² is at half maximum at
+# u = 1.3916, a FWHM of 0.8859 λz/D. With a constant F-number (dynamic receive focus,
+# growing aperture) λz/D is the same at every depth, so the side lobe sits at a fixed
+# multiple of the configured lateral FWHM: 1.4303 / 0.8859 = 1.6145.
+SIDE_LOBE_OFFSET_PER_FWHM = 4.493409457909064 / (2.0 * 1.3915573782515103)
 
 # Sub-planes cover ± this many half slice thicknesses of the widest beam in view
 # (the two-way intensity weight there is 2^(-2c²) ≈ 0.11 of the centre's).
@@ -74,3 +90,22 @@ def elevation_weights(
     b2 = np.exp(-8.0 * np.log(2.0) * z[:, None] ** 2 / st**2)
     energy = b2 * dz[:, None]
     return energy / energy.sum(axis=0, keepdims=True)
+
+
+def slab_edge_shares(
+    probe: ProbeConfig,
+    depths_m: NDArray[np.float64],
+    z: NDArray[np.float64],
+    dz: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Share (planes, depths) of a slab's beam-profile density at its low-z edge.
+
+    Sub-plane k stands for the slab ``z_k ± dz_k / 2``; within it the two-way intensity
+    profile ``b²(z)`` is taken linear between its values at the two edges (piecewise-linear
+    integration over elevation). Returns ``b²(lo) / (b²(lo) + b²(hi))``: 0.5 for the slab in
+    the middle of the beam, less for slabs on its positive flank, more on its negative one.
+    """
+    st = slice_thickness(probe, depths_m)[None, :]
+    lo = np.exp(-8.0 * np.log(2.0) * (z - dz / 2)[:, None] ** 2 / st**2)
+    hi = np.exp(-8.0 * np.log(2.0) * (z + dz / 2)[:, None] ** 2 / st**2)
+    return lo / np.maximum(lo + hi, 1e-300)

@@ -99,6 +99,78 @@ class ProbeConfig:
     dynamic_range_db: float = field(
         default=60.0, metadata={"doc": "Log-compression dynamic range.", "ge": 10, "le": 120}
     )
+    continuous_elevation: bool = field(
+        default=True,
+        metadata={
+            "doc": "Integrate the echo continuously over the elevation beam: each sub-plane "
+            "stands for a slab of elevation over which the surface's depth changes along "
+            "its tangent plane (slope from the hit normal), so its echo is spread over that "
+            "depth interval with the beam profile (piecewise-linear in elevation). false: "
+            "point echoes per sub-plane (discrete arcs past the elevation focus)."
+        },
+    )
+    side_lobe_db: float | None = field(
+        default=None,
+        metadata={
+            "doc": "Lateral side lobes, two-way level of the first side lobe relative to the "
+            "main lobe (dB); null = off. Copies of every echo at ±1.43 λz/D, i.e. 1.61 × "
+            "the lateral FWHM of the two-way sinc² beam. Plausible: -26.5 (rectangular "
+            "aperture, -13.3 dB one way, doubled two way) to below -60 (apodized); "
+            "-35 to -50 for real arrays with element errors (array beam theory).",
+            "ge": -100,
+            "le": -6,
+        },
+    )
+    ring_down_cycles: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Transducer ring-down below echoes: the envelope behind the main pulse "
+            "decays as exp(-f t / N), N this value in cycles of the centre frequency "
+            "(Q = π N), N c / (2 f) of displayed depth per e-fold (0.12 mm at 13 MHz for "
+            "N = 2); it shows where it exceeds the PSF's trailing edge. 0 = off. "
+            "Plausible 1-3 (broadband imaging arrays, Q ≈ 3-10: 2-3 visible cycles, "
+            "≈ 0.1-0.3 mm at 13 MHz; transducer design references).",
+            "ge": 0,
+            "le": 10,
+        },
+    )
+    pixel_scale_error_pct: tuple[float, float] = field(
+        default=(0.0, 0.0),
+        metadata={
+            "doc": "Scale error of the reported pixel spacing (lateral, axial), percent, "
+            "as a caliper error: distances read off a frame with its reported spacing are "
+            "e % too long (the true spacing is spacing / (1 + e / 100)), so with e > 0 "
+            "things look e % larger and deeper. 0 = off. Caliper tolerances in vendor "
+            "manuals ±2-5 % (±2-3 % axial, ±5 % lateral); est. σ ≈ 0.5 % per axis for "
+            "one scanner.",
+            "ge": -10,
+            "le": 10,
+        },
+    )
+    image_origin_offset_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Depth of the image's row 0 below the transducer face (lens delay or "
+            "stand-off not compensated, or a frame-grabber crop): echoes appear this much "
+            "shallower; the pipeline takes row 0 at the face. 0 = off. Est. ±0.5 mm "
+            "(lens ≈ 1 mm of silicone at ≈ 1000 m/s, mostly compensated by the scanner; "
+            "a grabber crop off by a few pixels).",
+            "ge": -5,
+            "le": 5,
+        },
+    )
+    lateral_offset_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Lateral position (along +x, increasing column) of the image's centre "
+            "column off the centre of the transducer face (array placement in the "
+            "housing, grabber crop): echoes appear this much further toward column 0; "
+            "the pipeline takes it at the centre. 0 = off. Est. ±0.5 mm (a few element "
+            "pitches of 0.1-0.2 mm, or grabber pixels).",
+            "ge": -5,
+            "le": 5,
+        },
+    )
 
     @property
     def spacing_m(self) -> tuple[float, float]:
@@ -124,3 +196,22 @@ class MediumConfig:
         default=20.0,
         metadata={"doc": "Water temperature; sets the true speed of sound.", "ge": 0, "le": 60},
     )
+    temperature_drift_c_per_h: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Drift of the true water temperature during the session (°C per hour, "
+            "negative = cooling): T(t) = temperature_c + rate · t, t the session clock, "
+            "the first-order part of the water relaxing toward room temperature "
+            "(evaporative cooling keeps it 1-2 °C below). The speed of sound and "
+            "attenuation follow T(t); the pipeline keeps correcting with temperature_c. "
+            "0 = off. Est. ±0.2-1 °C/h (no published figure).",
+            "ge": -5,
+            "le": 5,
+        },
+    )
+
+    def temperature_at(self, clock_s: float) -> float:
+        """True medium temperature (°C) ``clock_s`` seconds into the session."""
+        if self.temperature_drift_c_per_h == 0.0:
+            return self.temperature_c
+        return self.temperature_c + self.temperature_drift_c_per_h * clock_s / 3600.0

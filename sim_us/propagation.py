@@ -45,13 +45,16 @@ class Echoes:
     ``ray`` index of the ray, ``depth`` apparent depth (m), ``amplitude`` echo amplitude
     relative to a perfect reflector at zero depth. ``medium_end`` (n_rays,) is the apparent
     depth at which each ray first enters a solid (inf if never): backscatter of the medium
-    exists only before it.
+    exists only before it. ``slope`` (when asked for with elevation axes) is the rate of
+    change of the echo's apparent depth with an elevational shift of the ray (m/m, signed: deeper
+    for a shift along +e), from the surface's tangent plane at the hit.
     """
 
     ray: NDArray[np.int64]
     depth: Array
     amplitude: Array
     medium_end: Array
+    slope: Array | None = None
 
 
 def trace(
@@ -65,6 +68,7 @@ def trace(
     assumed_speed: float,
     floor_db: float,
     reverberation: bool = True,
+    elevations: Array | None = None,
 ) -> Echoes:
     """Follow rays through the scene and collect their echoes.
 
@@ -75,6 +79,8 @@ def trace(
     floor_db : float
         Stop a ray once no echo it could still return would reach this far below a
         perfect reflector's (dB, positive): two-way losses and transmission included.
+    elevations : (n, 3) float, scene frame, optional
+        Each ray's elevational axis: the echoes then carry their depth ``slope``.
     """
     n = len(origins)
     # Material table: index 0 is the medium, i + 1 is part i.
@@ -96,7 +102,7 @@ def trace(
     state[:, 8] = 0  # the medium
     state[:, 9] = np.arange(n)
     medium_end = np.full(n, np.inf)
-    out_ray, out_depth, out_amp = [], [], []
+    out_ray, out_depth, out_amp, out_slope = [], [], [], []
 
     for _ in range(_MAX_PASSES):
         if len(state) == 0:
@@ -128,6 +134,15 @@ def trace(
         out_ray.append(ray)
         out_depth.append(y_app)
         out_amp.append(amp)
+        if elevations is not None:
+            # The surface's tangent plane n·(p − p_hit) = 0: shifting the ray by dz along
+            # its elevational axis e moves the hit by dt = −(n·e)/(n·d) dz along the ray,
+            # displayed at the speed the scanner assumes (the path before the surface is
+            # taken as unchanged). Grazing hits give large slopes; the caller bounds them.
+            cos_e = np.einsum("ij,ij->i", elevations[ray], nrm)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                slope = -cos_e / cos_in * assumed_speed / c
+            out_slope.append(np.nan_to_num(slope, nan=0.0))
         if reverberation:
             # Echo bounced back by the probe face and reflected once more: one more round
             # trip, specular part only (strong flat reflectors such as the tank floor).
@@ -135,6 +150,8 @@ def trace(
             out_ray.append(ray[keep])
             out_depth.append(2 * y_app[keep])
             out_amp.append((amp * r * _FACE_REFLECTION * spec * path)[keep])
+            if elevations is not None:
+                out_slope.append(2 * out_slope[-1][keep])  # twice the path, twice the slope
         first_entry = entering & (cur == 0)
         hit_rays = ray[first_entry]
         medium_end[hit_rays] = np.minimum(medium_end[hit_rays], y_app[first_entry])
@@ -145,7 +162,12 @@ def trace(
         state = state[(state[:, 7] > log_floor) & (y_app < max_depth)]
 
     if not out_ray:
-        return Echoes(np.empty(0, dtype=np.int64), np.empty(0), np.empty(0), medium_end)
+        empty = np.empty(0) if elevations is not None else None
+        return Echoes(np.empty(0, dtype=np.int64), np.empty(0), np.empty(0), medium_end, empty)
     return Echoes(
-        np.concatenate(out_ray), np.concatenate(out_depth), np.concatenate(out_amp), medium_end
+        np.concatenate(out_ray),
+        np.concatenate(out_depth),
+        np.concatenate(out_amp),
+        medium_end,
+        np.concatenate(out_slope) if elevations is not None else None,
     )

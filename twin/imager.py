@@ -58,6 +58,7 @@ class SimImager:
         self._T_ee_us = np.asarray(T_ee_us, dtype=float)
         self._rng = rng
         self.probe = probe
+        self.medium = medium
         self.simulator = BmodeSimulator(
             acoustic_scene(robot.scene.scene),
             probe,
@@ -70,11 +71,21 @@ class SimImager:
         """Pixel spacing (sx, sy) in metres."""
         return self.probe.spacing_m
 
+    def _temperature_c(self) -> float | None:
+        """The water's true temperature now (the session clock, seconds since the session
+        started); None while it does not drift (renders as configured)."""
+        if self.medium.temperature_drift_c_per_h == 0.0:
+            return None
+        return self.medium.temperature_at(getattr(self.robot, "clock_s", 0.0))
+
     def grab(self) -> UsFrame:
-        """One frame at the current true probe pose, as a frame grabber delivers it."""
+        """One frame at the current true probe pose, as a frame grabber delivers it (the
+        frame reports the scanner's nominal spacing, whatever its true geometry)."""
         T_base_us = self.robot.truth.T_base_ee @ self._T_ee_us
-        return UsFrame(self.simulator.render(T_base_us[None], self._rng)[0], self.spacing)
+        image = self.simulator.render(T_base_us[None], self._rng, self._temperature_c())[0]
+        return UsFrame(image, self.spacing)
 
     def render_at(self, T_base_us: NDArray[np.float64]) -> NDArray[np.uint8]:
         """Frames (n, H, W) at given true image poses (batched, e.g. a whole sweep)."""
-        return self.simulator.render(np.asarray(T_base_us).reshape(-1, 4, 4), self._rng)
+        T = np.asarray(T_base_us).reshape(-1, 4, 4)
+        return self.simulator.render(T, self._rng, self._temperature_c())
