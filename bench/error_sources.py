@@ -67,6 +67,23 @@ ERROR_SOURCES: tuple[ErrorSource, ...] = (
         "speed of sound not corrected (water vs the scanner's 1540 m/s)",
         (("imaging.sound_speed_correction", True),),
     ),
+    ErrorSource(
+        "water_drift",
+        "water temperature drifting during a session",
+        (("medium.temperature_drift_c_per_h", 0.0),),
+    ),
+    ErrorSource(
+        "scanner_scale",
+        "pixel spacing off its reported value",
+        (("imaging.pixel_scale_error_pct", [0.0, 0.0]),),
+    ),
+    ErrorSource(
+        "image_offsets",
+        "image origin below the face, image centre off the array centre",
+        (("imaging.image_origin_offset_mm", 0.0), ("imaging.lateral_offset_mm", 0.0)),
+    ),
+    ErrorSource("side_lobes", "side lobes of the lateral beam", (("imaging.side_lobe_db", None),)),
+    ErrorSource("ring_down", "ring-down below strong echoes", (("imaging.ring_down_cycles", 0.0),)),
     ErrorSource("electronic_noise", "electronic noise", (("imaging.noise_db", -200.0),)),
     # ---- printed phantom
     ErrorSource(
