@@ -90,6 +90,11 @@ def test_layer_lines_are_a_staircase_of_the_layer_height():
     flat, steep = np.abs(n_z) > 0.95, np.abs(n_z) < 0.2
     assert np.abs(dev[flat]).max() > 0.45 * h
     assert np.abs(dev[steep]).max() < 0.11 * h
+    # MuJoCo collides a convex hull of the printed sphere, the same solid within h/2.
+    hull = {p.name: p for p in ph.parts}["sphere_1"].collision_mesh
+    assert hull.is_convex and len(hull.faces) < len(_sphere_mesh(ph).faces) / 4
+    r_hull = np.linalg.norm(hull.vertices - cad_centre, axis=1) - r
+    assert np.abs(r_hull).max() <= h / 2 + 1e-9
 
 
 def test_layer_lines_on_the_prism_are_exact():

@@ -54,6 +54,7 @@ Array = NDArray[np.float64]
 
 _SPHERE_SUBDIVISIONS = 4  # icosphere of 5120 faces: facets deviate ≤ 4 µm at r = 5 mm
 _ROUND_SECTIONS = 96  # facets around cylinders and cones
+_HULL_VERTICES = 20_000  # vertices of a printed part's collision hull at most
 
 
 @dataclass(frozen=True)
@@ -277,11 +278,16 @@ class PhantomConfig:
 
 @dataclass(frozen=True)
 class PhantomPart:
-    """One convex solid of a phantom, in the phantom's CAD frame (metres)."""
+    """One convex solid of a phantom, in the phantom's CAD frame (metres).
+
+    ``collision_mesh``, when set, is what MuJoCo collides (it takes a mesh's convex hull
+    anyway): a printed part's fine mesh (10⁵-10⁶ faces) would cost MuJoCo seconds per
+    compile, its hull of a few thousand faces is the same solid to within its texture."""
 
     name: str
     mesh: trimesh.Trimesh
     material: str
+    collision_mesh: trimesh.Trimesh | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -358,7 +364,7 @@ def _build_spheres(
             centre, radius = c.copy(), float(r)
         else:  # printed: the landmark is the least-squares sphere of the printed surface
             mesh, centre, radius = printed[i - 1]
-            parts.append(PhantomPart(f"sphere_{i}", mesh, "pla"))
+            parts.append(_printed_part(f"sphere_{i}", mesh))
         # The post ends just inside the sphere so the two solids overlap (printed as one).
         post_top = c[2] - 0.8 * r
         parts.append(
@@ -392,6 +398,15 @@ def _build_prism(width: float, length: float, height: float) -> Phantom:
         "ridge_end": np.array([length / 2, 0.0, height]),
     }
     return Phantom("prism", (PhantomPart("prism", prism, "pla"),), landmarks)
+
+
+def _printed_part(name: str, mesh: trimesh.Trimesh) -> PhantomPart:
+    """A printed part and its collision hull (of at most ≈ 20 000 of its vertices)."""
+    hull = mesh.metadata.get("collision_hull")  # printed meshes are cached: so is this
+    if hull is None:
+        stride = max(1, len(mesh.vertices) // _HULL_VERTICES)
+        hull = mesh.metadata["collision_hull"] = trimesh.convex.convex_hull(mesh.vertices[::stride])
+    return PhantomPart(name, mesh, "pla", hull)
 
 
 def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) -> Phantom:
@@ -438,7 +453,7 @@ def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) ->
             return _build_cone(d, h)
         assert rng is not None
         mesh, landmarks = printed_cone(d, h, prints, 0, rng)
-        return Phantom("cone", (PhantomPart("cone", mesh, "pla"),), landmarks)
+        return Phantom("cone", (_printed_part("cone", mesh),), landmarks)
     w, length, h = jitter(
         np.array([cfg.prism_width_mm, cfg.prism_length_mm, cfg.prism_height_mm]) * 1e-3, tol_r
     )
@@ -446,7 +461,7 @@ def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) ->
         return _build_prism(w, length, h)
     assert rng is not None
     mesh, landmarks = printed_prism(w, length, h, prints, 0, rng)
-    return Phantom("prism", (PhantomPart("prism", mesh, "pla"),), landmarks)
+    return Phantom("prism", (_printed_part("prism", mesh),), landmarks)
 
 
 def phantom_pair(cfg: PhantomConfig, rng: np.random.Generator) -> tuple[Phantom, Phantom]:

@@ -76,6 +76,10 @@ _MIN_SPHERE_SUBDIVISIONS = 4  # the CAD sphere's own resolution
 _COARSE_STEP = 1e-3  # mesh step (m) for smooth shape error alone (quadratic, half-sine)
 _COARSE_SECTIONS = 96  # facets around the cone, as the CAD
 _WARP_HEIGHT = 5e-3  # height (m) over which the base's warp fades (≈ the first 25 layers)
+# Faces of a cone's or prism's textured surface at most: fine layers (SLA) and roughness
+# together would ask for ≈ 10 M; the roughness is then sampled more coarsely along the
+# layers (its Ra at the vertices is kept, its shortest wavelengths are not).
+_MAX_GRID_FACES = 1_500_000
 _CACHE_SIZE = 12  # printed parts kept per process (two phantoms' worth)
 _CHUNK = 16384  # points per block when summing Fourier modes (memory ≈ 32 MB)
 
@@ -364,6 +368,7 @@ def printed_cone(
     sections = _COARSE_SECTIONS
     if s.ra > 0:  # the roughness resolved around the base's circumference
         sections = max(sections, int(np.ceil(2 * np.pi * R / s.step(layers=False))))
+        sections = max(_COARSE_SECTIONS, min(sections, _MAX_GRID_FACES // (2 * len(rows))))
     theta = np.arange(sections) * 2 * np.pi / sections
     rho = R * (1.0 - rows / H)
     lateral = np.column_stack(
@@ -418,7 +423,9 @@ def printed_prism(
     W, L, H = width / 2, length, height
     slant = np.hypot(W, H)
     rows = _kink_rows(0.0, H, W / slant, s)
-    x = np.linspace(-L / 2, L / 2, max(2, int(np.ceil(L / s.step(layers=False)))) + 1)
+    cols = int(np.ceil(L / s.step(layers=False)))
+    cols = max(2, min(cols, _MAX_GRID_FACES // (4 * len(rows))))
+    x = np.linspace(-L / 2, L / 2, cols + 1)
     X, Z = np.meshgrid(x, rows)  # (rows, cols)
     Y = W * (1.0 - Z / H)
     n_face = X.size
