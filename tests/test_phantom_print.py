@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from twin import printing
 from twin.phantoms import PhantomConfig, build_phantom, phantom_pair
 from twin.printing import layer_offset
 
@@ -222,11 +223,14 @@ def test_out_of_roundness_has_the_set_rms_and_the_centre_is_the_fitted_one():
 
 
 def test_printing_is_deterministic_for_a_seed():
-    cfg = PhantomConfig(
-        print_layer_mm=0.15, print_roughness_ra_um=20, sphere_roundness_mm=0.05, **EXACT
-    )
-    a = _sphere_mesh(build_phantom(cfg, _rng(3)), 2).vertices
-    b = _sphere_mesh(build_phantom(cfg, _rng(3)), 2).vertices
-    c = _sphere_mesh(build_phantom(cfg, _rng(4)), 2).vertices
-    assert np.array_equal(a, b)
-    assert not np.allclose(a, c)
+    """The same seed prints the same sphere (built twice, past the per-process cache);
+    another seed prints another."""
+    s = PhantomConfig(print_layer_mm=0.3, print_roughness_ra_um=20, sphere_roundness_mm=0.05)
+    build = printing.printed_sphere.__wrapped__
+    centre, radius = np.array([0.0, 0.0, 20 * MM]), 5 * MM
+    a, ca, _ = build(centre, radius, s.printing, 1, _rng(3))
+    b, cb, _ = build(centre, radius, s.printing, 1, _rng(3))
+    c, cc, _ = build(centre, radius, s.printing, 1, _rng(4))
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(ca, cb)
+    assert not np.allclose(a.vertices, c.vertices, rtol=0, atol=1 * UM)
+    assert not np.array_equal(ca, cc)

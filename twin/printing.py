@@ -153,6 +153,7 @@ def _cached(build):
 
     wrapper.__doc__ = build.__doc__
     wrapper.__name__ = build.__name__
+    wrapper.__wrapped__ = build  # the uncached builder
     return wrapper
 
 
