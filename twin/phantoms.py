@@ -23,7 +23,9 @@ with ``s`` the sphere spacing (50) and ``o`` the vertex offset (60): vertices si
 from the centre, 39 mm from the nearest sphere centres, so a tilted stylus reaches them
 without touching a sphere and the probe sweeping a sphere keeps clear of the targets.
 
-A manufacturing tolerance perturbs the *true* radii and positions; the CAD stays nominal.
+A manufacturing tolerance perturbs the *true* radii and positions, and the printing
+effects of twin/printing.py (layer lines, roughness, shrinkage, warp, sag, out-of-roundness)
+the true surfaces; the CAD stays nominal.
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ import trimesh
 from numpy.typing import NDArray
 
 from calib import se3
+
+from .printing import PrintSettings, printed_cone, printed_prism, printed_sphere
 
 __all__ = [
     "Phantom",
@@ -50,6 +54,7 @@ Array = NDArray[np.float64]
 
 _SPHERE_SUBDIVISIONS = 4  # icosphere of 5120 faces: facets deviate ≤ 4 µm at r = 5 mm
 _ROUND_SECTIONS = 96  # facets around cylinders and cones
+_HULL_VERTICES = 20_000  # vertices of a printed part's collision hull at most
 
 
 @dataclass(frozen=True)
@@ -124,6 +129,112 @@ class PhantomConfig:
             "le": 5,
         },
     )
+    print_layer_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": (
+                "Layer height h of the printed phantom (truth only; 0 = a smooth surface). "
+                "The slicer prints each layer as the CAD's section at its mid-height: a "
+                "staircase of ±(h/2)·cos α along the normal (α the surface's angle to the "
+                "build axis z), largest on near-horizontal surfaces, none on vertical "
+                "walls; on the spheres, cone and prism. Plausible: FDM 0.1-0.3 mm, SLA "
+                "0.025-0.1 mm (printer and slicer settings)."
+            ),
+            "ge": 0,
+            "le": 0.5,
+        },
+    )
+    print_roughness_ra_um: float = field(
+        default=0.0,
+        metadata={
+            "doc": (
+                "Surface roughness Ra of the printed spheres, cone and prism (truth only; "
+                "0 = off): a Gaussian height field along the normal, correlated over "
+                "print_roughness_length_mm. Plausible: FDM 10-30 µm, SLA 1-3 µm (printing "
+                "service surface-finish guides)."
+            ),
+            "ge": 0,
+            "le": 200,
+        },
+    )
+    print_roughness_length_mm: float = field(
+        default=0.4,
+        metadata={
+            "doc": (
+                "Correlation length of the roughness (Gaussian covariance); about the "
+                "extrusion width for FDM (0.4 mm nozzle), 0.05-0.1 mm for SLA."
+            ),
+            "ge": 0.02,
+            "le": 5,
+        },
+    )
+    print_shrinkage_pct: float = field(
+        default=0.0,
+        metadata={
+            "doc": (
+                "Linear shrinkage of the printed cone and prism in the build plane (x, y), "
+                "about the bottom-face centre (truth only; 0 = off). Plausible for PLA FDM "
+                "0.2-0.5 % (material datasheets, printing service tolerance guides)."
+            ),
+            "ge": -2,
+            "le": 3,
+        },
+    )
+    print_shrinkage_z_pct: float = field(
+        default=0.0,
+        metadata={
+            "doc": (
+                "Linear shrinkage of the printed cone and prism along the build axis z "
+                "(truth only; 0 = off). FDM shrinks less across layers than along them: "
+                "plausible 0-0.3 % (anisotropy reported for PLA/ABS FDM parts)."
+            ),
+            "ge": -2,
+            "le": 3,
+        },
+    )
+    print_warp_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": (
+                "Warp of the printed cone's and prism's base (truth only; 0 = off): the "
+                "first layers curl up as the layers above cool and contract, a lift "
+                "growing with the square of the distance from the centre, reaching this "
+                "amount at the base's far edges (drawn per part ×U(0.5, 1.5), curvatures "
+                "in x and y ±30 %) and fading over the first 5 mm of height. Plausible "
+                "FDM 0.1-0.3 mm on a 60-120 mm base (warping reports for PLA on a heated "
+                "bed)."
+            ),
+            "ge": 0,
+            "le": 3,
+        },
+    )
+    print_sag_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": (
+                "1 σ sag (−) or bulge (+) of the printed prism's two large sloped faces "
+                "(truth only; 0 = off): a half-sine pillow along the face normal, zero at "
+                "the face's edges, drawn per face (sparse infill pulling or pushing the "
+                "skin). Plausible FDM 0.02-0.1 mm (est.)."
+            ),
+            "ge": 0,
+            "le": 1,
+        },
+    )
+    sphere_roundness_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": (
+                "Out-of-roundness of the printed spheres, rms radial deviation (1 σ; "
+                "truth only; 0 = round): degree-2 and -3 spherical harmonics with random "
+                "coefficients (ellipsoid, trefoil). The true centre is the least-squares "
+                "sphere's of the printed surface. Plausible FDM 0.05-0.2 mm, SLA "
+                "0.02-0.05 mm (sphericity of printed spheres, printing tolerance guides)."
+            ),
+            "ge": 0,
+            "le": 1,
+        },
+    )
     tank_inner_mm: tuple[float, float, float] = field(
         default=(320.0, 240.0, 150.0),
         metadata={"doc": "Water tank inner length (x), width (y), height (z).", "gt": 10},
@@ -150,14 +261,33 @@ class PhantomConfig:
         """Pose of the tank frame (centre of its inner floor), (4, 4)."""
         return se3.make(np.eye(3), np.array(self.tank_position_mm) * 1e-3)
 
+    @property
+    def printing(self) -> PrintSettings:
+        """The printing effects in SI units (twin/printing.py)."""
+        return PrintSettings(
+            layer=self.print_layer_mm * 1e-3,
+            ra=self.print_roughness_ra_um * 1e-6,
+            roughness_length=self.print_roughness_length_mm * 1e-3,
+            shrink_xy=self.print_shrinkage_pct * 1e-2,
+            shrink_z=self.print_shrinkage_z_pct * 1e-2,
+            warp=self.print_warp_mm * 1e-3,
+            sag=self.print_sag_mm * 1e-3,
+            roundness=self.sphere_roundness_mm * 1e-3,
+        )
+
 
 @dataclass(frozen=True)
 class PhantomPart:
-    """One convex solid of a phantom, in the phantom's CAD frame (metres)."""
+    """One convex solid of a phantom, in the phantom's CAD frame (metres).
+
+    ``collision_mesh``, when set, is what MuJoCo collides (it takes a mesh's convex hull
+    anyway): a printed part's fine mesh (10⁵-10⁶ faces) would cost MuJoCo seconds per
+    compile, its hull of a few thousand faces is the same solid to within its texture."""
 
     name: str
     mesh: trimesh.Trimesh
     material: str
+    collision_mesh: trimesh.Trimesh | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -220,21 +350,28 @@ def _sphere_geometry(cfg: PhantomConfig) -> _SphereGeometry:
     )
 
 
-def _build_spheres(g: _SphereGeometry) -> Phantom:
+def _build_spheres(
+    g: _SphereGeometry, printed: list[tuple[trimesh.Trimesh, Array, float]] | None = None
+) -> Phantom:
     plate = trimesh.creation.box(extents=[2 * g.plate_half, 2 * g.plate_half, g.plate_thickness])
     parts = [PhantomPart("plate", _placed(plate, np.array([0, 0, g.plate_thickness / 2])), "pla")]
     landmarks: dict[str, Array] = {}
     radii: dict[str, float] = {}
     for i, (c, r) in enumerate(zip(g.centres, g.radii, strict=True), start=1):
-        sphere = trimesh.creation.icosphere(subdivisions=_SPHERE_SUBDIVISIONS, radius=r)
-        parts.append(PhantomPart(f"sphere_{i}", _placed(sphere, c), "pla"))
+        if printed is None:
+            sphere = trimesh.creation.icosphere(subdivisions=_SPHERE_SUBDIVISIONS, radius=r)
+            parts.append(PhantomPart(f"sphere_{i}", _placed(sphere, c), "pla"))
+            centre, radius = c.copy(), float(r)
+        else:  # printed: the landmark is the least-squares sphere of the printed surface
+            mesh, centre, radius = printed[i - 1]
+            parts.append(_printed_part(f"sphere_{i}", mesh))
         # The post ends just inside the sphere so the two solids overlap (printed as one).
         post_top = c[2] - 0.8 * r
         parts.append(
             PhantomPart(f"post_{i}", _cylinder(0.4 * r, g.plate_thickness, post_top, c), "pla")
         )
-        landmarks[f"sphere_{i}"] = c.copy()
-        radii[f"sphere_{i}"] = float(r)
+        landmarks[f"sphere_{i}"] = centre
+        radii[f"sphere_{i}"] = float(radius)
     for j, v in enumerate(g.vertices, start=1):
         parts.append(
             PhantomPart(f"vertex_cone_{j}", _cone(0.008, g.plate_thickness, v[2], v), "pla")
@@ -263,16 +400,33 @@ def _build_prism(width: float, length: float, height: float) -> Phantom:
     return Phantom("prism", (PhantomPart("prism", prism, "pla"),), landmarks)
 
 
+def _printed_part(name: str, mesh: trimesh.Trimesh) -> PhantomPart:
+    """A printed part and its collision hull (of at most ≈ 20 000 of its vertices)."""
+    hull = mesh.metadata.get("collision_hull")  # printed meshes are cached: so is this
+    if hull is None:
+        stride = max(1, len(mesh.vertices) // _HULL_VERTICES)
+        hull = mesh.metadata["collision_hull"] = trimesh.convex.convex_hull(mesh.vertices[::stride])
+    return PhantomPart(name, mesh, "pla", hull)
+
+
 def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) -> Phantom:
     """The phantom of ``cfg``: its CAD if ``rng`` is None, else a printed (true) copy.
 
     The true copy draws each sphere radius and cone/prism dimension with
     ``tolerance_radius_mm`` and each sphere centre and touch vertex with
-    ``tolerance_position_mm`` (1 σ, per axis).
+    ``tolerance_position_mm`` (1 σ, per axis). When a printing effect is on
+    (``print_*``, ``sphere_roundness_mm``; see twin/printing.py) the imaged surfaces are
+    then printed: finely meshed, with layer lines and roughness, the spheres out of round,
+    the cone and prism shrunk, warped and sagging, each part from its own random stream
+    (children of ``rng``'s seed sequence; ``rng`` itself draws nothing more). The truth's
+    landmarks are where a perfect measurement puts them: a printed sphere's centre and
+    radius are the least-squares sphere's of its printed surface; the apex and ridge ends
+    move with the shrinkage and warp.
     """
     tol_r = 0.0 if rng is None else cfg.tolerance_radius_mm * 1e-3
     tol_p = 0.0 if rng is None else cfg.tolerance_position_mm * 1e-3
     gen = rng if rng is not None else np.random.default_rng(0)
+    prints = cfg.printing
 
     def jitter(values: Array, sigma: float) -> Array:
         return values + (gen.normal(0.0, sigma, np.shape(values)) if sigma > 0 else 0.0)
@@ -285,14 +439,29 @@ def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) ->
             centres=jitter(g.centres, tol_p),
             vertices=jitter(g.vertices, tol_p),
         )
-        return _build_spheres(g)
+        if rng is None or not (prints.surface or prints.roundness > 0):
+            return _build_spheres(g)
+        printed = [
+            printed_sphere(c, float(r), prints, i, rng)
+            for i, (c, r) in enumerate(zip(g.centres, g.radii, strict=True))
+        ]
+        return _build_spheres(g, printed)
+    on = rng is not None and (prints.surface or prints.shape)
     if cfg.kind == "cone":
         d, h = jitter(np.array([cfg.cone_base_diameter_mm, cfg.cone_height_mm]) * 1e-3, tol_r)
-        return _build_cone(d, h)
+        if not on:
+            return _build_cone(d, h)
+        assert rng is not None
+        mesh, landmarks = printed_cone(d, h, prints, 0, rng)
+        return Phantom("cone", (_printed_part("cone", mesh),), landmarks)
     w, length, h = jitter(
         np.array([cfg.prism_width_mm, cfg.prism_length_mm, cfg.prism_height_mm]) * 1e-3, tol_r
     )
-    return _build_prism(w, length, h)
+    if not on:
+        return _build_prism(w, length, h)
+    assert rng is not None
+    mesh, landmarks = printed_prism(w, length, h, prints, 0, rng)
+    return Phantom("prism", (_printed_part("prism", mesh),), landmarks)
 
 
 def phantom_pair(cfg: PhantomConfig, rng: np.random.Generator) -> tuple[Phantom, Phantom]:

@@ -181,10 +181,12 @@ def _add_meshes(spec: mujoco.MjSpec, phantom: Phantom, T_base: Array) -> None:
     body = spec.worldbody.add_body(name=phantom.name)
     _place(body, T_base)
     for part in phantom.parts:
+        # MuJoCo collides a mesh's convex hull: a printed part gives its hull directly.
+        mesh = part.mesh if part.collision_mesh is None else part.collision_mesh
         spec.add_mesh(
             name=part.name,
-            uservert=part.mesh.vertices.ravel().tolist(),
-            userface=part.mesh.faces.ravel().tolist(),
+            uservert=mesh.vertices.ravel().tolist(),
+            userface=mesh.faces.ravel().tolist(),
         )
         body.add_geom(
             name=part.name,
