@@ -87,6 +87,24 @@ ERROR_SOURCES: tuple[ErrorSource, ...] = (
     ErrorSource("electronic_noise", "electronic noise", (("imaging.noise_db", -200.0),)),
     # ---- printed phantom
     ErrorSource(
+        "print_surface",
+        "print layer lines and surface roughness",
+        (("phantom.print_layer_mm", 0.0), ("phantom.print_roughness_ra_um", 0.0)),
+    ),
+    ErrorSource(
+        "print_shape",
+        "printed cone and prism off their CAD shape (shrinkage, warp, sag)",
+        (
+            ("phantom.print_shrinkage_pct", 0.0),
+            ("phantom.print_shrinkage_z_pct", 0.0),
+            ("phantom.print_warp_mm", 0.0),
+            ("phantom.print_sag_mm", 0.0),
+        ),
+    ),
+    ErrorSource(
+        "sphere_roundness", "printed spheres out of round", (("phantom.sphere_roundness_mm", 0.0),)
+    ),
+    ErrorSource(
         "print_tolerance",
         "sphere radii and positions off the CAD",
         (("phantom.tolerance_radius_mm", 0.0), ("phantom.tolerance_position_mm", 0.0)),
