@@ -72,7 +72,8 @@ class SimImager:
 
     def grab(self) -> UsFrame:
         """One frame at the current true probe pose, as a frame grabber delivers it."""
-        T_base_us = self.robot.truth.T_base_ee @ self._T_ee_us
+        # The flange at the grab instant, through the loaded holder (SimRobot.frame_pose).
+        T_base_us = self.robot.frame_pose() @ self._T_ee_us
         return UsFrame(self.simulator.render(T_base_us[None], self._rng)[0], self.spacing)
 
     def render_at(self, T_base_us: NDArray[np.float64]) -> NDArray[np.uint8]:
