@@ -28,6 +28,7 @@ from calib.protocol import (
 from calib.records import Dataset, Sweep, Touch
 from calib.settings import CalibrationConfig
 from sim_us.materials import water_speed_m_s
+from twin.arm_errors import robot_stream
 from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
@@ -102,6 +103,7 @@ def make_twin(scenario: Scenario, joints_rng: np.random.Generator | None = None)
         rngs["dh"],
         rngs["phantom"],
         rngs["joints"] if joints_rng is None else joints_rng,
+        robot_stream(scenario.seed),
     )
 
 
@@ -156,7 +158,12 @@ def simulate_touches(
     lean = {k: (middle - v) * np.array([1.0, 1.0, 0.0]) for k, v in vertices.items()}
     plan = touch_plan(sorted(vertices), scenario.protocol, lean)
     guide = SimTouchGuide(
-        twin.robot, vertices, twin.truth.p_ee_tip, scenario.tools.contact_noise_mm, contact_rng
+        twin.robot,
+        vertices,
+        twin.truth.p_ee_tip,
+        scenario.tools.contact_noise_mm,
+        contact_rng,
+        scenario.tools.stylus_bending_m,
     )
     twin.mount("stylus")
     try:

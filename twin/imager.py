@@ -81,7 +81,9 @@ class SimImager:
     def grab(self) -> UsFrame:
         """One frame at the current true probe pose, as a frame grabber delivers it (the
         frame reports the scanner's nominal spacing, whatever its true geometry)."""
-        T_base_us = self.robot.truth.T_base_ee @ self._T_ee_us
+        # The flange at the grab instant, through the loaded holder (SimRobot.frame_pose,
+        # which also advances the session clock the water temperature follows).
+        T_base_us = self.robot.frame_pose() @ self._T_ee_us
         image = self.simulator.render(T_base_us[None], self._rng, self._temperature_c())[0]
         return UsFrame(image, self.spacing)
 

@@ -28,7 +28,7 @@ from calib import se3
 from calib.dh import DHTable, link_transform
 
 from .phantoms import Phantom
-from .tools import ToolGeom, ToolsConfig, tool_geoms
+from .tools import ToolGeom, ToolsConfig, tool_geoms, tool_mass_kg
 
 __all__ = ["Contact", "Scene", "SceneModel", "build_spec", "export_scene"]
 
@@ -36,6 +36,35 @@ Array = NDArray[np.float64]
 
 #: Rough link radii of a UR3 (m): base, shoulder/upper arm, forearm, three wrists.
 LINK_RADII_M = (0.064, 0.045, 0.038, 0.032, 0.032, 0.032)
+
+#: Link masses (kg) and centres of mass (m, in DH frame i, i.e. after link i's transform)
+#: as Universal Robots publishes them for kinematics and dynamics calculations. They give
+#: the joints' gravity torques (:meth:`SceneModel.gravity_torque`); the link geoms only
+#: give collisions.
+LINK_DYNAMICS: dict[str, tuple[tuple[float, ...], tuple[tuple[float, float, float], ...]]] = {
+    "ur3": (
+        (2.0, 3.42, 1.26, 0.8, 0.8, 0.35),
+        (
+            (0, -0.02, 0),
+            (0.13, 0, 0.1157),
+            (0.05, 0, 0.0238),
+            (0, 0, 0.01),
+            (0, 0, 0.01),
+            (0, 0, -0.02),
+        ),
+    ),
+    "ur3e": (
+        (1.98, 3.4445, 1.437, 0.871, 0.805, 0.261),
+        (
+            (0, -0.02, 0),
+            (0.13, 0, 0.1157),
+            (0.05, 0, 0.0238),
+            (0, 0, 0.01),
+            (0, 0, 0.01),
+            (0, 0, -0.02),
+        ),
+    ),
+}
 
 _ROBOT = {"contype": 1, "conaffinity": 0}
 _ENVIRONMENT = {"contype": 0, "conaffinity": 1}
@@ -64,6 +93,8 @@ class Scene:
     tank : Phantom
         The tank, in its own frame.
     T_base_tank : (4, 4) float
+    arm_model : str
+        Whose published link masses the arm carries (``LINK_DYNAMICS``).
     """
 
     table: DHTable
@@ -72,6 +103,7 @@ class Scene:
     T_base_phantom: Array
     tank: Phantom
     T_base_tank: Array
+    arm_model: str = "ur3"
 
 
 @dataclass(frozen=True)
@@ -120,14 +152,23 @@ def _add_segment(
     )
 
 
-def _add_arm(spec: mujoco.MjSpec, table: DHTable) -> mujoco.MjsBody:
-    """Six link bodies with hinges and capsules; returns the last link body."""
+def _add_arm(spec: mujoco.MjSpec, table: DHTable, model: str = "ur3") -> mujoco.MjsBody:
+    """Six link bodies with hinges, capsules and the published masses; returns the last
+    link body."""
     frames, T_6_flange = _body_frames(table)
     p = table.as_array()
+    masses, centres = LINK_DYNAMICS[model]
     parent = spec.worldbody
     for i in range(6):
         body = parent.add_body(name=f"link{i + 1}")
         _place(body, frames[i])
+        # Body i is DH frame i-1 turned by the joint; DH frame i sits at A_i(0) in it.
+        body.explicitinertial = True
+        body.mass = masses[i]
+        body.ipos = se3.apply(link_transform(0.0, *p[i, 1:]), centres[i]).tolist()
+        # UR: the rotational inertia of the small arms' links is negligible; a 3 cm
+        # radius of gyration keeps the model valid (statics do not depend on it).
+        body.inertia = [masses[i] * 0.03**2] * 3
         body.add_joint(
             name=f"joint{i + 1}",
             type=mujoco.mjtJoint.mjJNT_HINGE,
@@ -160,16 +201,27 @@ _SHAPES = {
 }
 
 
+def _volume(g: ToolGeom) -> float:
+    if g.shape == "box":
+        return 8.0 * g.size[0] * g.size[1] * g.size[2]
+    r, half = g.size[0], g.size[1]
+    return np.pi * r**2 * 2 * half + (4 / 3 * np.pi * r**3 if g.shape == "capsule" else 0.0)
+
+
 def _add_tool(last_link: mujoco.MjsBody, T_6_flange: Array, tools: ToolsConfig) -> None:
     tool = last_link.add_body(name="tool")
     _place(tool, T_6_flange)
+    geoms = tool_geoms(tools)
+    # The tool's mass (the payload) spread uniformly over its shapes.
+    density = tool_mass_kg(tools) / sum(_volume(g) for g in geoms)
     g: ToolGeom
-    for g in tool_geoms(tools):
+    for g in geoms:
         geom = tool.add_geom(
             name=g.name,
             type=_SHAPES[g.shape],
             size=[*g.size, 0, 0][:3],
             rgba=_RGBA["tool"],
+            density=density,
             **_ROBOT,
         )
         _place(geom, g.T_ee_geom)
@@ -202,7 +254,7 @@ def build_spec(scene: Scene) -> mujoco.MjSpec:
     spec = mujoco.MjSpec()
     spec.modelname = "uscal_twin"
     spec.compiler.degree = False
-    last_link = _add_arm(spec, scene.table)
+    last_link = _add_arm(spec, scene.table, scene.arm_model)
     _add_tool(last_link, _body_frames(scene.table)[1], scene.tools)
     _add_meshes(spec, scene.phantom, scene.T_base_phantom)
     _add_meshes(spec, scene.tank, scene.T_base_tank)
@@ -236,6 +288,18 @@ class SceneModel:
         """``T_base_ee`` (4, 4) of the MuJoCo arm at ``q``."""
         self.set_q(q)
         return se3.make(self.data.site_xmat[self._ee].reshape(3, 3), self.data.site_xpos[self._ee])
+
+    def gravity_torque(self, q: ArrayLike) -> Array:
+        """Torques (6,) in N m the joints exert to hold the arm and its tool still at
+        ``q`` against gravity: MuJoCo's bias force at zero velocity (recursive
+        Newton–Euler over the published link masses and the tool's mass)."""
+        self.data.qpos[:6] = np.asarray(q, dtype=float)
+        self.data.qvel[:] = 0.0
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
+        tau = np.zeros(self.model.nv)
+        mujoco.mj_rne(self.model, self.data, 0, tau)
+        return tau[:6].copy()
 
     def collisions(self, q: ArrayLike, ignore: tuple[str, ...] = ()) -> list[Contact]:
         """Contacts (penetration ≥ 0) between arm/tool and phantom/tank at ``q``.

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from calib import se3
 
-__all__ = ["ToolGeom", "ToolsConfig", "tool_geoms"]
+__all__ = ["ToolGeom", "ToolsConfig", "holder_deflection", "tool_geoms", "tool_mass_kg"]
 
 Array = NDArray[np.float64]
 
@@ -69,6 +69,83 @@ class ToolsConfig:
             "le": 5,
         },
     )
+
+    probe_mass_kg: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Mass of probe, cable share and holder on the flange: the payload whose "
+            "weight loads the joints (robot.joint_compliance_scale), spread over the "
+            "probe and holder shapes (0 = massless tool). Plausible 0.3–0.5 kg "
+            "(a linear probe with its cable ≈ 0.2–0.3 kg plus a printed holder).",
+            "ge": 0,
+            "le": 3,
+        },
+    )
+    stylus_mass_kg: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Mass of the touch stylus and its adapter (payload during touches; "
+            "0 = massless). Plausible 0.2–0.4 kg (a steel shaft and an aluminium flange "
+            "adapter).",
+            "ge": 0,
+            "le": 3,
+        },
+    )
+    holder_deflection_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Probe-holder compliance: the printed holder is a cantilever from the "
+            "flange to the probe's clamp bent by the probe's weight, δ = F L³/(3EI) with "
+            "tip tilt θ = F L²/(2EI) = 3δ/(2L); F is the weight's component across the "
+            "holder axis, so it depends on the direction of gravity in the flange "
+            "frame. This is δ with gravity fully across the holder (0 = rigid). The "
+            "scanner images through the loaded mount; the ground-truth T_ee_us is the "
+            "unloaded one (with the probe pointing down they coincide). Plausible "
+            "0.04–0.1 mm (0.25 kg at 12 cm on a 20 × 20 mm solid PLA arm, E 2.0–2.9 GPa), "
+            "more with sparse infill.",
+            "ge": 0,
+            "le": 2,
+        },
+    )
+    stylus_force_n: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Hand-guiding force across the stylus while its tip sits on a vertex: "
+            "the shaft bends by δ = F L³/(3EI) (L the tip's distance from the flange, I "
+            "of a solid round shaft of stylus_radius_mm) in a direction drawn per touch; "
+            "on top of contact_noise_mm (0 = off). Plausible 2–5 N.",
+            "ge": 0,
+            "le": 50,
+        },
+    )
+    stylus_modulus_gpa: float = field(
+        default=200.0,
+        metadata={
+            "doc": "Young's modulus of the stylus shaft (steel 200 GPa, aluminium 70, "
+            "carbon-fibre tube ≈ 70–130).",
+            "gt": 1,
+            "le": 1000,
+        },
+    )
+
+    @property
+    def holder_length_m(self) -> float:
+        """Length of the probe holder along the flange z axis (flange to the top of the
+        probe housing), metres."""
+        length = self.probe_body_mm[2] * 1e-3
+        probe_top = se3.apply(self.T_ee_us, [0.0, -length, 0.0])
+        return float(max(probe_top[2], 1e-3))
+
+    @property
+    def stylus_bending_m(self) -> float:
+        """Tip deflection (m) of the stylus shaft under ``stylus_force_n`` across it: a
+        cantilever of length |tip| and solid round section, δ = F L³ / (3 E I),
+        I = π r⁴ / 4."""
+        if self.stylus_force_n == 0:
+            return 0.0
+        length = float(np.linalg.norm(self.p_ee_tip))
+        inertia = np.pi * (self.stylus_radius_mm * 1e-3) ** 4 / 4
+        return self.stylus_force_n * length**3 / (3 * self.stylus_modulus_gpa * 1e9 * inertia)
 
     @property
     def T_ee_us(self) -> Array:
@@ -130,12 +207,42 @@ def tool_geoms(cfg: ToolsConfig) -> tuple[ToolGeom, ...]:
         (width / 2, length / 2, thickness / 2),
         T_ee_us @ se3.make(np.eye(3), [0.0, -length / 2, 0.0]),
     )
-    probe_top = se3.apply(T_ee_us, [0.0, -length, 0.0])
     holder = _segment(
         "probe_holder",
         "cylinder",
         cfg.holder_radius_mm * 1e-3,
         np.zeros(3),
-        np.array([0.0, 0.0, max(probe_top[2], 1e-3)]),
+        np.array([0.0, 0.0, cfg.holder_length_m]),
     )
     return holder, body
+
+
+def tool_mass_kg(cfg: ToolsConfig) -> float:
+    """Mass of the mounted tool (payload), kg."""
+    return cfg.stylus_mass_kg if cfg.mounted == "stylus" else cfg.probe_mass_kg
+
+
+def holder_deflection(R_base_ee: Array, cfg: ToolsConfig) -> Array:
+    """The printed holder's elastic deflection under the probe's weight at a flange
+    orientation: ``T_ee_loaded`` (4, 4), the loaded mount is ``T_ee_loaded @ T_ee_us``.
+
+    A cantilever along the flange z axis from the flange to the clamp (length L =
+    :attr:`ToolsConfig.holder_length_m`), end-loaded by the weight's component across the
+    axis, F = m g sin β (β the angle between gravity and the axis): the clamp moves by
+    δ = F L³/(3EI) along that component and the probe tilts by θ = F L²/(2EI) = 3δ/(2L)
+    about ẑ × û (the holder's end turns towards the load). δ at β = 90° is
+    ``holder_deflection_mm``; the probe beyond the clamp is rigid.
+    """
+    g_ee = np.asarray(R_base_ee, dtype=float).T @ np.array([0.0, 0.0, -1.0])
+    across = g_ee - g_ee[2] * np.array([0.0, 0.0, 1.0])
+    s = float(np.linalg.norm(across))  # sin β
+    if s < 1e-12 or cfg.holder_deflection_mm == 0:
+        return np.eye(4)
+    u = across / s
+    length = cfg.holder_length_m
+    delta = cfg.holder_deflection_mm * 1e-3 * s
+    theta = 1.5 * delta / length
+    R = se3.matrix_from_rotvec(theta * np.cross([0.0, 0.0, 1.0], u))
+    c = np.array([0.0, 0.0, length])
+    # p' = c + δ u + R (p − c): the clamp moves by δ u, the probe turns about it.
+    return se3.make(R, c + delta * u - R @ c)

@@ -34,7 +34,9 @@ class GroundTruth:
         The true arm (nominal + ``dh_deltas``).
     dh_deltas : DHDeltas
     T_ee_us : (4, 4) float
-        True image-to-flange transform.
+        True image-to-flange transform (the holder unloaded: with
+        ``tools.holder_deflection_mm`` the scanner images through the mount bent by the
+        probe's weight, which coincides with it when the probe points down).
     p_ee_tip : (3,) float, metres, ee frame
         True stylus tip offset.
     T_base_phantom : (4, 4) float
@@ -84,8 +86,13 @@ def build_twin(
     rng_dh: np.random.Generator,
     rng_phantom: np.random.Generator,
     rng_joints: np.random.Generator,
+    rng_robot: np.random.Generator | None = None,
 ) -> Twin:
-    """Draw the truth (DH errors, printed phantom) and build scene and robot."""
+    """Draw the truth (DH errors, printed phantom) and build scene and robot.
+
+    ``rng_robot``: fixed properties of this arm beyond its DH table, the same in every
+    session (:func:`twin.arm_errors.robot_stream`; drawn from only where they are on).
+    """
     deltas = true_dh_deltas(robot_cfg, rng_dh)
     table = robot_cfg.nominal_table.with_deltas(deltas)
     cad, printed = phantom_pair(phantom_cfg, rng_phantom)
@@ -97,6 +104,7 @@ def build_twin(
             phantom_cfg.T_base_phantom,
             build_tank(phantom_cfg),
             phantom_cfg.T_base_tank,
+            robot_cfg.model,
         )
     )
     truth = GroundTruth(
@@ -108,4 +116,5 @@ def build_twin(
         landmarks_base=printed.landmarks_in(phantom_cfg.T_base_phantom),
         sphere_radii=dict(printed.sphere_radii),
     )
-    return Twin(scene, SimRobot(robot_cfg, scene, rng_joints), cad, truth)
+    robot = SimRobot(robot_cfg, scene, rng_joints, robot_rng=rng_robot)
+    return Twin(scene, robot, cad, truth)
