@@ -59,8 +59,36 @@ ERROR_SOURCES: tuple[ErrorSource, ...] = (
     ErrorSource("kinematics", "arm kinematics (DH) off nominal", (("robot.dh_error_scale", 0.0),)),
     ErrorSource("repeatability", "joint repeatability", (("robot.joint_repeatability_deg", 0.0),)),
     ErrorSource("encoder_noise", "joint encoder noise", (("robot.encoder_noise_deg", 0.0),)),
+    ErrorSource(
+        "joint_compliance",
+        "joints twisted by gravity and payload torques",
+        (("robot.joint_compliance_scale", 0.0),),
+    ),
+    ErrorSource(
+        "gear_error",
+        "harmonic-drive transmission error and lost motion",
+        (("robot.transmission_error_arcmin", 0.0), ("robot.lost_motion_arcmin", 0.0)),
+    ),
+    ErrorSource("thermal_drift", "arm warming up over a session", (("robot.thermal_rise_k", 0.0),)),
+    # ---- the image against the pose
+    ErrorSource(
+        "vibration", "residual vibration at the grab", (("robot.residual_vibration_mm", 0.0),)
+    ),
+    ErrorSource(
+        "stale_frames",
+        "frames showing the pose before the move",
+        (("robot.stale_frame_probability", 0.0),),
+    ),
     # ---- tools and touches
+    ErrorSource(
+        "holder_compliance",
+        "printed holder bending under the probe's weight",
+        (("tools.holder_deflection_mm", 0.0),),
+    ),
     ErrorSource("stylus_contact", "stylus seating on a vertex", (("tools.contact_noise_mm", 0.0),)),
+    ErrorSource(
+        "stylus_bending", "stylus bending under the hand's force", (("tools.stylus_force_n", 0.0),)
+    ),
     # ---- scanner and medium
     ErrorSource(
         "speed_of_sound",

@@ -261,6 +261,7 @@ def _stub_imager(medium: MediumConfig, clock_s: float) -> SimImager:
     robot = SimpleNamespace(
         scene=SimpleNamespace(scene=scene),
         truth=SimpleNamespace(T_base_ee=np.eye(4)),
+        frame_pose=lambda: np.eye(4),
         clock_s=clock_s,
     )
     probe = replace(SMALL_PROBE, noise_db=-200.0)
