@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.error_sources import ERROR_SOURCES
 from bench.run import run
 from bench.scenario import load_scenario
 
@@ -18,14 +19,10 @@ from .test_cli import uscal
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "scenarios" / "quick.yaml"
 ONE_SPHERE = ["protocol.spheres=[1]"]
+# Every declared error source off (bench.error_sources), and the operator's teaching exact.
 ALL_ERRORS_OFF = [
-    "robot.dh_error_scale=0",
-    "robot.joint_repeatability_deg=0",
-    "robot.encoder_noise_deg=0",
-    "phantom.tolerance_radius_mm=0",
-    "phantom.tolerance_position_mm=0",
+    *(f"{key}={json.dumps(value)}" for s in ERROR_SOURCES for key, value in s.off),
     "protocol.teaching_error_mm=0",
-    "imaging.noise_db=-200",
 ]
 
 

@@ -116,7 +116,9 @@ class PhantomConfig:
     tolerance_radius_mm: float = field(
         default=0.05,
         metadata={
-            "doc": "Printing tolerance (1 σ) of true radii and dimensions (truth only).",
+            "doc": "Printing tolerance (1 σ) of true radii and dimensions (truth only). "
+            "Plausible FDM 0.05–0.15 mm, SLA 0.02–0.05 mm (printing-service tolerance guides: "
+            "FDM ±0.3 mm, SLA ±0.1 mm under 100 mm).",
             "ge": 0,
             "le": 5,
         },
@@ -124,7 +126,9 @@ class PhantomConfig:
     tolerance_position_mm: float = field(
         default=0.1,
         metadata={
-            "doc": "Printing tolerance (1 σ) of true sphere and vertex positions, per axis.",
+            "doc": "Printing tolerance (1 σ) of true sphere and vertex positions, per "
+            "axis (truth only). Plausible FDM 0.1–0.3 mm, SLA 0.03–0.1 mm (printing-service "
+            "tolerance guides: FDM ±0.3 mm, SLA ±0.1 mm under 100 mm).",
             "ge": 0,
             "le": 5,
         },

@@ -109,7 +109,9 @@ class RobotConfig:
     encoder_noise_deg: float = field(
         default=0.001,
         metadata={
-            "doc": "1 σ noise of reported joint angles about the true ones.",
+            "doc": "1 σ noise of reported joint angles about the true ones. Plausible "
+            "0.0005–0.002° (joint encoder resolution of the order of 0.001°; quantisation "
+            "alone gives resolution / √12).",
             "ge": 0,
             "le": 1,
         },
