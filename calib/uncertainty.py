@@ -149,34 +149,37 @@ def _residual_model(obs, targets, cad, T_X, T_Y):
     C_cad = np.array([cad[obs[g[0]].target] for g in groups]) if multi else None
 
     def residuals(x, e_cad=None, e_pt=None, e_scale=0.0):
-        T = T_b @ (se3.exp(x[:6]) @ T_X)
+        """(n_res,) for x (n_p,), or (k, n_res) for a batch x (k, n_p)."""
+        xb = np.atleast_2d(x)
+        TX = se3.exp(xb[:, :6]) @ T_X  # (k, 4, 4)
+        T = T_b[None] @ TX[:, None]  # (k, n, 4, 4)
         Pk = P if e_scale == 0.0 else P * np.array([1.0, 1.0 + e_scale, 1.0])
-        X = np.einsum("nij,nj->ni", T[:, :3, :3], Pk) + T[:, :3, 3]
+        X = (T[..., :3, :3] @ Pk[..., None])[..., 0] + T[..., :3, 3]  # (k, n, 3)
         if e_pt is not None:
             X = X + e_pt
+        k = len(xb)
         res, means = [], []
         for g in groups:
-            m = X[g].mean(axis=0)
+            m = X[:, g].mean(axis=1)
             means.append(m)
-            res.append((X[g] - m).ravel())
+            res.append((X[:, g] - m[:, None]).reshape(k, -1))
         if multi:
             C = C_cad if e_cad is None else C_cad + e_cad
-            C = se3.apply(se3.exp(x[6:12]) @ T_Y, C)
-            for g, m, c in zip(groups, means, C, strict=True):
-                res.append(np.sqrt(len(g)) * (m - c))
-        return np.concatenate(res) * _MM
+            Y = se3.exp(xb[:, 6:12]) @ T_Y
+            C = np.einsum("kij,sj->ksi", Y[:, :3, :3], C) + Y[:, None, :3, 3]
+            for s, (g, m) in enumerate(zip(groups, means, strict=True)):
+                res.append(np.sqrt(len(g)) * (m - C[:, s]))
+        out = np.concatenate(res, axis=1) * _MM
+        return out if np.ndim(x) == 2 else out[0]
 
     return residuals, len(groups), multi
 
 
 def _jacobian(f, x0, h=1e-7):
-    r0 = f(x0)
-    J = np.empty((len(r0), len(x0)))
-    for j in range(len(x0)):
-        x = x0.copy()
-        x[j] += h
-        J[:, j] = (f(x) - r0) / h
-    return r0, J
+    """Residuals and their forward-difference Jacobian, in one batched evaluation."""
+    X = np.vstack([x0, x0 + h * np.eye(len(x0))])
+    R = f(X)
+    return R[0], (R[1:] - R[0]).T / h
 
 
 def _resolve(obs, targets, cad, T_X, T_Y, n_p, iterations=3) -> Array:
@@ -193,6 +196,41 @@ def _resolve(obs, targets, cad, T_X, T_Y, n_p, iterations=3) -> Array:
         if np.linalg.norm(step[:3]) < 1e-9 and np.linalg.norm(step[3:6]) < 1e-8:
             break
     return x[:6]
+
+
+def _layout_mismatch(obs, targets, J: Array, D_cad: Array, r: Array) -> float:
+    """1 σ per axis (metres) of the per-sphere offsets that the fitted centroids' mismatch
+    with the CAD layout shows (method of moments on the residuals): a misprinted layout
+    and any localization bias of one sphere (its centre off in every view alike) pull
+    the spheres apart from their CAD positions alike.
+
+    With ``P = I − J (JᵀJ)⁻¹ Jᵀ`` (the residuals the fit leaves of a perturbation),
+    per-point noise (variance ``σ_n²`` per axis, from the sweeps' scatter) and per-sphere
+    offsets (``σ_b²``) leave ``E‖r_cad‖² = σ_n² ‖P D_pt‖²_cad + σ_b² ‖P D_cad‖²_cad`` in the
+    layout rows of the residuals."""
+    n_res = len(r)
+    D_pt = np.zeros((n_res, 3 * len(obs)))  # ∂r/∂(point offsets), mm per m
+    row = 0
+    cad_row = n_res - 3 * len(targets)
+    for s, t in enumerate(targets):
+        g = np.array([i for i, o in enumerate(obs) if o.target == t])
+        n_g = len(g)
+        cols = (3 * g[:, None] + np.arange(3)).ravel()
+        # Residuals of a sphere's points about their centroid: the centring matrix.
+        D_pt[row : row + 3 * n_g, cols] = np.kron(np.eye(n_g) - 1.0 / n_g, np.eye(3))
+        D_pt[cad_row + 3 * s : cad_row + 3 * s + 3, cols] = np.tile(np.eye(3), n_g) / np.sqrt(n_g)
+        row += 3 * n_g
+    D_pt *= _MM
+    Q, _ = np.linalg.qr(J)
+
+    def leave(X: Array) -> Array:
+        return X - Q @ (Q.T @ X)
+
+    P_pt, P_cad = leave(D_pt), leave(D_cad)
+    first, last = slice(0, cad_row), slice(cad_row, n_res)
+    sigma_n2 = float(r[first] @ r[first]) / max(float(np.sum(P_pt[first] ** 2)), 1e-30)
+    excess = float(r[last] @ r[last]) - sigma_n2 * float(np.sum(P_pt[last] ** 2))
+    return float(np.sqrt(max(excess, 0.0) / max(float(np.sum(P_cad[last] ** 2)), 1e-30)))
 
 
 def _dominating(A: Array, B: Array) -> Array:
@@ -300,15 +338,19 @@ def bound95(
     terms = {"first_order": _rss(cov_fo, A_rt), "jackknife": _rss(cov_jk, A_rt)}
     cov_sys = np.zeros((6, 6))
     h = 1e-6
-    if multi and inputs.print_tolerance_m > 0:
+    layout_observed = 0.0
+    if multi:
         D = np.empty((len(r0), 3 * n_s))
         for j in range(3 * n_s):
             e = np.zeros(3 * n_s)
             e[j] = h
             D[:, j] = (f(x0, e_cad=e.reshape(n_s, 3)) - r0) / h
-        c = propagate(D, inputs.print_tolerance_m)
-        terms["print_tolerance"] = _rss(c, A_rt)
-        cov_sys += c
+        layout_observed = _layout_mismatch(obs, targets, J, D, r0)
+        sigma = max(inputs.print_tolerance_m, layout_observed)
+        if sigma > 0:
+            c = propagate(D, sigma)
+            terms["sphere_layout"] = _rss(c, A_rt) | {"sigma_mm": sigma * _MM}
+            cov_sys += c
     if inputs.kinematic_sigma_m > 0:
         # Shared by the sweeps of one view of one sphere (a smooth function of the
         # configuration), independent between views and spheres.
@@ -340,8 +382,8 @@ def bound95(
     trans = np.linalg.norm(T[:, :3, 3] - T_X[:3, 3], axis=1)
     P = np.asarray(image_points_us, dtype=float)
     P_est = se3.apply(T_X, P)
-    moved = T[:, :3, :3] @ P.T + (T[:, :3, 3] - (T_X[:3, 3]))[:, :, None]  # (k, 3, m)
-    image = np.linalg.norm(moved - (P_est - T_X[:3, 3]).T[None], axis=1).mean(axis=1)
+    diff = T[:, :3, :3] @ P.T + (T[:, :3, 3][:, :, None] - P_est.T[None])  # (k, 3, m)
+    image = np.sqrt(np.einsum("kam,kam->km", diff, diff)).mean(axis=1)
     q = lambda v: float(np.percentile(v, 95))  # noqa: E731
     return Bound95(
         float(np.degrees(q(rot))),
