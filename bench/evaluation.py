@@ -54,6 +54,7 @@ from calib.kinematics import (
 )
 from calib.localize import localize_sphere
 from calib.records import Touch
+from calib.uncertainty import alternation_bound
 from twin.imager import acoustic_scene
 
 from . import progress as progress_report
@@ -73,6 +74,7 @@ from .experiment import (
     true_centre_in_sweep,
 )
 from .figures import LocalizationSnapshot
+from .offline import declared_uncertainty, uncertainty_entry
 from .reconstruction import (
     METHODS,
     PhantomReconstruction,
@@ -109,6 +111,7 @@ class _DatasetTask:
     touches: tuple[Touch, ...]
     recording: RecordingOptions | None = None
     save_dir: Path | None = None  # write the acquisition (with its touches) here
+    kinematic_rms_mm: float = 0.0  # the DH refinement's residual (RMS touch distance)
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,6 +127,7 @@ class DatasetOutcome:
     timing_s: dict[str, float]
     recording_part: Path | None = None
     snapshot: LocalizationSnapshot | None = None  # the report's look (first dataset only)
+    uncertainty: dict[str, dict[str, Any]] = field(default_factory=dict)  # per fold name
 
 
 def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
@@ -185,6 +189,25 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
         )
     progress_report.report(f"{task.name}: folds", len(fold_list), len(fold_list))
     t_folds = time.perf_counter() - t0
+    # Each fold's 95 % error bounds (no truth): its own data, the print specification,
+    # the medium and the frozen DH model's residual.
+    t0 = time.perf_counter()
+    inputs = declared_uncertainty(
+        scenario.phantom.tolerance_position_mm,
+        scenario.imaging.sound_speed_correction,
+        scenario.medium.kind,
+        scenario.medium.temperature_c,
+        scenario.imaging.assumed_speed_m_s,
+        task.kinematic_rms_mm,
+    )
+    grid = image_points(scenario)
+    uncertainty = {}
+    for r in results:
+        multi = {t: cad[t] for t in r.fold.train} if len(r.fold.train) >= 2 else None
+        uncertainty[r.fold.name] = uncertainty_entry(
+            alternation_bound(r.alternation, grid, multi, inputs), inputs
+        )
+    t_bounds = time.perf_counter() - t0
 
     # ---- against the truth (beyond the paper)
     t0 = time.perf_counter()
@@ -264,6 +287,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
             "simulate": t_sim,
             "localize_initial": t_loc0,
             "folds": t_folds,
+            "bounds": t_bounds,
             "truth": time.perf_counter() - t0,
             "localize_folds": float(
                 sum(h["localize_s"] for r in results for h in r.alternation.history)
@@ -271,6 +295,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
         },
         part,
         snapshot,
+        uncertainty,
     )
 
 
@@ -394,6 +419,7 @@ def run_evaluation(
             tuple(touches[name]),
             recording,
             Path(save_dataset) / name if save_dataset is not None else None,
+            float(np.sqrt(np.mean(refinements[name].residuals_mm ** 2))),
         )
         for i, (name, sc) in enumerate(zip(names, scenarios, strict=True))
     ]
@@ -596,6 +622,7 @@ def _metrics(
     if len(errors) == 0:
         errors = np.array([np.nan])
     fold_truth = {f["fold"]: f for o in outcomes for f in o.truth["folds"]}
+    fold_bounds = {k: v for o in outcomes for k, v in o.uncertainty.items()}
 
     def calibration_entry(r: FoldResult) -> dict[str, Any]:
         t = fold_truth[r.fold.name]
@@ -607,6 +634,11 @@ def _metrics(
                 "translation_mm": t["translation_mm"],
                 "image_mm": t["image_mm"],
             },
+            **(
+                {"bound95": fold_bounds[r.fold.name]["bound95"]}
+                if r.fold.name in fold_bounds
+                else {}
+            ),
             "precision_mm": float(np.mean(list(training_precision(alt).values()))),
             "accuracy_mm": r.accuracy,
             "accuracy_true_mm": t["accuracy_true_mm"],
@@ -618,6 +650,11 @@ def _metrics(
             "history": alt.history,
             "trained_on": list(r.fold.train),
             "tested_on": list(r.fold.test),
+            **(
+                {"uncertainty": fold_bounds[r.fold.name]["uncertainty"]}
+                if r.fold.name in fold_bounds
+                else {}
+            ),
         }
 
     folds_doc = []
@@ -640,6 +677,11 @@ def _metrics(
                     "n_retained": int(r.alternation.result.retained.sum()),
                     "iterations": len(r.alternation.history),
                     "true": {k: v for k, v in t.items() if k != "fold"},
+                    **(
+                        {"bound95": fold_bounds[r.fold.name]["bound95"]}
+                        if r.fold.name in fold_bounds
+                        else {}
+                    ),
                 }
             )
     kin = {}

@@ -28,6 +28,7 @@ from calib.evaluate import evaluate_fold, folds, training_precision
 from calib.kinematics import TouchReference, fit_reference, refine_dh, with_kinematics
 from calib.localize import LocalizerConfig, localize_sphere
 from calib.records import Dataset
+from calib.uncertainty import Bound95, UncertaintyInputs, alternation_bound, image_grid
 
 from .experiment import SimulatedAcquisition, speed_ratio
 from .figures import dataset_snapshot
@@ -35,10 +36,12 @@ from .progress import report
 from .scenario import Scenario
 
 __all__ = [
+    "THERMOMETER_UNCERTAINTY_C",
     "MarkerCalibrations",
     "acquisition_info",
     "calibrate_markers",
     "calibrate_recorded",
+    "declared_uncertainty",
     "record_recorded",
     "save_dataset",
 ]
@@ -178,8 +181,61 @@ def calibrate_markers(
     return MarkerCalibrations(targets, single, three)
 
 
-def calibration_entry(alt: AlternationResult, train: list[str], test: list[str]) -> dict[str, Any]:
-    """What ``metrics.json`` keeps of one calibration, truth aside."""
+#: Uncertainty (°C) of the water temperature a user reads off a lab thermometer: with the
+#: speed-of-sound correction, the axial scale is uncertain by the speed's change over it
+#: (≈ 0.1 % at 20 °C, Marczak's formula).
+THERMOMETER_UNCERTAINTY_C = 0.5
+
+
+def declared_uncertainty(
+    print_tolerance_mm: float,
+    sound_speed_correction: bool,
+    medium: str,
+    temperature_c: float,
+    assumed_speed_m_s: float,
+    kinematic_residual_rms_mm: float = 0.0,
+) -> UncertaintyInputs:
+    """The systematic terms the pipeline knows of (:class:`calib.uncertainty.
+    UncertaintyInputs`): the phantom's print specification (1 σ per axis of a sphere
+    centre), the axial scale's uncertainty — with the speed-of-sound correction, the
+    thermometer's; without, the whole difference between the medium's speed at the
+    recorded temperature and the scanner's assumed one — and the kinematic model's
+    residual after a DH refinement (RMS distance of the touches from the model; per axis
+    it is that over √3)."""
+    ratio = speed_ratio(True, medium, temperature_c, assumed_speed_m_s)
+    if sound_speed_correction:
+        warmer = speed_ratio(
+            True, medium, temperature_c + THERMOMETER_UNCERTAINTY_C, assumed_speed_m_s
+        )
+        scale_sigma = abs(warmer / ratio - 1.0)
+    else:
+        scale_sigma = abs(ratio - 1.0)
+    return UncertaintyInputs(
+        print_tolerance_m=print_tolerance_mm * 1e-3,
+        kinematic_sigma_m=kinematic_residual_rms_mm * 1e-3 / np.sqrt(3.0),
+        axial_scale_sigma=scale_sigma,
+    )
+
+
+def uncertainty_entry(bound: Bound95, inputs: UncertaintyInputs) -> dict[str, Any]:
+    """``metrics.json``'s ``bound95`` and ``uncertainty`` of one calibration."""
+    details = bound.details()
+    details["declared"] = {
+        "print_tolerance_mm": inputs.print_tolerance_m * _MM,
+        "kinematic_sigma_mm": inputs.kinematic_sigma_m * _MM,
+        "axial_scale_sigma": inputs.axial_scale_sigma,
+    }
+    return {"bound95": bound.as_dict(), "uncertainty": details}
+
+
+def calibration_entry(
+    alt: AlternationResult,
+    train: list[str],
+    test: list[str],
+    bound: tuple[Bound95, UncertaintyInputs] | None = None,
+) -> dict[str, Any]:
+    """What ``metrics.json`` keeps of one calibration, truth aside (``bound``: its 95 %
+    error bounds and the declared terms they include)."""
     precision = training_precision(alt)
     return {
         "precision_mm": float(np.mean([precision[t] for t in train])),
@@ -191,6 +247,7 @@ def calibration_entry(alt: AlternationResult, train: list[str], test: list[str])
         "history": alt.history,
         "trained_on": list(train),
         "tested_on": list(test),
+        **(uncertainty_entry(*bound) if bound is not None else {}),
     }
 
 
@@ -258,17 +315,18 @@ def _touch_kinematics(
     info: AcquisitionInfo,
     settings: Scenario,
     dh_from: list[tuple[Dataset, AcquisitionInfo]],
-) -> tuple[DHTable, TouchReference, str]:
+) -> tuple[DHTable, TouchReference, str, float]:
     """The paper's touch-based steps on recorded data: DH corrections from the touches of
     ``dh_from`` (the paper's leave-one-dataset-out; this dataset's own when empty), then
-    this dataset's tip offset and phantom pose with that model frozen."""
+    this dataset's tip offset and phantom pose with that model frozen. Also returns the
+    refinement's residual (RMS touch distance, mm)."""
     vertices = {k: v for k, v in info.landmarks.items() if k.startswith("vertex_")}
     if not vertices:
         raise DatasetError(f"dataset {dataset.name}: touches but no vertex_* landmarks")
     tip = np.asarray(info.stylus_tip_cad_mm, dtype=float) * 1e-3
     ev = settings.evaluation
     sources = dh_from or [(dataset, info)]
-    table = refine_dh(
+    refinement = refine_dh(
         settings.robot.nominal_table,
         [d.touches for d, _ in sources],
         vertices,
@@ -276,9 +334,11 @@ def _touch_kinematics(
         ev.dh_regularizer,
         ev.initialisations,
         ev.dh_bound,
-    ).table
+    )
+    table = refinement.table
     origin = ", ".join(d.name for d, _ in sources)
-    return table, fit_reference(table, dataset.touches, vertices, tip), origin
+    rms = float(np.sqrt(np.mean(refinement.residuals_mm**2)))
+    return table, fit_reference(table, dataset.touches, vertices, tip), origin, rms
 
 
 def calibrate_recorded(
@@ -309,9 +369,12 @@ def calibrate_recorded(
     cad = {k: v for k, v in info.landmarks.items() if k.startswith("sphere_")}
     evaluation: dict[str, Any] | None = None
     dh_table: DHTable | None = None
+    kinematic_rms_mm = 0.0  # the controller's own model: no residual known
     if dataset.touches:
         t1 = time.perf_counter()
-        dh_table, reference, origin = _touch_kinematics(dataset, info, settings, others)
+        dh_table, reference, origin, kinematic_rms_mm = _touch_kinematics(
+            dataset, info, settings, others
+        )
         # Every frame's flange pose from its joint angles through the refined model.
         dataset = Dataset(
             dataset.name,
@@ -338,12 +401,31 @@ def calibrate_recorded(
     targets = cals.targets
     final: dict[str, Any] = {}
     calibration: dict[str, Any] = {}
+    # The bounds' declared terms: the settings' print specification of the phantom, the
+    # recorded medium, the refinement's residual.
+    inputs = declared_uncertainty(
+        settings.phantom.tolerance_position_mm,
+        info.sound_speed_correction,
+        info.medium,
+        info.temperature_c,
+        info.assumed_speed_m_s,
+        kinematic_rms_mm,
+    )
+    sweep0 = dataset.sweeps[0]
+    H, W = sweep0.images.shape[1:]
+    grid = image_grid((W - 1) * sweep0.spacing[0], (H - 1) * sweep0.spacing[1] * scale)
     if cals.single is not None:
         final.update(cals.single.localizations)
-        calibration["single"] = calibration_entry(cals.single, targets[:1], targets[1:])
+        bound = alternation_bound(cals.single, grid, None, inputs)
+        calibration["single"] = calibration_entry(
+            cals.single, targets[:1], targets[1:], (bound, inputs)
+        )
     if cals.three is not None:
         final.update(cals.three.localizations)
-        calibration["three"] = calibration_entry(cals.three, targets[:3], targets[3:])
+        bound = alternation_bound(cals.three, grid, {t: cad[t] for t in targets[:3]}, inputs)
+        calibration["three"] = calibration_entry(
+            cals.three, targets[:3], targets[3:], (bound, inputs)
+        )
     n_sweeps = sum(len(v) for v in final.values())
     n_rejected = sum(not loc.accepted for v in final.values() for loc in v)
     if cals.single is not None and cals.three is not None:
@@ -356,7 +438,6 @@ def calibrate_recorded(
         evaluation.update(
             _folds(dataset, reference, radius, settings, scale, cad, info.T_ee_us_coarse)
         )
-    sweep0 = dataset.sweeps[0]
     metrics: dict[str, Any] = {
         "dataset": {
             "path": str(Path(directory)),

@@ -87,6 +87,26 @@ def _chosen(metrics: dict[str, Any]) -> str:
     return "three" if "three" in metrics["calibration"] else "single"
 
 
+def _bound_doc(cal: dict[str, Any]) -> dict[str, Any]:
+    """``calibration.yaml``'s 95 % error bounds of a calibration."""
+    b = cal["bound95"]
+    u = cal.get("uncertainty", {})
+    declared = u.get("declared", {})
+    return {
+        "rotation_deg": round(b["rotation_deg"], 5),
+        "translation_mm": round(b["translation_mm"], 5),
+        "image_mm": round(b["image_mm"], 5),
+        "note": (
+            "95 % error bounds of T_ee_us: its rotation angle, the distance of its origin, "
+            "and the mean error over the image; from a jackknife over the "
+            f"{u.get('views', '?')} views (probe orientations) of the data plus the declared "
+            f"systematic terms (print tolerance {declared.get('print_tolerance_mm', 0):g} mm, "
+            f"kinematic residual {declared.get('kinematic_sigma_mm', 0):.3g} mm, axial scale "
+            f"{declared.get('axial_scale_sigma', 0):.2g}; 1 σ per axis)."
+        ),
+    }
+
+
 def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any]:
     """``calibration.yaml``'s content."""
     m = result.metrics
@@ -145,6 +165,7 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
             "translation_mm": np.round(std[3:] * _MM, 5).tolist(),
             "covariance_rotvec_rad_translation_m": cov.tolist(),
         },
+        **({"bound95": _bound_doc(cal)} if "bound95" in cal else {}),
         "image": {
             "width_px": int(W),
             "height_px": int(H),
@@ -305,9 +326,37 @@ def _calibration_md(m: dict[str, Any]) -> str:
             f"1 σ (first order, from the residuals): rotation "
             f"{', '.join(f'{v:.3f}' for v in np.degrees(std[:3]))} °, translation "
             f"{', '.join(f'{v:.3f}' for v in std[3:] * _MM)} mm. "
-            f"{c['n_retained']} observations kept, {c['iterations']} alternations.\n\n" + against
+            f"{c['n_retained']} observations kept, {c['iterations']} alternations.\n\n"
+            + _bound_md(c)
+            + against
         )
     return "\n\n".join(parts)
+
+
+def _bound_md(c: dict[str, Any]) -> str:
+    """The 95 % error bounds of one calibration and what they are made of."""
+    b = c.get("bound95")
+    if b is None:
+        return ""
+    u = c.get("uncertainty", {})
+    terms = u.get("one_sigma_rss", {})
+    names = {
+        "jackknife": "jackknife over views",
+        "first_order": "first order",
+        "print_tolerance": "print tolerance",
+        "kinematics": "kinematic residual",
+        "axial_scale": "axial scale",
+    }
+    parts = ", ".join(
+        f"{label} {terms[k]['rotation_deg']:.3f} ° / {terms[k]['translation_mm']:.3f} mm"
+        for k, label in names.items()
+        if k in terms
+    )
+    return (
+        f"95 % error bound: rotation {b['rotation_deg']:.3f} °, translation "
+        f"{b['translation_mm']:.3f} mm, mean error over the image {b['image_mm']:.3f} mm "
+        f"(1 σ, rss over the axes: {parts}).\n\n"
+    )
 
 
 def _localization_md(m: dict[str, Any]) -> str:

@@ -1,0 +1,414 @@
+"""95 % error bounds of an estimated ``T_ee_us`` from the data it rests on.
+
+The first-order covariance of :func:`calib.calibrate.calibrate` (Jacobian and residual
+variance) treats every localized centre as independent noise. Two kinds of error break
+that: errors that depend on the pose and so are shared by the sweeps of one view (a
+localization bias that depends on how the sphere is seen, the kinematic model's
+residual, which is a smooth function of the arm's configuration), and errors common to
+every sweep that the residuals cannot show (the printed sphere layout off its CAD, a
+speed-of-sound scale). The covariance here adds:
+
+- **grouped jackknife** (statistical, from the data): the sweeps are grouped by the
+  flange orientation they were taken at (the paper's protocol: 9 orientations × 5
+  in-plane positions), each group is left out in turn and the calibration re-solved;
+  the spread of the leave-one-group-out estimates, ``(g − 1)/g · Σ (θ_i − θ̄)(θ_i − θ̄)ᵀ``
+  (Efron & Stein's delete-group jackknife), measures the error of correlated,
+  view-dependent sources that sweep-level residuals average away. It is never taken
+  below the first-order covariance (the larger of the two in every direction), and its
+  95 % quantile uses Student's t with g − 1 degrees of freedom (g groups estimate it).
+- **declared systematic terms**, propagated to first order through the solve
+  (``dθ = −(JᵀJ)⁻¹ Jᵀ ∂r/∂e · de``): the print tolerance of the CAD sphere layout
+  (multi-marker; 1 σ per axis per centre, the phantom's print specification), the
+  kinematic model's residual after a DH refinement (1 σ per axis of each view's
+  reconstructed point, from the touch fit's residual), and the uncertainty of the axial
+  scale (speed of sound).
+
+The bounds are the 95th percentiles, over draws from that covariance, of the three
+error measures the twin scores: rotation angle of ``T_est⁻¹ T``, translation distance,
+and the mean distance over image points.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import ndtri, stdtrit
+
+from . import se3
+from .calibrate import AlternationResult, CalibrationResult, Observation
+from .image import pixel_to_us
+
+__all__ = [
+    "Bound95",
+    "UncertaintyInputs",
+    "alternation_bound",
+    "bound95",
+    "image_grid",
+    "orientation_groups",
+]
+
+Array = NDArray[np.float64]
+_MM = 1e3
+
+#: The draws' own generator (a fixed seed: the same calibration gives the same bound;
+#: no scenario stream is touched).
+_DRAWS_SEED = 0x5EED_B095
+
+
+@dataclass(frozen=True)
+class UncertaintyInputs:
+    """What the pipeline declares about errors its residuals cannot show.
+
+    Attributes
+    ----------
+    print_tolerance_m : float
+        1 σ per axis of each printed sphere centre about its CAD position (the phantom's
+        print specification); used with two or more markers.
+    kinematic_sigma_m : float
+        1 σ per axis of the flange position error left by the kinematic model at each
+        view (e.g. the RMS residual of a DH refinement from touches, per axis); 0 when
+        the controller's own model is trusted.
+    axial_scale_sigma : float
+        1 σ of the relative axial (depth) scale of the localized centres (speed of sound:
+        the thermometer's uncertainty when corrected, the whole known difference when not).
+    """
+
+    print_tolerance_m: float = 0.0
+    kinematic_sigma_m: float = 0.0
+    axial_scale_sigma: float = 0.0
+
+
+@dataclass(frozen=True)
+class Bound95:
+    """95 % error bounds of a ``T_ee_us`` estimate and what they were made of.
+
+    ``covariance`` (6, 6) is of (rotation vector in the ee frame, rad; translation, m) of
+    ``T_ee_us``, as :class:`calib.calibrate.CalibrationResult`'s; ``terms`` the 1 σ of
+    rotation and translation (rss over the axes, degrees and mm) of each part.
+    """
+
+    rotation_deg: float
+    translation_mm: float
+    image_mm: float
+    covariance: Array
+    groups: int
+    terms: dict[str, dict[str, float]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict[str, float]:
+        """``metrics.json``'s ``bound95``."""
+        return {
+            "rotation_deg": self.rotation_deg,
+            "translation_mm": self.translation_mm,
+            "image_mm": self.image_mm,
+        }
+
+    def details(self) -> dict[str, Any]:
+        """``metrics.json``'s ``uncertainty``: how the bound was made."""
+        return {
+            "method": "jackknife over views (orientation groups) + declared systematic terms",
+            "views": self.groups,
+            "one_sigma_rss": self.terms,
+            "covariance_rotvec_rad_translation_m": self.covariance.tolist(),
+            "seconds": self.seconds,
+        }
+
+
+def orientation_groups(obs: Sequence[Observation], tol_deg: float = 5.0) -> NDArray[np.int_]:
+    """Group index (n,) of each observation: observations whose flange orientations are
+    within ``tol_deg`` of a group's first one share it (the protocol's views; the
+    in-plane positions of one view, and the same view of other spheres, fall together)."""
+    R = np.array([o.T_base_ee[:3, :3] for o in obs])
+    cos_tol = np.cos(np.radians(tol_deg))
+    out = np.full(len(obs), -1)
+    g = 0
+    for i in range(len(obs)):
+        if out[i] >= 0:
+            continue
+        # cos of the relative angle: (tr(R_iᵀ R_j) − 1) / 2
+        cos = (np.einsum("ab,nab->n", R[i], R) - 1.0) / 2.0
+        out[(out < 0) & (cos > cos_tol)] = g
+        g += 1
+    return out
+
+
+def _residual_model(obs, targets, cad, T_X, T_Y):
+    """Residuals (mm) of the calibration's loss at ``exp(ξ_X) T_X`` (and phantom pose
+    ``exp(ξ_Y) T_Y``) with perturbations: ``e_cad`` (s, 3) metres on the CAD centres,
+    ``e_pt`` (n, 3) metres on the reconstructed points, ``e_scale`` on the axial scale."""
+    T_b = np.array([o.T_base_ee for o in obs])
+    P = np.array([o.p_us for o in obs])
+    groups = [np.array([i for i, o in enumerate(obs) if o.target == s]) for s in targets]
+    groups = [g for g in groups if len(g)]
+    multi = cad is not None
+    C_cad = np.array([cad[obs[g[0]].target] for g in groups]) if multi else None
+
+    def residuals(x, e_cad=None, e_pt=None, e_scale=0.0):
+        """(n_res,) for x (n_p,), or (k, n_res) for a batch x (k, n_p)."""
+        xb = np.atleast_2d(x)
+        TX = se3.exp(xb[:, :6]) @ T_X  # (k, 4, 4)
+        T = T_b[None] @ TX[:, None]  # (k, n, 4, 4)
+        Pk = P if e_scale == 0.0 else P * np.array([1.0, 1.0 + e_scale, 1.0])
+        X = (T[..., :3, :3] @ Pk[..., None])[..., 0] + T[..., :3, 3]  # (k, n, 3)
+        if e_pt is not None:
+            X = X + e_pt
+        k = len(xb)
+        res, means = [], []
+        for g in groups:
+            m = X[:, g].mean(axis=1)
+            means.append(m)
+            res.append((X[:, g] - m[:, None]).reshape(k, -1))
+        if multi:
+            C = C_cad if e_cad is None else C_cad + e_cad
+            Y = se3.exp(xb[:, 6:12]) @ T_Y
+            C = np.einsum("kij,sj->ksi", Y[:, :3, :3], C) + Y[:, None, :3, 3]
+            for s, (g, m) in enumerate(zip(groups, means, strict=True)):
+                res.append(np.sqrt(len(g)) * (m - C[:, s]))
+        out = np.concatenate(res, axis=1) * _MM
+        return out if np.ndim(x) == 2 else out[0]
+
+    return residuals, len(groups), multi
+
+
+def _jacobian(f, x0, h=1e-7):
+    """Residuals and their forward-difference Jacobian, in one batched evaluation."""
+    X = np.vstack([x0, x0 + h * np.eye(len(x0))])
+    R = f(X)
+    return R[0], (R[1:] - R[0]).T / h
+
+
+def _resolve(obs, targets, cad, T_X, T_Y, n_p, iterations=3) -> Array:
+    """Re-solve the calibration on a subset of the observations from the full estimate:
+    Gauss-Newton steps (the loss is nearly quadratic this close to its minimum; each
+    step costs a finite-difference Jacobian, ≈ 1 ms). Returns the left increment ξ of
+    ``T_ee_us`` (6,)."""
+    f, _, _ = _residual_model(obs, targets, cad, T_X, T_Y)
+    x = np.zeros(n_p)
+    for _ in range(iterations):
+        r, J = _jacobian(f, x)
+        step = np.linalg.lstsq(J, -r, rcond=None)[0]
+        x = x + step
+        if np.linalg.norm(step[:3]) < 1e-9 and np.linalg.norm(step[3:6]) < 1e-8:
+            break
+    return x[:6]
+
+
+def _layout_mismatch(obs, targets, J: Array, D_cad: Array, r: Array) -> float:
+    """1 σ per axis (metres) of the per-sphere offsets that the fitted centroids' mismatch
+    with the CAD layout shows (method of moments on the residuals): a misprinted layout
+    and any localization bias of one sphere (its centre off in every view alike) pull
+    the spheres apart from their CAD positions alike.
+
+    With ``P = I − J (JᵀJ)⁻¹ Jᵀ`` (the residuals the fit leaves of a perturbation),
+    per-point noise (variance ``σ_n²`` per axis, from the sweeps' scatter) and per-sphere
+    offsets (``σ_b²``) leave ``E‖r_cad‖² = σ_n² ‖P D_pt‖²_cad + σ_b² ‖P D_cad‖²_cad`` in the
+    layout rows of the residuals."""
+    n_res = len(r)
+    D_pt = np.zeros((n_res, 3 * len(obs)))  # ∂r/∂(point offsets), mm per m
+    row = 0
+    cad_row = n_res - 3 * len(targets)
+    for s, t in enumerate(targets):
+        g = np.array([i for i, o in enumerate(obs) if o.target == t])
+        n_g = len(g)
+        cols = (3 * g[:, None] + np.arange(3)).ravel()
+        # Residuals of a sphere's points about their centroid: the centring matrix.
+        D_pt[row : row + 3 * n_g, cols] = np.kron(np.eye(n_g) - 1.0 / n_g, np.eye(3))
+        D_pt[cad_row + 3 * s : cad_row + 3 * s + 3, cols] = np.tile(np.eye(3), n_g) / np.sqrt(n_g)
+        row += 3 * n_g
+    D_pt *= _MM
+    Q, _ = np.linalg.qr(J)
+
+    def leave(X: Array) -> Array:
+        return X - Q @ (Q.T @ X)
+
+    P_pt, P_cad = leave(D_pt), leave(D_cad)
+    first, last = slice(0, cad_row), slice(cad_row, n_res)
+    sigma_n2 = float(r[first] @ r[first]) / max(float(np.sum(P_pt[first] ** 2)), 1e-30)
+    excess = float(r[last] @ r[last]) - sigma_n2 * float(np.sum(P_pt[last] ** 2))
+    return float(np.sqrt(max(excess, 0.0) / max(float(np.sum(P_cad[last] ** 2)), 1e-30)))
+
+
+def _dominating(A: Array, B: Array) -> Array:
+    """A covariance at least as large as ``A`` and ``B`` in every direction: ``A`` with
+    the eigenvalues of ``B`` whitened by ``A`` raised to at least 1."""
+    w, V = np.linalg.eigh(A)
+    if w.min() <= 0:
+        return A + B
+    S = V * np.sqrt(w)  # A = S Sᵀ
+    S_inv = np.linalg.inv(S)
+    m, U = np.linalg.eigh(S_inv @ B @ S_inv.T)
+    return S @ (U * np.maximum(m, 1.0)) @ U.T @ S.T
+
+
+def _to_rotvec_translation(T_X: Array) -> Array:
+    """(6, 6) map from the left increment ``ξ = (ρ, ω)`` of ``T_X`` to (rotation vector in
+    the ee frame, change of ``T_X``'s translation): to first order ``ω`` and
+    ``ρ + ω × t = ρ − [t]× ω``."""
+    t = T_X[:3, 3]
+    t_hat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    A = np.zeros((6, 6))
+    A[:3, 3:] = np.eye(3)
+    A[3:, :3] = np.eye(3)
+    A[3:, 3:] = -t_hat
+    return A
+
+
+def _rss(cov_xi: Array, A: Array) -> dict[str, float]:
+    """1 σ of the rotation (degrees) and of the translation of ``T_ee_us`` (mm), rss over
+    the axes, of a covariance of ``ξ``."""
+    d = np.sqrt(np.clip(np.diag(A @ cov_xi @ A.T), 0.0, None))
+    return {
+        "rotation_deg": float(np.degrees(np.linalg.norm(d[:3]))),
+        "translation_mm": float(np.linalg.norm(d[3:]) * _MM),
+    }
+
+
+def bound95(
+    obs: Sequence[Observation],
+    result: CalibrationResult,
+    image_points_us: Array,
+    cad_centres: Mapping[str, Array] | None = None,
+    inputs: UncertaintyInputs = UncertaintyInputs(),
+    n_draws: int = 4000,
+) -> Bound95:
+    """95 % bounds of the errors of ``result.T_ee_us`` (see the module docstring).
+
+    Parameters
+    ----------
+    obs : the observations ``result`` was fitted to (its ``retained`` mask applies)
+    result : the calibration
+    image_points_us : (m, 3) metres, us frame: the points the image error is averaged over
+    cad_centres : the multi-marker fit's CAD centres (None: single-marker)
+    inputs : the declared systematic terms
+    n_draws : draws from the final covariance
+    """
+    t0 = time.perf_counter()
+    obs = [o for o, k in zip(obs, result.retained, strict=True) if k]
+    targets = list(dict.fromkeys(o.target for o in obs))
+    multi = len(targets) >= 2 and cad_centres is not None and result.T_base_phantom is not None
+    cad = {t: np.asarray(cad_centres[t], dtype=float) for t in targets} if multi else None
+    T_X = result.T_ee_us
+    T_Y = result.T_base_phantom if multi else np.eye(4)
+    f, n_s, multi = _residual_model(obs, targets, cad, T_X, T_Y)
+    n_p = 12 if multi else 6
+    x0 = np.zeros(n_p)
+    r0, J = _jacobian(f, x0)
+    JtJ_inv = np.linalg.pinv(J.T @ J)
+    # Unknown sphere centres are eliminated inside the residuals (centroids): count them.
+    dof = max(len(r0) - n_p - 3 * n_s, 1)
+    cov_fo = (JtJ_inv * float(r0 @ r0) / dof)[:6, :6]
+
+    # ---- grouped jackknife: leave out one view (orientation group) at a time, re-solve.
+    groups = orientation_groups(obs)
+    g = int(groups.max()) + 1
+    if g < 4:  # too few views to leave one out: the sweeps themselves
+        groups, g = np.arange(len(obs)), len(obs)
+    thetas = []
+    for k in range(g):
+        sub = [o for o, gk in zip(obs, groups, strict=True) if gk != k]
+        if len({o.target for o in sub}) < len(targets) or len(sub) < 4:
+            continue
+        thetas.append(_resolve(sub, targets, cad, T_X, T_Y, n_p))
+    thetas = np.array(thetas)
+    m = len(thetas)
+    if m >= 2:
+        d = thetas - thetas.mean(axis=0)
+        cov_jk = (m - 1) / m * d.T @ d
+        dof_t = m - 1
+    else:
+        cov_jk, dof_t = np.zeros((6, 6)), max(dof, 1)
+    cov_stat = _dominating(cov_fo, cov_jk) if np.all(np.isfinite(cov_fo)) else cov_jk
+    # The jackknife estimates the covariance from g views: its 95 % quantile is
+    # Student's, not normal; scale the statistical part accordingly.
+    t_scale = (stdtrit(dof_t, 0.975) / ndtri(0.975)) ** 2
+    cov_stat = cov_stat * t_scale
+
+    # ---- declared systematic terms, first-order propagation through the solve.
+    def propagate(D: Array, sigma: float) -> Array:
+        """Covariance of ξ_X from independent perturbations, columns of D (∂r/∂e)."""
+        A = -(JtJ_inv @ J.T @ D)[:6]
+        return sigma**2 * A @ A.T
+
+    A_rt = _to_rotvec_translation(T_X)
+    terms = {"first_order": _rss(cov_fo, A_rt), "jackknife": _rss(cov_jk, A_rt)}
+    cov_sys = np.zeros((6, 6))
+    h = 1e-6
+    layout_observed = 0.0
+    if multi:
+        D = np.empty((len(r0), 3 * n_s))
+        for j in range(3 * n_s):
+            e = np.zeros(3 * n_s)
+            e[j] = h
+            D[:, j] = (f(x0, e_cad=e.reshape(n_s, 3)) - r0) / h
+        layout_observed = _layout_mismatch(obs, targets, J, D, r0)
+        sigma = max(inputs.print_tolerance_m, layout_observed)
+        if sigma > 0:
+            c = propagate(D, sigma)
+            terms["sphere_layout"] = _rss(c, A_rt) | {"sigma_mm": sigma * _MM}
+            cov_sys += c
+    if inputs.kinematic_sigma_m > 0:
+        # Shared by the sweeps of one view of one sphere (a smooth function of the
+        # configuration), independent between views and spheres.
+        keys = sorted({(o.target, gk) for o, gk in zip(obs, groups, strict=True)})
+        D = np.empty((len(r0), 3 * len(keys)))
+        for j, key in enumerate(keys):
+            rows = np.array([(o.target, gk) == key for o, gk in zip(obs, groups, strict=True)])
+            for a in range(3):
+                e = np.zeros((len(obs), 3))
+                e[rows, a] = h
+                D[:, 3 * j + a] = (f(x0, e_pt=e) - r0) / h
+        c = propagate(D, inputs.kinematic_sigma_m)
+        terms["kinematics"] = _rss(c, A_rt)
+        cov_sys += c
+    if inputs.axial_scale_sigma > 0:
+        D = ((f(x0, e_scale=h) - r0) / h)[:, None]
+        c = propagate(D, inputs.axial_scale_sigma)
+        terms["axial_scale"] = _rss(c, A_rt)
+        cov_sys += c
+    cov = cov_stat + cov_sys
+    terms["total"] = _rss(cov, A_rt)
+
+    # ---- bounds: 95th percentiles of the error measures over draws of ξ.
+    rng = np.random.default_rng(_DRAWS_SEED)
+    w, V = np.linalg.eigh((cov + cov.T) / 2)
+    xi = rng.standard_normal((n_draws, 6)) @ (V * np.sqrt(np.clip(w, 0.0, None))).T
+    T = se3.exp(xi) @ T_X
+    rot = np.linalg.norm(xi[:, 3:], axis=1)
+    trans = np.linalg.norm(T[:, :3, 3] - T_X[:3, 3], axis=1)
+    P = np.asarray(image_points_us, dtype=float)
+    P_est = se3.apply(T_X, P)
+    diff = T[:, :3, :3] @ P.T + (T[:, :3, 3][:, :, None] - P_est.T[None])  # (k, 3, m)
+    image = np.sqrt(np.einsum("kam,kam->km", diff, diff)).mean(axis=1)
+    q = lambda v: float(np.percentile(v, 95))  # noqa: E731
+    return Bound95(
+        float(np.degrees(q(rot))),
+        q(trans) * _MM,
+        q(image) * _MM,
+        A_rt @ cov @ A_rt.T,
+        g,
+        terms,
+        time.perf_counter() - t0,
+    )
+
+
+def alternation_bound(
+    alt: AlternationResult,
+    image_points_us: Array,
+    cad_centres: Mapping[str, Array] | None = None,
+    inputs: UncertaintyInputs = UncertaintyInputs(),
+) -> Bound95:
+    """:func:`bound95` of an alternation's final calibration (its observations)."""
+    return bound95(alt.observations, alt.result, image_points_us, cad_centres, inputs)
+
+
+def image_grid(width_m: float, depth_m: float, n: int = 21) -> Array:
+    """An n × n grid of points (n², 3) covering an image ``width_m`` wide and
+    ``depth_m`` deep, metres in the ``us`` frame (the image error's points)."""
+    spacing = (width_m / (n - 1), depth_m / (n - 1))
+    P = pixel_to_us(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), n, spacing)
+    return P.reshape(-1, 3)

@@ -1,0 +1,142 @@
+"""95 % error bounds of a calibration (calib.uncertainty): positive and finite, in
+proportion to the localization noise, growing with the declared print tolerance, never
+below the first-order figure, and covering the truth of quick-scenario runs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.calibrate import Observation, calibrate
+from calib.uncertainty import UncertaintyInputs, bound95, image_grid, orientation_groups
+
+from .test_calibrate import T_EE_US_TRUE, observations
+
+MM = 1e-3
+IMAGE = image_grid(30 * MM, 35 * MM)  # quick.yaml's image
+CENTRES = {
+    "sphere_1": np.array([0.30, 0.0, 0.0]),
+    "sphere_2": np.array([0.35, 0.0, 0.0]),
+    "sphere_3": np.array([0.35, 0.05, 0.0]),
+}
+
+
+def single(noise_mm: float, seed: int = 3):
+    rng = np.random.default_rng(seed)
+    obs = observations(CENTRES["sphere_1"], noise_mm=noise_mm, rng=rng)
+    return obs, calibrate(obs)
+
+
+def turned_observations(centre, target, noise_mm, rng, yaw_deg):
+    """:func:`observations` with the probe turned by ``yaw_deg`` about the vertical
+    through the sphere (each sphere seen from its own side, as the arm's reach makes it)."""
+    Rz = se3.make(se3.matrix_from_euler(np.radians([0.0, 0.0, yaw_deg])), np.zeros(3))
+    about = se3.make(np.eye(3), centre) @ Rz @ se3.make(np.eye(3), -centre)
+    out = []
+    for o in observations(centre, target, 0.0):
+        T = about @ o.T_base_ee
+        p = se3.apply(se3.invert(T @ T_EE_US_TRUE), centre)
+        out.append(Observation(target, o.pose_id, p + rng.normal(0, noise_mm * MM, 3), T))
+    return out
+
+
+def three(layout_error_mm: float, noise_mm: float = 0.1, seed: int = 4):
+    """Three spheres whose printed layout is off the CAD by ``layout_error_mm`` (1 σ per
+    axis), phantom at the identity, each seen from another side; the CAD (what the fit
+    is given) is ``CENTRES``."""
+    rng = np.random.default_rng(seed)
+    obs = []
+    for (name, c), yaw in zip(CENTRES.items(), (0.0, 25.0, -25.0), strict=True):
+        printed = c + rng.normal(0.0, layout_error_mm * MM, 3)
+        obs += turned_observations(printed, name, noise_mm, rng, yaw)
+    return obs, calibrate(obs, CENTRES)
+
+
+def test_views_are_the_protocols_nine_orientations():
+    obs, _ = single(0.1)
+    groups = orientation_groups(obs)
+    assert groups.max() + 1 == 9
+    # The plan's five in-plane positions of one orientation share a group.
+    assert all(len(set(groups[5 * k : 5 * k + 5])) == 1 for k in range(9))
+
+
+def test_bound_is_positive_finite_and_fast():
+    obs, res = single(0.1)
+    b = bound95(obs, res, IMAGE)
+    values = np.array([b.rotation_deg, b.translation_mm, b.image_mm])
+    assert np.all(np.isfinite(values)) and np.all(values > 0)
+    assert b.seconds < 0.5
+    assert b.as_dict().keys() == {"rotation_deg", "translation_mm", "image_mm"}
+
+
+def test_bound_grows_in_proportion_to_the_localization_noise():
+    low = bound95(*single(0.1), IMAGE)
+    high = bound95(*single(0.3), IMAGE)
+    for key in ("rotation_deg", "translation_mm", "image_mm"):
+        ratio = getattr(high, key) / getattr(low, key)
+        assert 2.0 < ratio < 4.5, (key, ratio)  # 3× the noise
+
+
+def test_three_marker_bound_grows_with_the_declared_print_tolerance():
+    obs, res = three(0.0)  # printed as drawn: the data show no mismatch
+    bounds = [
+        bound95(obs, res, IMAGE, CENTRES, UncertaintyInputs(print_tolerance_m=t * MM))
+        for t in (0.0, 0.1, 0.3)
+    ]
+    image = [b.image_mm for b in bounds]
+    assert image[0] < image[1] < image[2]
+    assert image[2] > 2.0 * image[0]
+    assert bounds[2].translation_mm > 2.0 * bounds[0].translation_mm
+    assert bounds[2].terms["sphere_layout"]["sigma_mm"] == pytest.approx(0.3)
+
+
+def test_layout_mismatch_the_data_show_is_taken_even_if_undeclared():
+    # A layout off its CAD by 0.3 mm (1 σ) with little noise, declared perfect: the
+    # spheres' centroids disagree with the CAD, and the bound says so.
+    covered, sigmas = [], []
+    for seed in range(4):
+        obs, res = three(0.3, noise_mm=0.02, seed=seed)
+        b = bound95(obs, res, IMAGE, CENTRES)
+        sigmas.append(b.terms["sphere_layout"]["sigma_mm"])
+        true_mm = se3.translation_distance(res.T_ee_us, T_EE_US_TRUE) / MM
+        covered.append(true_mm <= b.translation_mm)
+    assert sum(covered) >= 3
+    assert 0.1 < np.median(sigmas) < 0.6
+
+
+@pytest.mark.parametrize("method", ["single", "three"])
+def test_bound_is_at_least_the_first_order_95_percent(method):
+    obs, res = single(0.2) if method == "single" else three(0.1)
+    cad = CENTRES if method == "three" else None
+    b = bound95(obs, res, IMAGE, cad)
+    std = np.sqrt(np.diag(res.covariance))
+    assert b.rotation_deg >= 0.9 * 1.96 * np.degrees(std[:3].max())
+    assert b.translation_mm >= 0.9 * 1.96 * std[3:].max() / MM
+
+
+def test_axial_scale_term_grows_the_translation_bound():
+    obs, res = single(0.1)
+    plain = bound95(obs, res, IMAGE)
+    scaled = bound95(obs, res, IMAGE, inputs=UncertaintyInputs(axial_scale_sigma=0.04))
+    assert scaled.translation_mm > 1.5 * plain.translation_mm
+
+
+# ----------------------------------------------------------------- quick-scenario runs
+
+
+@pytest.mark.parametrize("seed", [1, 5])
+def test_quick_runs_bounds_cover_the_truth(seed):
+    from bench.run import run
+    from bench.scenario import load_scenario
+
+    from .conftest import QUICK
+
+    m = run(load_scenario(QUICK, [f"seed={seed}"])).metrics
+    for method in ("single", "three"):
+        c = m["calibration"][method]
+        for key in ("rotation_deg", "translation_mm", "image_mm"):
+            assert 0 < c["bound95"][key] < 5.0, (method, key)
+            assert c["true_error"][key] <= c["bound95"][key], (method, key, c)
+        assert c["uncertainty"]["views"] == 9
+        assert c["uncertainty"]["seconds"] < 1.0
