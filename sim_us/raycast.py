@@ -30,11 +30,21 @@ _SMOOTH_MAX_ANGLE = np.radians(20.0)
 
 @dataclass(frozen=True, eq=False)
 class ScenePart:
-    """A closed mesh of one material, in the scene frame (metres)."""
+    """A closed mesh of one material, in the scene frame (metres).
+
+    A textured part (a printed surface: layer lines, roughness) also carries the surface
+    the sound's specular lobe follows: ``acoustic_vertices`` (V, 3), the part's vertices
+    before the texture (same faces as ``mesh``; the part's shape error included), and
+    ``texture_rms_m`` (V,), the rms height of the texture along the normal at each vertex
+    (m). The echo's position stays on ``mesh``; its normal and its coherent share come
+    from these (see :mod:`sim_us.propagation`). None: an untextured part.
+    """
 
     name: str
     mesh: trimesh.Trimesh
     material: str
+    acoustic_vertices: Array | None = None
+    texture_rms_m: Array | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,12 +60,15 @@ class Hits:
     """First hits of a batch of rays.
 
     ``t`` distance (m; inf for a miss), ``part`` index into the scene's parts (−1 for a
-    miss), ``normal`` outward unit surface normal (smooth: interpolated vertex normals).
+    miss), ``normal`` outward unit surface normal (smooth: interpolated vertex normals;
+    textured: the un-textured surface's). ``texture_rms`` (n,) the rms texture height at
+    the hit (m, 0 off textured parts); None when no part of the scene is textured.
     """
 
     t: Array
     part: NDArray[np.int64]
     normal: Array
+    texture_rms: Array | None = None
 
 
 class RayCaster:
@@ -66,6 +79,11 @@ class RayCaster:
         self._faces: list[NDArray[np.int64]] = []
         self._vertex_normals: list[Array | None] = []
         self._face_normals: list[Array] = []
+        # Textured parts: per face, whether its vertex normals are interpolated; the
+        # texture's rms height per vertex.
+        self._smooth_faces: list[NDArray[np.bool_] | None] = []
+        self._texture_rms: list[Array | None] = []
+        self.textured = any(p.acoustic_vertices is not None for p in scene.parts)
         self._scene = rtcore_scene.EmbreeScene() if scene.parts else None
         if not scene.parts:  # an empty scene (e.g. a gel block): every ray misses
             self.origin = np.zeros(3)
@@ -82,11 +100,43 @@ class RayCaster:
                 indices=part.mesh.faces.astype(np.int32),
             )
             self._faces.append(np.asarray(part.mesh.faces))
+            if part.acoustic_vertices is not None:
+                self._add_textured(part)
+                continue
+            self._smooth_faces.append(None)
+            self._texture_rms.append(None)
             # Smooth (interpolated vertex) normals only for smooth surfaces such as the
             # spheres; a box's or cone's vertex normals average across its sharp edges.
             smooth = part.mesh.face_adjacency_angles.max() < _SMOOTH_MAX_ANGLE
             self._vertex_normals.append(np.asarray(part.mesh.vertex_normals) if smooth else None)
             self._face_normals.append(np.asarray(part.mesh.face_normals))
+
+    def _add_textured(self, part: ScenePart) -> None:
+        """Normals of a textured part from its un-textured surface: area-weighted vertex
+        normals, interpolated on the faces where they stay within ``_SMOOTH_MAX_ANGLE`` of
+        the face's own normal (a curved surface), the face normal where they do not (a
+        face along a sharp edge of the shape: a cone's rim, a prism's end faces).
+        Degenerate faces of the un-textured surface (a staircase's top tread on a ridge
+        or apex) take the vertex normals."""
+        faces = np.asarray(part.mesh.faces)
+        tri = np.asarray(part.acoustic_vertices, dtype=float)[faces]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 × area × normal
+        vn = np.zeros((len(part.acoustic_vertices), 3))
+        for j in range(3):
+            np.add.at(vn, faces[:, j], cross)
+        norm = np.linalg.norm(vn, axis=1, keepdims=True)
+        vn = np.divide(vn, norm, out=np.zeros_like(vn), where=norm > 0)
+        area = np.linalg.norm(cross, axis=1, keepdims=True)
+        fn = np.divide(cross, area, out=np.zeros_like(cross), where=area > 0)
+        cos_min = np.cos(_SMOOTH_MAX_ANGLE)
+        agree = np.einsum("fkj,fj->fk", vn[faces], fn).min(axis=1) > cos_min
+        self._vertex_normals.append(vn)
+        self._face_normals.append(fn)
+        self._smooth_faces.append(agree | (area[:, 0] == 0))
+        rms = part.texture_rms_m
+        self._texture_rms.append(
+            np.zeros(len(vn)) if rms is None else np.broadcast_to(np.asarray(rms, float), len(vn))
+        )
 
     def first_hits(self, origins: Array, directions: Array, max_dist: Array) -> Hits:
         """Nearest surface along each ray within ``max_dist`` (m).
@@ -100,8 +150,9 @@ class RayCaster:
         t = np.full(n, np.inf)
         part = np.full(n, -1, dtype=np.int64)
         normal = np.zeros((n, 3))
+        rms = np.zeros(n) if self.textured else None
         if n == 0 or self._scene is None:
-            return Hits(t, part, normal)
+            return Hits(t, part, normal, rms)
         res = self._scene.run(
             (origins - self.origin).astype(np.float32),
             directions.astype(np.float32),
@@ -121,10 +172,20 @@ class RayCaster:
                 normal[idx[sel]] = self._face_normals[g][prim[sel]]
                 continue
             tri = self._faces[g][prim[sel]]
-            nrm = (
-                (1.0 - u[sel] - v[sel])[:, None] * vn[tri[:, 0]]
-                + u[sel][:, None] * vn[tri[:, 1]]
-                + v[sel][:, None] * vn[tri[:, 2]]
+            w0, w1, w2 = (1.0 - u[sel] - v[sel])[:, None], u[sel][:, None], v[sel][:, None]
+            nrm = w0 * vn[tri[:, 0]] + w1 * vn[tri[:, 1]] + w2 * vn[tri[:, 2]]
+            smooth = self._smooth_faces[g]
+            if smooth is None:
+                normal[idx[sel]] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+                continue
+            # A textured part: its un-textured surface's normal, its texture's rms height.
+            length = np.linalg.norm(nrm, axis=1, keepdims=True)
+            flat = ~smooth[prim[sel]] | (length[:, 0] < 1e-6)
+            nrm = np.divide(nrm, length, out=np.zeros_like(nrm), where=length > 0)
+            nrm[flat] = self._face_normals[g][prim[sel][flat]]
+            normal[idx[sel]] = nrm
+            h = self._texture_rms[g]
+            rms[idx[sel]] = (
+                w0[:, 0] * h[tri[:, 0]] + w1[:, 0] * h[tri[:, 1]] + w2[:, 0] * h[tri[:, 2]]
             )
-            normal[idx[sel]] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-        return Hits(t, part, normal)
+        return Hits(t, part, normal, rms)

@@ -8,6 +8,7 @@ true probe mount point at.
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 from numpy.typing import NDArray
 
 from calib.records import UsFrame
@@ -28,7 +29,10 @@ def acoustic_scene(scene: Scene) -> AcousticScene:
         for part in phantom.parts:
             mesh = part.mesh.copy()
             mesh.apply_transform(T)
-            parts.append(ScenePart(part.name, mesh, part.material))
+            smooth = part.acoustic_vertices
+            if smooth is not None:  # a textured part: its un-textured surface, moved alike
+                smooth = trimesh.transform_points(smooth, T)
+            parts.append(ScenePart(part.name, mesh, part.material, smooth, part.texture_rms_m))
     return AcousticScene(tuple(parts))
 
 

@@ -286,12 +286,18 @@ class PhantomPart:
 
     ``collision_mesh``, when set, is what MuJoCo collides (it takes a mesh's convex hull
     anyway): a printed part's fine mesh (10⁵-10⁶ faces) would cost MuJoCo seconds per
-    compile, its hull of a few thousand faces is the same solid to within its texture."""
+    compile, its hull of a few thousand faces is the same solid to within its texture.
+
+    A textured (printed) part also carries, for the ultrasound simulator, its vertices
+    before the texture ``acoustic_vertices`` (V, 3) and the texture's rms height per
+    vertex ``texture_rms_m`` (V,), metres (see twin/printing.py); None when untextured."""
 
     name: str
     mesh: trimesh.Trimesh
     material: str
     collision_mesh: trimesh.Trimesh | None = None
+    acoustic_vertices: Array | None = None
+    texture_rms_m: Array | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -410,7 +416,14 @@ def _printed_part(name: str, mesh: trimesh.Trimesh) -> PhantomPart:
     if hull is None:
         stride = max(1, len(mesh.vertices) // _HULL_VERTICES)
         hull = mesh.metadata["collision_hull"] = trimesh.convex.convex_hull(mesh.vertices[::stride])
-    return PhantomPart(name, mesh, "pla", hull)
+    return PhantomPart(
+        name,
+        mesh,
+        "pla",
+        hull,
+        mesh.metadata.get("acoustic_vertices"),
+        mesh.metadata.get("texture_rms_m"),
+    )
 
 
 def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) -> Phantom:

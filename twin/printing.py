@@ -35,6 +35,12 @@ by four effects, each a displacement of a finely meshed copy of the CAD surface:
   coefficients drawn so that the expected rms radial deviation is ``roundness``. Degrees 0
   and 1 (size and position) are left to the printing tolerances of the phantom.
 
+A textured part also keeps what the ultrasound simulator needs to reflect from it as a
+rough surface (Kirchhoff approximation, see ``sim_us.propagation``): in its mesh's
+``metadata``, ``acoustic_vertices`` (its vertices before the texture, the shape error
+included: the surface averaged over the beam's footprint) and ``texture_rms_m`` (the
+texture's rms height along the normal per vertex, :func:`texture_rms`).
+
 Each printed part draws from its own random stream, a child of the phantom's generator's
 seed sequence with a named spawn key per effect (``*_SPAWN_KEY`` below) and the part's
 index, so turning one effect on changes no other draw. With every effect off nothing is
@@ -60,6 +66,7 @@ __all__ = [
     "printed_sphere",
     "roughness_height",
     "sphere_subdivisions",
+    "texture_rms",
 ]
 
 Array = NDArray[np.float64]
@@ -195,6 +202,23 @@ def roughness_height(points: Array, ra: float, length: float, rng: np.random.Gen
     return sigma * np.sqrt(2.0 / _ROUGHNESS_MODES) * out
 
 
+def texture_rms(n_z: Array, s: PrintSettings) -> Array:
+    """RMS height (m) of the texture along the CAD normal, per point with the normal's z
+    component ``n_z``: the layer staircase is a triangle wave of amplitude (h/2)|n_z|
+    (rms: amplitude/√3, whatever its asymmetry), the roughness a Gaussian field of
+    σ = Ra √(π/2); the two are independent and add in variance."""
+    layer = s.layer / 2 * np.abs(np.asarray(n_z, dtype=float)) / np.sqrt(3.0)
+    return np.sqrt(layer**2 + (s.ra * np.sqrt(np.pi / 2)) ** 2)
+
+
+def _acoustic(mesh: trimesh.Trimesh, smooth: Array, n_z: Array, s: PrintSettings) -> None:
+    """Keep a textured mesh's un-textured vertices ``smooth`` and its texture's rms height
+    in its metadata (nothing when the texture is off: the part renders as before)."""
+    if s.surface:
+        mesh.metadata["acoustic_vertices"] = smooth
+        mesh.metadata["texture_rms_m"] = texture_rms(n_z, s)
+
+
 def _kink_rows(z0: float, z1: float, n_z: float, s: PrintSettings) -> Array:
     """Heights of the mesh rows on a plane face with normal z component ``n_z``: the
     staircase's corners (so a piecewise-linear mesh is the exact staircase) and rows at
@@ -266,8 +290,10 @@ def printed_sphere(
         scale = s.roundness * np.sqrt(4 * np.pi / sh.shape[1])
         coeffs = part_stream(rng, ROUNDNESS_SPAWN_KEY, index).normal(0.0, scale, sh.shape[1])
         d += sh @ coeffs
+    smooth = points + d[:, None] * normals
     d += _texture(points, normals, s, part_stream(rng, ROUGHNESS_SPAWN_KEY, index))
     mesh = trimesh.Trimesh(points + d[:, None] * normals, mesh.faces, process=False)
+    _acoustic(mesh, smooth, normals[:, 2], s)
     c, r = fit_sphere(mesh, centre, radius)
     return mesh, c, r
 
@@ -352,9 +378,10 @@ def _printed(
     """Displace the CAD vertices along their normals (layer lines, roughness, sag; zero
     normals stay put) and apply the body deformation."""
     d = _texture(cad, normals, s, part_stream(rng, ROUGHNESS_SPAWN_KEY, index))
-    if sag is not None:
-        d += sag
-    return trimesh.Trimesh(deform(cad + d[:, None] * normals), faces, process=False)
+    shape = np.zeros(len(cad)) if sag is None else sag
+    mesh = trimesh.Trimesh(deform(cad + (d + shape)[:, None] * normals), faces, process=False)
+    _acoustic(mesh, deform(cad + shape[:, None] * normals), normals[:, 2], s)
+    return mesh
 
 
 @_cached
