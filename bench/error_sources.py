@@ -133,6 +133,11 @@ ERROR_SOURCES: tuple[ErrorSource, ...] = (
         "sphere_roundness", "printed spheres out of round", (("phantom.sphere_roundness_mm", 0.0),)
     ),
     ErrorSource(
+        "session_shift",
+        "phantom moved between a dataset's touches and its sweeps",
+        (("evaluation.session_shift_mm", 0.0),),
+    ),
+    ErrorSource(
         "print_tolerance",
         "sphere radii and positions off the CAD",
         (("phantom.tolerance_radius_mm", 0.0), ("phantom.tolerance_position_mm", 0.0)),

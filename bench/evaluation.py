@@ -68,6 +68,7 @@ from .experiment import (
     make_imager,
     make_twin,
     release_memory,
+    scan_scenario,
     simulate_acquisition,
     simulate_touches,
     stage_rngs,
@@ -374,6 +375,8 @@ def run_evaluation(
     ev = scenario.evaluation
     names = list(ev.datasets)
     scenarios = [dataset_scenario(scenario, i) for i in range(len(names))]
+    # Where each dataset's sweeps find the phantom (moved since its touches, if at all).
+    scans = [scan_scenario(scenario, i) for i in range(len(names))]
 
     # ---- stage 1: touches, DH refinement, references
     touches: dict[str, list[Touch]] = {}
@@ -421,7 +424,7 @@ def run_evaluation(
             Path(save_dataset) / name if save_dataset is not None else None,
             float(np.sqrt(np.mean(refinements[name].residuals_mm ** 2))),
         )
-        for i, (name, sc) in enumerate(zip(names, scenarios, strict=True))
+        for i, (name, sc) in enumerate(zip(names, scans, strict=True))
     ]
     tables = {name: refinements[name].table for name in names}
     phantoms = scenario.reconstruction.phantoms

@@ -48,6 +48,7 @@ __all__ = [
     "image_points",
     "make_imager",
     "make_twin",
+    "scan_scenario",
     "simulate_acquisition",
     "simulate_touches",
     "stage_rngs",
@@ -90,6 +91,25 @@ def dataset_scenario(scenario: Scenario, index: int) -> Scenario:
     rx, ry, rz = ph.rotation_deg
     phantom = replace(ph, position_mm=(x + dx, y + dy, z), rotation_deg=(rx, ry, rz + dz_rot))
     return replace(scenario, phantom=phantom)
+
+
+#: Spawn key of the phantom's displacement between a dataset's touches and its sweeps
+#: (one stream per dataset: ``(SESSION_SHIFT_KEY, index)``).
+SESSION_SHIFT_KEY = 430
+
+
+def scan_scenario(scenario: Scenario, index: int) -> Scenario:
+    """The scenario of the ``index``-th dataset's sweeps: its touch-time placement
+    (:func:`dataset_scenario`) moved by ``evaluation.session_shift_mm`` (1 σ per
+    horizontal axis, its own stream), or unchanged when that is 0."""
+    sc = dataset_scenario(scenario, index)
+    sigma = scenario.evaluation.session_shift_mm
+    if sigma == 0.0:
+        return sc
+    seq = np.random.SeedSequence(scenario.seed, spawn_key=(SESSION_SHIFT_KEY, index))
+    dx, dy = np.random.default_rng(seq).normal(0.0, sigma, 2)
+    x, y, z = sc.phantom.position_mm
+    return replace(sc, phantom=replace(sc.phantom, position_mm=(x + dx, y + dy, z)))
 
 
 def make_twin(scenario: Scenario, joints_rng: np.random.Generator | None = None) -> Twin:

@@ -86,6 +86,22 @@ class EvaluationConfig:
             "le": 45,
         },
     )
+    session_shift_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Simulation: 1 σ per horizontal axis of the phantom's displacement "
+            "between a dataset's touches and its sweeps (truth only; 0 = off): the tool "
+            "exchange, stylus out and probe in, over a phantom standing in the tank, and "
+            "the touches' own push. The touch reference then maps the CAD centres to "
+            "where the phantom was, not where it is scanned. Est. 0–1 mm for a phantom "
+            "held by weights or tape rather than clamped (no published figure; the paper "
+            "lists stylus contact and remounting among its remaining errors, and its "
+            "per-set accuracy varies 1.16–2.26 mm while its precision varies "
+            "0.71–0.96 mm).",
+            "ge": 0,
+            "le": 10,
+        },
+    )
     workers: int = field(
         default=0,
         metadata={

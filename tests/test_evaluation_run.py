@@ -5,13 +5,14 @@ figures, through `uscal run`."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from bench.experiment import dataset_scenario
+from bench.experiment import dataset_scenario, scan_scenario
 from bench.scenario import load_scenario
 from calib.dataset_files import read_dataset
 
@@ -207,3 +208,26 @@ def test_saved_datasets_evaluate_offline_as_in_the_run(small_run, tmp_path):
     doc = yaml.safe_load((dest / "calibration.yaml").read_text())
     assert "refined from the touches of B" in doc["dh_table"]["source"]
     assert "accuracy" in r.stdout and "touch reference" in r.stdout
+
+
+def test_the_phantom_moves_between_touches_and_sweeps_only_when_asked():
+    s = load_scenario(ROOT / "scenarios" / "paper.yaml", check_reach=False)
+    still = replace(s, evaluation=replace(s.evaluation, session_shift_mm=0.0))
+    for i in range(3):
+        assert scan_scenario(still, i) == dataset_scenario(still, i)
+    moved = replace(s, evaluation=replace(s.evaluation, session_shift_mm=0.5))
+    shifts = np.array(
+        [
+            np.subtract(
+                scan_scenario(moved, i).phantom.position_mm,
+                dataset_scenario(moved, i).phantom.position_mm,
+            )
+            for i in range(200)
+        ]
+    )
+    # Horizontal only (the phantom stands on the tank floor), 1 σ = 0.5 mm per axis,
+    # its own stream per dataset, the same for a seed.
+    assert np.all(shifts[:, 2] == 0)
+    assert np.std(shifts[:, :2], axis=0) == pytest.approx([0.5, 0.5], rel=0.15)
+    assert scan_scenario(moved, 1) == scan_scenario(moved, 1)
+    assert scan_scenario(moved, 1) != scan_scenario(moved, 2)
