@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
+from bench.error_sources import ERROR_SOURCES
 from bench.experiment import dataset_rngs, dataset_scenario, make_twin, simulate_touches
 from bench.scenario import load_scenario
 from calib import se3
@@ -25,12 +28,12 @@ from calib.records import Touch
 
 MM = 1e-3
 TIP_CAD = np.array([0.0, 0.0, 0.165])
+# Every declared error source off but the arm's DH errors (what the refinement recovers).
 NOISE_FREE = [
-    "robot.joint_repeatability_deg=0",
-    "robot.encoder_noise_deg=0",
-    "tools.contact_noise_mm=0",
-    "phantom.tolerance_position_mm=0",
-    "phantom.tolerance_radius_mm=0",
+    f"{key}={json.dumps(value)}"
+    for s in ERROR_SOURCES
+    if s.name != "kinematics"
+    for key, value in s.off
 ]
 
 
@@ -167,7 +170,7 @@ def test_reference_fit_recovers_tip_and_phantom_pose(noise_free):
 
 
 def test_reference_tool_precision_with_contact_noise():
-    _, sets, twins, cad = touches_of(["tools.contact_noise_mm=0.2"])
+    _, sets, twins, cad = touches_of([*NOISE_FREE, "tools.contact_noise_mm=0.2"])
     ref = fit_reference(twins[0].truth.dh_table, sets[0], cad, TIP_CAD)
     # Mean distance of 6 touches from their centroid with 0.2 mm per axis: ≈ 0.28 mm.
     assert 0.1 < np.mean(list(ref.tool_precision_mm.values())) < 0.45
