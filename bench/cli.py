@@ -667,16 +667,17 @@ def _print_recorded(m: dict, console: Console) -> None:
 
     def cells(c: dict) -> list[str]:
         t = np.array(c["T_ee_us"])[:3, 3] * 1e3
-        std = np.sqrt(np.clip(np.diag(np.array(c["covariance_rotvec_rad_translation_m"])), 0, None))
+        b = c.get("bound95") or {}
         return [
             *(f"{v:.2f}" for v in t),
-            f"{np.degrees(std[:3]).max():.3f}",
-            f"{1e3 * std[3:].max():.3f}",
+            f"{b['rotation_deg']:.3f}" if b else "-",
+            f"{b['translation_mm']:.3f}" if b else "-",
             f"{c['precision_mm']:.3f}",
             str(c["n_retained"]),
         ]
 
-    columns = ("x mm", "y mm", "z mm", "1σ rot °", "1σ mm", "prec mm", "kept")
+    # The 95 % error bounds (calib.uncertainty): what the estimate can be off by.
+    columns = ("x mm", "y mm", "z mm", "≤95% rot °", "≤95% mm", "prec mm", "kept")
     console.print(_calibration_table(m, "calibration (no ground truth)", columns, cells))
     both = m["calibration"].get("single_vs_three")
     if both:
@@ -879,6 +880,17 @@ def _print_run(m: dict, console: Console) -> None:
     # Short headers: the table must fit an 80-column terminal.
     columns = ("rot °", "trans mm", "image mm", "prec mm", "acc mm", "kept", "iter")
     console.print(_calibration_table(m, "calibration against ground truth", columns, cells))
+    for name in ("single", "three"):
+        c = m["calibration"].get(name)
+        if c is None or "bound95" not in c:
+            continue
+        b, e = c["bound95"], c.get("true_error_equivalent", c["true_error"])
+        inside = all(e[k] <= b[k] for k in ("rotation_deg", "translation_mm", "image_mm"))
+        console.print(
+            f"{name}: 95 % error bounds (from the data alone) rotation {b['rotation_deg']:.3f}°, "
+            f"translation {b['translation_mm']:.3f} mm, image {b['image_mm']:.3f} mm; "
+            f"the truth is {'inside' if inside else 'OUTSIDE'}"
+        )
     t = m["timing_s"]
     summed = f" (summed over {t['workers']} workers)" if "workers" in t else ""
     console.print(

@@ -31,6 +31,10 @@ SMALL = [
     "imaging.width_mm=30",
     "imaging.depth_mm=35",
     "localization.refinement_passes=1",
+    # The tool's recommended practice on the paper's (hard) rig: sub-voxel centres and
+    # the speed of sound corrected; every other error source as paper.yaml sets it.
+    "localization.method=refined",
+    "imaging.sound_speed_correction=true",
 ]
 
 
@@ -79,9 +83,10 @@ def test_evaluation_metrics_have_the_papers_structure(small_run):
 def test_evaluation_against_ground_truth(small_run):
     _, m, _ = small_run
     ev = m["evaluation"]
-    # Contact noise 0.2 mm per axis: six touches scatter ≈ 0.3 mm about their centroid.
-    assert 0.05 < ev["single"]["tool_precision_mm"]["overall"]["mae"] < 0.6
-    assert ev["single"]["sphere_precision_mm"]["overall"]["mae"] < 0.5
+    # Contact noise 0.3 mm per axis and ≈ 0.1 mm of stylus bending: six touches scatter
+    # ≈ 0.45 mm about their centroid.
+    assert 0.2 < ev["single"]["tool_precision_mm"]["overall"]["mae"] < 0.8
+    assert ev["single"]["sphere_precision_mm"]["overall"]["mae"] < 0.8
     for name, k in m["kinematics"]["datasets"].items():
         # The refined model is far closer to the true arm than the factory one.
         assert k["true_error"]["refined_rms"] < k["true_error"]["nominal_rms"] / 3, name
