@@ -75,7 +75,7 @@ from .experiment import (
     true_centre_in_sweep,
 )
 from .figures import LocalizationSnapshot
-from .offline import declared_uncertainty, uncertainty_entry
+from .offline import scenario_uncertainty, uncertainty_entry
 from .reconstruction import (
     METHODS,
     PhantomReconstruction,
@@ -193,14 +193,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
     # Each fold's 95 % error bounds (no truth): its own data, the print specification,
     # the medium and the frozen DH model's residual.
     t0 = time.perf_counter()
-    inputs = declared_uncertainty(
-        scenario.phantom.tolerance_position_mm,
-        scenario.imaging.sound_speed_correction,
-        scenario.medium.kind,
-        scenario.medium.temperature_c,
-        scenario.imaging.assumed_speed_m_s,
-        task.kinematic_rms_mm,
-    )
+    inputs = scenario_uncertainty(scenario, task.kinematic_rms_mm)
     grid = image_points(scenario)
     uncertainty = {}
     for r in results:

@@ -217,6 +217,21 @@ def declared_uncertainty(
     )
 
 
+def scenario_uncertainty(
+    scenario: Scenario, kinematic_residual_rms_mm: float = 0.0
+) -> UncertaintyInputs:
+    """:func:`declared_uncertainty` of a twin's scenario: its phantom's print tolerance
+    as the print specification, its medium and speed-of-sound setting."""
+    return declared_uncertainty(
+        scenario.phantom.tolerance_position_mm,
+        scenario.imaging.sound_speed_correction,
+        scenario.medium.kind,
+        scenario.medium.temperature_c,
+        scenario.imaging.assumed_speed_m_s,
+        kinematic_residual_rms_mm,
+    )
+
+
 def uncertainty_entry(bound: Bound95, inputs: UncertaintyInputs) -> dict[str, Any]:
     """``metrics.json``'s ``bound95`` and ``uncertainty`` of one calibration."""
     details = bound.details()

@@ -31,7 +31,7 @@ from .experiment import (
     true_centre_in_sweep,
 )
 from .figures import LocalizationSnapshot, dataset_snapshot
-from .offline import calibrate_markers, calibration_entry, declared_uncertainty
+from .offline import calibrate_markers, calibration_entry, scenario_uncertainty
 from .offline import save_dataset as save_dataset_files
 from .recording_options import RecordingOptions
 from .scenario import Scenario
@@ -242,13 +242,7 @@ def run(
     errors = np.array(errors) if errors else np.array([np.nan])
     # The bounds' declared terms: the phantom's print specification and the medium; no
     # kinematic residual is known (the controller's own model).
-    inputs = declared_uncertainty(
-        scenario.phantom.tolerance_position_mm,
-        scenario.imaging.sound_speed_correction,
-        scenario.medium.kind,
-        scenario.medium.temperature_c,
-        scenario.imaging.assumed_speed_m_s,
-    )
+    inputs = scenario_uncertainty(scenario)
     X_equiv = equivalent_mount(scenario, acq, truth)
     extra = (cad, inputs, X_equiv)
     hist = single.history + (three.history if three else [])

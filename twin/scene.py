@@ -41,29 +41,18 @@ LINK_RADII_M = (0.064, 0.045, 0.038, 0.032, 0.032, 0.032)
 #: as Universal Robots publishes them for kinematics and dynamics calculations. They give
 #: the joints' gravity torques (:meth:`SceneModel.gravity_torque`); the link geoms only
 #: give collisions.
+_UR3_CENTRES_OF_MASS = (
+    (0, -0.02, 0),
+    (0.13, 0, 0.1157),
+    (0.05, 0, 0.0238),
+    (0, 0, 0.01),
+    (0, 0, 0.01),
+    (0, 0, -0.02),
+)
 LINK_DYNAMICS: dict[str, tuple[tuple[float, ...], tuple[tuple[float, float, float], ...]]] = {
-    "ur3": (
-        (2.0, 3.42, 1.26, 0.8, 0.8, 0.35),
-        (
-            (0, -0.02, 0),
-            (0.13, 0, 0.1157),
-            (0.05, 0, 0.0238),
-            (0, 0, 0.01),
-            (0, 0, 0.01),
-            (0, 0, -0.02),
-        ),
-    ),
-    "ur3e": (
-        (1.98, 3.4445, 1.437, 0.871, 0.805, 0.261),
-        (
-            (0, -0.02, 0),
-            (0.13, 0, 0.1157),
-            (0.05, 0, 0.0238),
-            (0, 0, 0.01),
-            (0, 0, 0.01),
-            (0, 0, -0.02),
-        ),
-    ),
+    "ur3": ((2.0, 3.42, 1.26, 0.8, 0.8, 0.35), _UR3_CENTRES_OF_MASS),
+    # The e-series publishes other masses and the same centres of mass.
+    "ur3e": ((1.98, 3.4445, 1.437, 0.871, 0.805, 0.261), _UR3_CENTRES_OF_MASS),
 }
 
 _ROBOT = {"contype": 1, "conaffinity": 0}
