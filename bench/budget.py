@@ -389,7 +389,13 @@ def budget_markdown(
         f"Scenario `{name}`{sets}; seeds {', '.join(map(str, spec.seeds))}. Each source is "
         "run *alone* on an error-free rig (every other source off) and left out of the full "
         "scenario (*all but*). Figures are medians over the seeds; every run is in "
-        "`budget.csv`.",
+        "`budget.csv`."
+        + (
+            " With one seed there is no spread to judge by: differences of the order of the "
+            "figure's seed-to-seed spread are noise (`--seeds 3` shows it)."
+            if len(spec.seeds) == 1
+            else ""
+        ),
         "",
         "| source | what | keys (value in the scenario → off) | in the scenario |",
         "|---|---|---|---|",
