@@ -173,7 +173,8 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
             "note": "spacing as the scanner displays it (at its assumed speed of sound)",
         },
         "plus_ImageToProbe": {
-            "matrix": np.round(image_to_probe_mm(T, W, spacing), 6).tolist(),
+            # Nine decimals: the entries are mm per pixel, multiplied by hundreds of pixels.
+            "matrix": np.round(image_to_probe_mm(T, W, spacing), 9).tolist(),
             "note": (
                 "PLUS / 3D Slicer: image pixel (i, j) → probe (= flange) mm, pixel spacing "
                 "included; put it in the PLUS device set as the ImageToProbe transform."
