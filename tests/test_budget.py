@@ -48,6 +48,7 @@ def test_every_source_switches_off_through_the_schema():
             assert value_at(off, key) == (tuple(value) if isinstance(value, list) else value)
 
 
+@pytest.mark.slow
 def test_budget_measures_a_source_alone_and_left_out_and_resumes(tmp_path):
     # encoder_noise is on in quick.yaml (0.001°), speed_of_sound is switched on above,
     # print_tolerance is on; kinematics is off in quick.yaml (dh_error_scale 0).
@@ -88,6 +89,7 @@ def test_budget_measures_a_source_alone_and_left_out_and_resumes(tmp_path):
     assert _rows(out) == rows
 
 
+@pytest.mark.slow
 def test_a_dask_cluster_gives_the_local_pools_budget(tmp_path):
     distributed = pytest.importorskip("distributed")
     spec = plan_budget(QUICK, SMALL, ["speed_of_sound"], seeds=1)

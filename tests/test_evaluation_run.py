@@ -54,6 +54,7 @@ def small_run(tmp_path_factory):
     return out, json.loads((out / "metrics.json").read_text()), r.stdout
 
 
+@pytest.mark.slow
 def test_tables_are_written_and_printed(small_run):
     out, _, stdout = small_run
     md = (out / "tables.md").read_text()
@@ -63,6 +64,7 @@ def test_tables_are_written_and_printed(small_run):
     assert "Table I" in stdout and "against ground truth" in stdout
 
 
+@pytest.mark.slow
 def test_evaluation_metrics_have_the_papers_structure(small_run):
     _, m, _ = small_run
     ev = m["evaluation"]
@@ -80,6 +82,7 @@ def test_evaluation_metrics_have_the_papers_structure(small_run):
     assert len(ev["folds"]) == 8
 
 
+@pytest.mark.slow
 def test_evaluation_against_ground_truth(small_run):
     _, m, _ = small_run
     ev = m["evaluation"]
@@ -108,6 +111,7 @@ def test_each_dataset_puts_the_phantom_somewhere_new():
     assert 0 < abs(turn) <= s.evaluation.placement_rotation_deg
 
 
+@pytest.mark.slow
 def test_reconstruction_table_iii_and_heatmaps(small_run):
     """Table III: cone and prism, single- and three-marker, per set and pooled, in
     metrics.json, tables.md/.csv and the heatmap figure; sane against the truth."""
@@ -144,6 +148,7 @@ def test_reconstruction_table_iii_and_heatmaps(small_run):
     assert img[..., :3].std() > 0.05  # not blank
 
 
+@pytest.mark.slow
 def test_recording_holds_every_session_and_the_reconstruction(small_run):
     out, m, _ = small_run
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []  # no parts
@@ -168,6 +173,7 @@ def test_recording_holds_every_session_and_the_reconstruction(small_run):
                 assert len(pts) == len(colours) == min(n, 50_000)
 
 
+@pytest.mark.slow
 def test_report_carries_the_papers_tables_and_the_refined_dh_model(small_run):
     out, m, _ = small_run
     md = (out / "report.md").read_text(encoding="utf-8")
@@ -182,6 +188,7 @@ def test_report_carries_the_papers_tables_and_the_refined_dh_model(small_run):
     assert np.allclose(doc["T_ee_us"]["matrix_m"], m["calibration"]["three"]["T_ee_us"])
 
 
+@pytest.mark.slow
 def test_saved_datasets_evaluate_offline_as_in_the_run(small_run, tmp_path):
     """Each dataset is saved with its touches; `uscal calibrate A --dh-from B` repeats the
     run's leave-one-dataset-out evaluation of A from the files alone: the same folds give

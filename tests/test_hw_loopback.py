@@ -96,6 +96,7 @@ def _one_line_error(r: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", [("127.0.0.3",)], indirect=True)
 def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(controller, tmp_path):
     dataset, out = tmp_path / "ds", tmp_path / "cal"
@@ -147,6 +148,7 @@ def test_robot_and_grabber_adapters_move_read_and_grab(controller):
     assert controller.dashboard("PolyscopeVersion").startswith("URSoftware 5.")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", [("127.0.0.5", "--fault-drop-at-move", "30")], indirect=True)
 def test_connection_lost_mid_sweep_keeps_finished_sweeps_and_resumes(controller, tmp_path):
     dataset = tmp_path / "ds"
@@ -177,6 +179,7 @@ def test_connection_lost_mid_sweep_keeps_finished_sweeps_and_resumes(controller,
 @pytest.mark.parametrize(
     "controller", [("127.0.0.6", "--fault-protective-stop-at-move", "20")], indirect=True
 )
+@pytest.mark.slow
 def test_protective_stop_mid_move_ends_the_acquisition_cleanly(controller, tmp_path):
     dataset = tmp_path / "ds"
     args = ["acquire", str(controller.hw), "--out", str(dataset), "--yes", *SHORT]

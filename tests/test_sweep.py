@@ -69,6 +69,7 @@ def _rows(out: Path) -> list[dict[str, str]]:
     return list(csv.DictReader(io.StringIO((out / "results.csv").read_text())))
 
 
+@pytest.mark.slow
 def test_a_dask_cluster_gives_the_local_pools_results(tmp_path):
     distributed = pytest.importorskip("distributed")
     spec = load_sweep(_sweep_file(tmp_path, "  imaging.gain_db: [0, 10]\n"))
@@ -88,6 +89,7 @@ def test_a_dask_cluster_gives_the_local_pools_results(tmp_path):
     assert (tmp_path / "dask" / "sweep.html").read_text().count("<img") >= 2
 
 
+@pytest.mark.slow
 def test_an_unreachable_scheduler_fails_fast(tmp_path):
     pytest.importorskip("distributed")
     path = _sweep_file(tmp_path, "  imaging.gain_db: [0]\n")
@@ -97,6 +99,7 @@ def test_an_unreachable_scheduler_fails_fast(tmp_path):
     assert time.perf_counter() - t0 < 60
 
 
+@pytest.mark.slow
 def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path):
     path = _write(
         tmp_path / "sweep.yaml",
@@ -128,6 +131,7 @@ def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path):
     assert all(0 < float(r["calibration_image_mm"]) < 1.0 for r in rows)  # calibrate stage
 
 
+@pytest.mark.slow
 def test_the_threshold_free_localizer_holds_across_gain_and_the_baseline_does_not(tmp_path):
     """The paper's claim on the twin: quick.yaml (spheres 1-2, 90 sweeps per gain),
     seed 0. Measured (also over seeds 0-2, in the closing note): the threshold-free

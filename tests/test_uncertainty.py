@@ -125,6 +125,7 @@ def test_axial_scale_term_grows_the_translation_bound():
 # ----------------------------------------------------------------- quick-scenario runs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 5])
 def test_quick_runs_bounds_cover_the_truth(seed):
     from bench.run import run
