@@ -111,6 +111,18 @@ class ProbeConfig:
             "point echoes per sub-plane (discrete arcs past the elevation focus)."
         },
     )
+    surface_speckle: bool = field(
+        default=False,
+        metadata={
+            "doc": "Draw the incoherent share of each surface echo (what a rough or "
+            "obliquely met surface returns besides its specular reflection) as speckle: "
+            "random-phase scatterers on the surface, summed as waves and blurred by the "
+            "PSF, so an oblique face shows a granular, broken line as on a real scanner; the "
+            "mirror part of the echo stays smooth. Its mean brightness is the smooth "
+            "model's. Off by default: the boundary extraction and the threshold-free "
+            "localizer are not yet robust to it (see docs/paper-comparison.md)."
+        },
+    )
     side_lobe_db: float | None = field(
         default=None,
         metadata={

@@ -9,8 +9,14 @@ surface it meets. At a surface the echo amplitude is
 with ``r = |Z2 − Z1| / (Z2 + Z1)`` the amplitude reflection coefficient, θ the incidence
 angle, θs the surface's specular width, d its diffuse (roughness) share, ``T`` the
 two-way transmission ``Π (1 − r_j²)`` through the surfaces crossed so far and ``L`` the
-two-way attenuation (dB) of the path. The echo is placed at the *apparent* depth: the
-travel time at each segment's true speed, displayed at the speed the scanner assumes.
+two-way attenuation (dB) of the path (its rms, with the texture below). Of it, the part
+``exp(−(θ/θs)²)`` (times the texture's coherent factor) is the coherent echo of a
+mirror, smooth in the image: all of the echo at normal incidence, none far off it. The
+rest of its energy is incoherent (the diffuse floor d, and the energy the texture
+takes), a sum of random-phase wavelets from the surface's sub-resolution facets, which
+the simulator can draw as speckle lying on the surface (``surface_speckle``). The echo
+is placed at the *apparent* depth: the travel time at each segment's true speed,
+displayed at the speed the scanner assumes.
 A ray stops when it leaves the imaged depth or its echoes fall below the display floor,
 which is what makes a printed solid throw a complete shadow. Rays do not refract
 (as in the peer simulators); at the small incidence angles that carry echoes the
@@ -73,7 +79,7 @@ def rough_surface_shape(spec: Array, diffuse: Array, k_sigma_cos: Array) -> tupl
     smooth mirror's 1, whatever σ (a linear sum of the two amplitude shares would, by up
     to 25 % near χ = 1/2); for σ ≫ λ the surface returns ``√(d² + (1 − d)²)`` of a mirror
     at every angle. Returns (shape, χ S): the latter is what a second bounce (the
-    reverberation echo) keeps.
+    reverberation echo) keeps, and the echo's coherent (mirror) part.
     """
     chi = coherent_factor(k_sigma_cos)
     coherent = (1.0 - diffuse) * chi * spec + diffuse
@@ -86,7 +92,11 @@ class Echoes:
     """Surface echoes of a batch of rays.
 
     ``ray`` index of the ray, ``depth`` apparent depth (m), ``amplitude`` echo amplitude
-    relative to a perfect reflector at zero depth. ``medium_end`` (n_rays,) is the apparent
+    relative to a perfect reflector at zero depth (its rms, of the coherent and incoherent
+    shares together), ``coherent`` the coherent (specular) share of it, the rest
+    ``√(amplitude² − coherent²)`` being incoherent: the texture's and the material's diffuse
+    return, a sum of random-phase wavelets that the image shows as speckle. ``point`` (when
+    asked for) is each echo's hit point (scene frame, m). ``medium_end`` (n_rays,) is the apparent
     depth at which each ray first enters a solid (inf if never): backscatter of the medium
     exists only before it. ``slope`` (when asked for with elevation axes) is the rate of
     change of the echo's apparent depth with an elevational shift of the ray (m/m, signed: deeper
@@ -98,6 +108,8 @@ class Echoes:
     amplitude: Array
     medium_end: Array
     slope: Array | None = None
+    coherent: Array | None = None
+    point: Array | None = None
 
 
 def trace(
@@ -112,6 +124,7 @@ def trace(
     floor_db: float,
     reverberation: bool = True,
     elevations: Array | None = None,
+    points: bool = False,
 ) -> Echoes:
     """Follow rays through the scene and collect their echoes.
 
@@ -124,6 +137,8 @@ def trace(
         perfect reflector's (dB, positive): two-way losses and transmission included.
     elevations : (n, 3) float, scene frame, optional
         Each ray's elevational axis: the echoes then carry their depth ``slope``.
+    points : bool
+        Also return each echo's hit point (for the surface speckle).
     """
     n = len(origins)
     # Material table: index 0 is the medium, i + 1 is part i.
@@ -145,7 +160,7 @@ def trace(
     state[:, 8] = 0  # the medium
     state[:, 9] = np.arange(n)
     medium_end = np.full(n, np.inf)
-    out_ray, out_depth, out_amp, out_slope = [], [], [], []
+    out_ray, out_depth, out_amp, out_slope, out_coh, out_point = [], [], [], [], [], []
 
     for _ in range(_MAX_PASSES):
         if len(state) == 0:
@@ -187,6 +202,12 @@ def trace(
         out_ray.append(ray)
         out_depth.append(y_app)
         out_amp.append(amp)
+        # The coherent (mirror) echo is the specular lobe times χ: all of a smooth
+        # surface's echo at normal incidence, none far off it, where only the incoherent
+        # diffuse floor d remains; between, the rest of the mean energy is incoherent.
+        out_coh.append(path * r * spec_bounce)
+        if points:
+            out_point.append(state[:, 0:3] + t[:, None] * dirs)
         if elevations is not None:
             # The surface's tangent plane n·(p − p_hit) = 0: shifting the ray by dz along
             # its elevational axis e moves the hit by dt = −(n·e)/(n·d) dz along the ray,
@@ -203,6 +224,9 @@ def trace(
             out_ray.append(ray[keep])
             out_depth.append(2 * y_app[keep])
             out_amp.append((amp * r * _FACE_REFLECTION * spec_bounce * path)[keep])
+            out_coh.append(out_amp[-1])  # the specular part only: coherent
+            if points:
+                out_point.append(out_point[-1][keep])
             if elevations is not None:
                 out_slope.append(2 * out_slope[-1][keep])  # twice the path, twice the slope
         first_entry = entering & (cur == 0)
@@ -215,12 +239,21 @@ def trace(
         state = state[(state[:, 7] > log_floor) & (y_app < max_depth)]
 
     if not out_ray:
-        empty = np.empty(0) if elevations is not None else None
-        return Echoes(np.empty(0, dtype=np.int64), np.empty(0), np.empty(0), medium_end, empty)
+        return Echoes(
+            np.empty(0, dtype=np.int64),
+            np.empty(0),
+            np.empty(0),
+            medium_end,
+            np.empty(0) if elevations is not None else None,
+            np.empty(0),
+            np.empty((0, 3)) if points else None,
+        )
     return Echoes(
         np.concatenate(out_ray),
         np.concatenate(out_depth),
         np.concatenate(out_amp),
         medium_end,
         np.concatenate(out_slope) if elevations is not None else None,
+        np.concatenate(out_coh),
+        np.concatenate(out_point) if points else None,
     )

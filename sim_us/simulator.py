@@ -67,6 +67,10 @@ _TRUNCATE = 3.0
 _MAX_ELEVATION_SLOPE = 2.0
 # Below this half-span (pixels) a hit is splatted as a point, as in the discrete model.
 _MIN_SMEAR_PX = 0.05
+# Surface speckle: at most this many scatterers stand for one hit's elevation slab.
+_MAX_SLAB_SCATTERERS = 64
+# The surfaces' scatterer field is the medium's key mixed with this (independent fields).
+_SURFACE_FIELD_KEY = 0x5EC7ACE
 # The ring-down tail is followed down to this level below the echo (intensity, dB).
 _RING_DOWN_FLOOR_DB = 80.0
 
@@ -111,6 +115,8 @@ class BmodeSimulator:
         # Scatterer cells of a third of the finer resolution: ≥ 10 per PSF cell.
         cell = min(probe.axial_fwhm_mm, probe.lateral_fwhm_mm) * 1e-3 / 3.0
         self.scatterers = ScattererField(cell, int(speckle_key))
+        self._surface_speckle = probe.surface_speckle
+        self.surface_scatterers = ScattererField(cell, int(speckle_key) ^ _SURFACE_FIELD_KEY)
         self.timings = Timings()
         self._noise: NoiseSource | None = None
         self._noise_rng: np.random.Generator | None = None
@@ -164,6 +170,7 @@ class BmodeSimulator:
             _ring_down_kernel(sigma_ax / np.sqrt(2), probe, sy),
             _side_lobe_kernel(sigma_lat / np.sqrt(2), probe, sx),
         )
+        self._amplitude_kernels = tuple(np.sqrt(k) for k in self._kernels)
         # Path loss past which no echo can reach the display floor at any row's gain: the
         # strongest interface of the scene reflects r_max, so a path weaker than
         # floor / r_max cannot show.
@@ -213,8 +220,10 @@ class BmodeSimulator:
 
     def _echo_intensity(
         self, T_scene_us: Array, medium: Material, floor_db: float
-    ) -> tuple[NDArray[np.float32], Array]:
-        """Surface-echo intensity (n, H, W) before the PSF, and each ray's medium end."""
+    ) -> tuple[NDArray[np.float32], NDArray[np.complex64] | None, Array]:
+        """Surface echoes (n, H, W) before the PSF: the intensity of their coherent share
+        and, with surface speckle, the complex amplitude of their incoherent share (None
+        without); and each ray's medium end."""
         H, W = self.shape
         K = len(self.z)
         L = len(self.columns)
@@ -232,6 +241,7 @@ class BmodeSimulator:
             floor_db,
             self.probe.reverberation,
             np.repeat(T_scene_us[:, :3, 2], K * L, axis=0) if self._smear else None,
+            points=self._surface_speckle,
         )
         t1 = time.perf_counter()
         self.timings.raycast += t1 - t0
@@ -241,51 +251,131 @@ class BmodeSimulator:
         P_image = np.zeros((len(echoes.depth), 3))
         P_image[:, 1] = echoes.depth - self.offset[1]
         row_f = us_to_pixel(P_image, W, self.true_spacing)[0]
-        slabs = None
+        amplitude = echoes.amplitude
+        speckled = None
+        if self._surface_speckle:
+            # The coherent share is drawn as a smooth echo, the rest as surface speckle.
+            assert echoes.coherent is not None and echoes.point is not None
+            incoherent = np.sqrt(np.maximum(amplitude**2 - echoes.coherent**2, 0.0))
+            amplitude = echoes.coherent
+            speckled = self._speckle_of_surfaces(
+                T_scene_us, frame, plane, line, row_f, incoherent, echoes.point, echoes.slope
+            )
+        half = None
         if self._smear:
             # Half the depth span (rows) of each hit's slab along its tangent plane.
             assert echoes.slope is not None
-            slope = np.clip(echoes.slope, -_MAX_ELEVATION_SLOPE, _MAX_ELEVATION_SLOPE)
-            half = 0.5 * np.abs(slope) * self._slab[plane] / self.true_spacing[1]
-            wide = half > _MIN_SMEAR_PX
-            if wide.any():
-                slabs = self._slab_segments(
-                    frame[wide],
-                    plane[wide],
-                    line[wide],
-                    row_f[wide],
-                    half[wide],
-                    slope[wide] >= 0,
-                    echoes.amplitude[wide],
-                )
-                narrow = ~wide
-                frame, plane, line, col, row_f = (
-                    v[narrow] for v in (frame, plane, line, col, row_f)
-                )
-                amplitude = echoes.amplitude[narrow]
-            else:
-                amplitude = echoes.amplitude
-        else:
-            amplitude = echoes.amplitude
+            half = self._slab_half_rows(plane, echoes.slope)
+        wide = half > _MIN_SMEAR_PX if half is not None else np.zeros(len(row_f), dtype=bool)
+        slabs = None
+        if wide.any():
+            assert echoes.slope is not None and half is not None
+            slabs = self._slab_segments(
+                frame[wide],
+                plane[wide],
+                line[wide],
+                row_f[wide],
+                half[wide],
+                echoes.slope[wide] >= 0,
+                amplitude[wide] ** 2,
+            )
+        narrow = ~wide
+        frame, plane, line, col, row_f = (v[narrow] for v in (frame, plane, line, col, row_f))
         inside = (row_f > -1) & (row_f < H)
         frame, plane, line, col, row_f = (v[inside] for v in (frame, plane, line, col, row_f))
         row_idx = np.clip(np.rint(row_f).astype(np.int64), 0, H - 1)
-        inten = self.line_width[line] * amplitude[inside] ** 2 * self.weights[plane, row_idx]
-        # Linear splat over the two neighbouring rows keeps the sub-pixel depth.
-        row0 = np.floor(row_f).astype(np.int64)
-        frac = (row_f - row0).astype(np.float32)
-        inten = inten.astype(np.float32)
-        base = (frame * H + row0) * W + col
-        lo, hi = row0 >= 0, row0 + 1 < H
-        index = np.concatenate([base[lo], base[hi] + W])
-        value = np.concatenate([inten[lo] * (1 - frac[lo]), inten[hi] * frac[hi]])
+        inten = (
+            self.line_width[line] * amplitude[narrow][inside] ** 2 * self.weights[plane, row_idx]
+        )
         image = np.zeros(n * H * W, dtype=np.float32)
-        np.add.at(image, index, value)
+        _splat_points(image, H, W, frame, col, row_f, inten.astype(np.float32))
         if slabs is not None:
             _splat_segments(image, H, W, *slabs)
         self.timings.formation += time.perf_counter() - t1
         medium_end = echoes.medium_end.reshape(n, K, L)[:, :, self._line_of_column]
-        return image.reshape(n, H, W), medium_end
+        return image.reshape(n, H, W), speckled, medium_end
+
+    def _slab_half_rows(self, plane: NDArray[np.int64], slope: Array) -> Array:
+        """Half the depth span (rows) of each hit's elevation slab along its tangent plane."""
+        slope = np.clip(slope, -_MAX_ELEVATION_SLOPE, _MAX_ELEVATION_SLOPE)
+        return 0.5 * np.abs(slope) * self._slab[plane] / self.true_spacing[1]
+
+    def _speckle_of_surfaces(
+        self,
+        T_scene_us: Array,
+        frame: NDArray[np.int64],
+        plane: NDArray[np.int64],
+        line: NDArray[np.int64],
+        row_f: Array,
+        incoherent: Array,
+        point: Array,
+        slope: Array | None,
+    ) -> NDArray[np.complex64]:
+        """Complex amplitude (n, H, W), before the PSF, of the surfaces' incoherent echoes.
+
+        The incoherent share of a surface echo is the sum of wavelets from the surface's
+        sub-resolution facets with random phases (the texture's and the material's diffuse
+        return): a circular complex Gaussian amplitude, so after the PSF it is speckle
+        with Rayleigh statistics, like a scattering medium's, but lying on the surface
+        (Goodman, *Speckle Phenomena in Optics*, ch. 2; Ogilvy 1991, ch. 4). Each hit is
+        such a scatterer, its amplitude taken from a field fixed to the scene at the hit
+        point (the same surface seen again gives the same speckle), its rms the echo's
+        incoherent amplitude; hits add as waves across scanlines and elevation sub-planes,
+        and the PSF's amplitude blurs them. Where the smooth model spreads a hit over its
+        slab's depth interval (continuous elevation), the slab is a row of such scatterers
+        along its elevation, one per half pixel of depth. Their mean intensity is exactly
+        the incoherent echo's of the smooth model; what changes is that a surface the beam
+        meets obliquely (no specular return) draws a granular, broken line whose brightest
+        pixel wanders across the echo's thickness, as on a real scanner.
+        """
+        H, W = self.shape
+        n = len(T_scene_us)
+        row_idx = np.clip(np.rint(row_f).astype(np.int64), 0, H - 1)
+        energy = self.line_width[line] * incoherent**2 * self.weights[plane, row_idx]
+        keep = (energy > 0) & (row_f > -1) & (row_f < H)
+        frame, plane, line, row_f, energy, point = (
+            v[keep] for v in (frame, plane, line, row_f, energy, point)
+        )
+        row_idx = row_idx[keep]
+        if slope is not None:
+            slope = slope[keep]
+            half = self._slab_half_rows(plane, slope)
+        else:
+            half = np.zeros(len(row_f))
+        # Sub-scatterers per hit: one for a point echo, one per half pixel of a slab's span.
+        m = np.where(half > _MIN_SMEAR_PX, np.ceil(4.0 * half).astype(np.int64) + 1, 1)
+        m = np.minimum(m, _MAX_SLAB_SCATTERERS)
+        hit = np.repeat(np.arange(len(m)), m)
+        start = np.cumsum(m) - m
+        u = (np.arange(len(hit)) - start[hit] + 0.5) / m[hit]  # (0, 1) along the slab
+        # Position along the slab: depth rows and elevation, with the trapezoidal density
+        # of :meth:`_slab_segments` (its share of the energy per sub-scatterer).
+        width = 2.0 * half[hit]
+        y = row_f[hit] - half[hit] + u * width
+        if slope is not None:
+            share = self._edge_share[plane[hit], row_idx[hit]]
+            p = np.where(slope[hit] >= 0, share, 1.0 - share)
+            weight = (2.0 * p + 2.0 * (1.0 - 2.0 * p) * u) / m[hit]  # ρ(y) dy / energy
+            sign = np.where(slope[hit] >= 0, 1.0, -1.0)
+        else:
+            weight = np.ones(len(hit))
+            sign = np.ones(len(hit))
+        dz = (u - 0.5) * self._slab[plane[hit]] * sign * (m[hit] > 1)
+        P = point[hit] + dz[:, None] * T_scene_us[frame[hit], :3, 2]
+        amp = np.sqrt(energy[hit] * np.maximum(weight, 0.0)).astype(np.float32)
+        values = self.surface_scatterers.smooth_at(P) * amp
+        out = np.zeros(n * H * W, dtype=np.complex64)
+        inside = (y > -1) & (y < H)
+        _splat_points(
+            out,
+            H,
+            W,
+            frame[hit][inside],
+            self.columns[line[hit][inside]],
+            y[inside],
+            values[inside],
+        )
+        return out.reshape(n, H, W)
 
     def _slab_segments(
         self,
@@ -295,7 +385,7 @@ class BmodeSimulator:
         row_f: Array,
         half: Array,
         rising: NDArray[np.bool_],
-        amplitude: Array,
+        amplitude2: Array,
     ) -> tuple[NDArray[np.int64], Array, Array, Array, Array]:
         """Continuous elevation integration of the hits whose slab spans a depth interval:
         the segments to splat (see :func:`_splat_segments`).
@@ -321,7 +411,7 @@ class BmodeSimulator:
         """
         H, W = self.shape
         row_idx = np.clip(np.rint(row_f).astype(np.int64), 0, H - 1)
-        energy = self.line_width[line] * amplitude**2 * self.weights[plane, row_idx]
+        energy = self.line_width[line] * amplitude2 * self.weights[plane, row_idx]
         a, b = row_f - half, row_f + half
         keep = (b > -1) & (a < H)
         frame, plane, line, a, b, energy = (v[keep] for v in (frame, plane, line, a, b, energy))
@@ -400,13 +490,20 @@ class BmodeSimulator:
         """
         T = np.asarray(T_scene_us, dtype=float).reshape(-1, 4, 4)
         medium, floor_db = self._medium_at(temperature_c)
-        image, medium_end = self._echo_intensity(T, medium, floor_db)
+        image, surface, medium_end = self._echo_intensity(T, medium, floor_db)
         t0 = time.perf_counter()
         sig_ax, sig_lat = self.sigma_px
         # The intensity PSF of an incoherent echo is |h|²: Gaussian with σ / √2 (plus the
-        # ring-down tail and side lobes when configured). The speckle below keeps the plain
-        # Gaussian: side lobes and ring-down of fully developed speckle are more speckle.
+        # ring-down tail and side lobes when configured). The medium's speckle below keeps
+        # the plain Gaussian: side lobes and ring-down of fully developed speckle are more
+        # speckle.
         _blur_where_nonzero(image, *self._kernels)
+        if surface is not None:
+            # The surfaces' speckle through the amplitude PSF h = √(|h|²) of the same
+            # kernels: one scatterer alone draws exactly the smooth model's echo.
+            parts = np.concatenate([surface.real, surface.imag])
+            _blur_where_nonzero(parts, *self._amplitude_kernels)
+            image += parts[: len(T)] ** 2 + parts[len(T) :] ** 2
         if medium.backscatter_db is not None:
             sp = self._speckle(T, medium_end, medium)
             for axis, sig in ((1, sig_ax), (2, sig_lat)):
@@ -542,6 +639,26 @@ def _splat_segments(
             d0 = (ta - tb) - 0.5 * (ta * abs(ta) - tb * abs(tb))
             d1 = 0.5 * (ta * ta - tb * tb) - (ta * ta * abs(ta) - tb * tb * abs(tb)) / 3.0
             image[base[j] + i * W] += np.float32((ra + be * (i - aj)) * d0 - be * d1)
+
+
+def _splat_points(
+    image: NDArray[np.float32] | NDArray[np.complex64],
+    H: int,
+    W: int,
+    frame: NDArray[np.int64],
+    col: NDArray[np.int64],
+    row_f: Array,
+    values: NDArray[np.float32] | NDArray[np.complex64],
+) -> None:
+    """Add point echoes to flat frames ``image`` (n·H·W,), in place, each split linearly
+    over its two neighbouring rows (keeps the sub-pixel depth)."""
+    row0 = np.floor(row_f).astype(np.int64)
+    frac = (row_f - row0).astype(np.float32)
+    base = (frame * H + row0) * W + col
+    lo, hi = row0 >= 0, row0 + 1 < H
+    index = np.concatenate([base[lo], base[hi] + W])
+    value = np.concatenate([values[lo] * (1 - frac[lo]), values[hi] * frac[hi]])
+    np.add.at(image, index, value.astype(image.dtype))
 
 
 def _blur_where_nonzero(

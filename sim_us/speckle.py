@@ -64,3 +64,27 @@ class ScattererField:
     def at(self, P_scene: NDArray[np.floating]) -> NDArray[np.complex64]:
         """Amplitudes at points (..., 3), metres (nearest-cell lookup)."""
         return self.at_cells(np.floor(np.asarray(P_scene) / self.cell_m).astype(np.int64))
+
+    def smooth_at(self, P_scene: NDArray[np.floating]) -> NDArray[np.complex64]:
+        """Amplitudes at points (n, 3), metres, varying continuously with the point: the
+        trilinear interpolation of the eight surrounding cells, divided by the root of its
+        weights' sum of squares so that every point keeps unit variance (a sum of
+        independent complex Gaussians is one, of variance Σ w²).
+
+        For scatterers found by rays that move with the probe (a surface's hit points): a
+        nearest-cell lookup would change whenever a hit crosses a cell border, so a
+        probe moved by a fraction of a cell would see a new speckle pattern; this one
+        changes on the scale of a cell, as real speckle decorrelates over a resolution cell.
+        """
+        u = np.asarray(P_scene, dtype=float) / self.cell_m
+        i0 = np.floor(u)
+        f = u - i0
+        i0 = i0.astype(np.int64)
+        acc = np.zeros(len(u), dtype=np.complex64)
+        norm = np.zeros(len(u))
+        for corner in range(8):
+            bits = np.array([(corner >> k) & 1 for k in range(3)])
+            w = np.prod(np.where(bits, f, 1.0 - f), axis=1)
+            acc += self.at_cells(i0 + bits) * w.astype(np.float32)
+            norm += w * w
+        return acc / np.sqrt(norm).astype(np.float32)
