@@ -462,6 +462,7 @@ class BmodeSimulator:
             s0 = float(t @ R[:, 2]) / cell  # probe plane on the elevational lattice
             norm = np.zeros(H)
             acc = np.zeros((H, W), dtype=np.complex64)
+            lines = []
             for j in range(-n_side, n_side + 1):
                 z = (np.floor(s0) + j - s0) * cell  # this lattice line's offset from the plane
                 sel = np.flatnonzero(np.abs(z) <= reach)
@@ -469,11 +470,23 @@ class BmodeSimulator:
                     continue
                 b = np.exp(-4.0 * np.log(2.0) * z**2 / st[sel] ** 2)  # two-way amplitude
                 norm[sel] += b**2
+                weight = np.zeros(H)
+                weight[sel] = b
                 offset = ((t + z * R[:, 2]) / cell).astype(np.float32)
-                idx = np.floor(rows[sel, None, :] + (cols + offset)[None]).astype(np.int64)
                 k = int(np.argmin(np.abs(self.z - z)))  # sub-plane that knows the shadow
-                visible = depth[sel, None] < medium_end[f, k][None, :]
-                acc[sel] += self.scatterers.at_cells(idx) * (b[:, None] * visible)
+                lines.append((offset, weight, k))
+            if lines:
+                offsets, weights, planes = zip(*lines, strict=True)
+                self.scatterers.add_lattice_lines(
+                    acc,
+                    rows,
+                    cols,
+                    np.array(offsets),
+                    np.array(weights),
+                    depth,
+                    np.ascontiguousarray(medium_end[f]),
+                    np.array(planes, dtype=np.int64),
+                )
             # Unit mean intensity per row, then the medium's level and attenuation.
             gain = np.where(norm > 0, amp_row / np.sqrt(np.maximum(norm, 1e-30)), 0.0)
             out[f] = acc * gain.astype(np.float32)[:, None]

@@ -12,6 +12,7 @@ developed speckle: Rayleigh envelope (mean/std ≈ 1.91), log-domain std ≈ 5.5
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -65,6 +66,40 @@ class ScattererField:
         """Amplitudes at points (..., 3), metres (nearest-cell lookup)."""
         return self.at_cells(np.floor(np.asarray(P_scene) / self.cell_m).astype(np.int64))
 
+    def add_lattice_lines(
+        self,
+        acc: NDArray[np.complex64],
+        rows: NDArray[np.float32],
+        cols: NDArray[np.float32],
+        offsets: NDArray[np.float32],
+        weights: NDArray[np.float64],
+        depth: NDArray[np.float64],
+        medium_end: NDArray[np.float64],
+        plane_of_line: NDArray[np.int64],
+    ) -> None:
+        """Add, in place, the scatterers of lattice lines to the pixels (H, W) of ``acc``.
+
+        Line j's scatterer at pixel (r, c) is the cell ``floor(rows[r] + (cols[c] +
+        offsets[j]))`` (cell units, float32, as :meth:`at_cells` takes them), weighted by
+        ``weights[j, r]`` where the pixel's ``depth[r]`` lies before the medium's end along
+        its column in sub-plane ``plane_of_line[j]`` (``medium_end[k, c]``), and not at all
+        where the weight is 0. The same sums as building each line's cell indices and
+        calling :meth:`at_cells` (bit for bit), in one compiled pass: the numpy version
+        built five (H, W, 3) temporaries per line, ≈ 150 ms a frame in gel.
+        """
+        _add_lattice_lines(
+            acc,
+            rows,
+            cols,
+            offsets,
+            weights,
+            depth,
+            medium_end,
+            plane_of_line,
+            self._table,
+            self.key,
+        )
+
     def smooth_at(self, P_scene: NDArray[np.floating]) -> NDArray[np.complex64]:
         """Amplitudes at points (n, 3), metres, varying continuously with the point: the
         trilinear interpolation of the eight surrounding cells, divided by the root of its
@@ -88,3 +123,42 @@ class ScattererField:
             acc += self.at_cells(i0 + bits) * w.astype(np.float32)
             norm += w * w
         return acc / np.sqrt(norm).astype(np.float32)
+
+
+_TABLE_SHIFT = np.uint64(64 - _TABLE_BITS)
+
+
+# Written by hand and compiled with numba: the speckle of a scattering medium hashes one
+# scatterer per pixel and lattice line (millions a frame); fused here with the weighting
+# and the sum, it touches each term once.
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _add_lattice_lines(
+    acc, rows, cols, offsets, weights, depth, medium_end, plane_of_line, table, key
+):  # pragma: no cover - compiled
+    H, W = acc.shape
+    for j in range(offsets.shape[0]):
+        k = plane_of_line[j]
+        o0, o1, o2 = offsets[j, 0], offsets[j, 1], offsets[j, 2]
+        for r in range(H):
+            b = weights[j, r]
+            if b == 0.0:
+                continue
+            r0, r1, r2 = rows[r, 0], rows[r, 1], rows[r, 2]
+            for c in range(W):
+                if not depth[r] < medium_end[k, c]:
+                    continue
+                i0 = np.int64(np.floor(r0 + (cols[c, 0] + o0)))
+                i1 = np.int64(np.floor(r1 + (cols[c, 1] + o1)))
+                i2 = np.int64(np.floor(r2 + (cols[c, 2] + o2)))
+                h = (
+                    (np.uint64(i0) * _PRIMES[0])
+                    ^ (np.uint64(i1) * _PRIMES[1])
+                    ^ (np.uint64(i2) * _PRIMES[2])
+                )
+                h = h ^ key
+                h = h + _GOLDEN
+                h = (h ^ (h >> np.uint64(30))) * _MIX1
+                h = (h ^ (h >> np.uint64(27))) * _MIX2
+                h = h ^ (h >> np.uint64(31))
+                v = table[np.intp(h >> _TABLE_SHIFT)]
+                acc[r, c] = np.complex64(np.complex128(acc[r, c]) + np.complex128(v) * b)
