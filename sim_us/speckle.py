@@ -136,20 +136,25 @@ def _add_lattice_lines(
     acc, rows, cols, offsets, weights, depth, medium_end, plane_of_line, table, key
 ):  # pragma: no cover - compiled
     H, W = acc.shape
+    shifted = np.empty((W, 3), dtype=np.float32)
     for j in range(offsets.shape[0]):
         k = plane_of_line[j]
-        o0, o1, o2 = offsets[j, 0], offsets[j, 1], offsets[j, 2]
+        # cols + offset first (float32, as the numpy sum rows + (cols + offset)).
+        for c in range(W):
+            for a in range(3):
+                shifted[c, a] = cols[c, a] + offsets[j, a]
         for r in range(H):
             b = weights[j, r]
             if b == 0.0:
                 continue
             r0, r1, r2 = rows[r, 0], rows[r, 1], rows[r, 2]
+            y = depth[r]
             for c in range(W):
-                if not depth[r] < medium_end[k, c]:
+                if not y < medium_end[k, c]:
                     continue
-                i0 = np.int64(np.floor(r0 + (cols[c, 0] + o0)))
-                i1 = np.int64(np.floor(r1 + (cols[c, 1] + o1)))
-                i2 = np.int64(np.floor(r2 + (cols[c, 2] + o2)))
+                i0 = np.int64(np.floor(r0 + shifted[c, 0]))
+                i1 = np.int64(np.floor(r1 + shifted[c, 1]))
+                i2 = np.int64(np.floor(r2 + shifted[c, 2]))
                 h = (
                     (np.uint64(i0) * _PRIMES[0])
                     ^ (np.uint64(i1) * _PRIMES[1])
@@ -161,4 +166,5 @@ def _add_lattice_lines(
                 h = (h ^ (h >> np.uint64(27))) * _MIX2
                 h = h ^ (h >> np.uint64(31))
                 v = table[np.intp(h >> _TABLE_SHIFT)]
+                # Rounded to complex64 after every line, as the line-by-line sum was.
                 acc[r, c] = np.complex64(np.complex128(acc[r, c]) + np.complex128(v) * b)

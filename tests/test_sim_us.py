@@ -81,6 +81,29 @@ def test_speckle_is_spatially_consistent_and_decorrelates_over_the_slice():
     assert rho(2 * st_mm) < 0.3
 
 
+def test_speckle_decorrelates_over_the_thick_slice_past_the_focus():
+    """Far past the elevation focus (ST ≈ 4 mm at 35 mm) the speckle sums a thinned set of
+    the lattice's lines (at least four to a slice thickness): it still decorrelates over
+    the slice thickness there, not over the fine lattice's spacing."""
+    sim = simulator([], medium=MediumConfig(kind="gel"), width_mm=10.0, depth_mm=40.0)
+    band = slice(330, 380)  # 33–38 mm
+    st_mm = float(np.mean(slice_thickness(sim.probe, np.arange(330, 380) * 0.1 * MM))) / MM
+    assert st_mm > 3.0
+
+    def frame(e_mm):
+        env = sim.envelope(elevation_shift(e_mm))[0][band].astype(float)
+        return (env - env.mean(axis=1, keepdims=True)).ravel()
+
+    base = frame(0.0)
+
+    def rho(e_mm):
+        return np.corrcoef(base, frame(e_mm))[0, 1]
+
+    assert rho(0.1 * st_mm) > 0.9
+    assert 0.3 < rho(st_mm / 2) < 0.75
+    assert rho(2 * st_mm) < 0.3
+
+
 # 2 ------------------------------------------------------------------ point spread function
 def test_point_target_gives_configured_resolution():
     probe = replace(
