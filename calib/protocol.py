@@ -16,7 +16,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -190,6 +190,22 @@ class Imager(Protocol):
         ...
 
 
+@runtime_checkable
+class DeferredImager(Protocol):
+    """A scanner that can note each frame's instant and form the frames later, a sweep at
+    a time (the twin: rendering a sweep in one call costs less than frame by frame).
+    :func:`acquire` uses it when the imager has it; the frames are the ones ``grab`` would
+    have returned at the same instants."""
+
+    def capture(self) -> None:
+        """Note a frame now (pose, time), in place of :meth:`Imager.grab`."""
+        ...
+
+    def develop(self) -> list[UsFrame]:
+        """The frames noted since the last call, in order."""
+        ...
+
+
 @dataclass(frozen=True)
 class PlannedSweep:
     """One sweep of the plan: flange commands for its frames.
@@ -342,20 +358,29 @@ def acquire(
     """Run the plan: move, let the robot settle, grab, for every frame of every sweep.
 
     ``on_frame(sweep, j)`` is called after each frame (progress, or a simulator's truth
-    log); it receives nothing the pipeline may not see.
+    log); it receives nothing the pipeline may not see. A :class:`DeferredImager` notes
+    each frame's instant and forms the sweep's frames after its last move.
     """
+    deferred = isinstance(imager, DeferredImager)
     sweeps = []
     for planned in plan:
         images, qs, poses, spacing = [], [], [], None
         for j, T in enumerate(planned.T_base_ee):
             reading = robot.move_to(T, f"{planned.target} sweep {planned.pose_id} frame {j}")
-            frame = imager.grab()
-            images.append(frame.image)
-            spacing = frame.spacing
+            if deferred:
+                imager.capture()
+            else:
+                frame = imager.grab()
+                images.append(frame.image)
+                spacing = frame.spacing
             qs.append(reading.q)
             poses.append(reading.T_base_ee)
             if on_frame is not None:
                 on_frame(planned, j)
+        if deferred:
+            frames = imager.develop()
+            images = [f.image for f in frames]
+            spacing = frames[-1].spacing if frames else None
         sweeps.append(
             Sweep(
                 planned.target,

@@ -69,6 +69,7 @@ class SimImager:
             medium,
             speckle_key=int(rng.integers(0, 2**63)),
         )
+        self._captured: list[tuple[NDArray[np.float64], float | None]] = []
 
     @property
     def spacing(self) -> tuple[float, float]:
@@ -90,6 +91,30 @@ class SimImager:
         T_base_us = self.robot.frame_pose() @ self._T_ee_us
         image = self.simulator.render(T_base_us[None], self._rng, self._temperature_c())[0]
         return UsFrame(image, self.spacing)
+
+    def capture(self) -> None:
+        """Note a frame at the current true probe pose and time (what :meth:`grab` would
+        render now); :meth:`develop` renders the noted frames in one call."""
+        T_base_us = self.robot.frame_pose() @ self._T_ee_us
+        self._captured.append((T_base_us, self._temperature_c()))
+
+    def develop(self) -> list[UsFrame]:
+        """The frames noted by :meth:`capture`, rendered in one batch, in order.
+
+        The noise and every pose are the ones :meth:`grab` would have used, so without a
+        drifting water temperature the frames are identical to grabbing them one by one.
+        With a drift the batch renders at its frames' mean temperature: a sweep lasts
+        seconds, the water drifts by about a millikelvin meanwhile (a depth change of
+        ~1e-7), which no grey level shows.
+        """
+        if not self._captured:
+            return []
+        T = np.array([t for t, _ in self._captured])
+        temps = [c for _, c in self._captured]
+        self._captured = []
+        temperature = None if temps[0] is None else float(np.mean(temps))
+        images = self.simulator.render(T, self._rng, temperature)
+        return [UsFrame(image, self.spacing) for image in images]
 
     def render_at(self, T_base_us: NDArray[np.float64]) -> NDArray[np.uint8]:
         """Frames (n, H, W) at given true image poses (batched, e.g. a whole sweep)."""
