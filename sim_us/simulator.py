@@ -692,19 +692,23 @@ def _blur_where_nonzero(
     image: NDArray[np.float32], k_rows: NDArray[np.float32], k_cols: NDArray[np.float32]
 ) -> None:
     """Separable blur of frames (n, H, W) with correlation taps along rows and columns, in
-    place, limited to the row bands that hold echoes in any frame (plus the kernel radius)
-    and to their columns: surface echoes are sparse (a sphere's cap, a floor line), and
-    blurring zeros would cost most of the time. The frames of a sweep share their bands,
-    so each band is one call."""
-    _, _, W = image.shape
+    place, limited in each frame to the row bands that hold echoes (plus the kernel
+    radius) and to their columns: surface echoes are sparse (a sphere's cap, a floor
+    line), and blurring zeros would cost most of the time. Frame by frame: the frames of
+    a sweep hold their echoes at different depths, and a band common to the sweep blurred
+    twice the pixels (the result is the same: outside its echoes a frame is zero)."""
+    n, _, W = image.shape
     pad_r, pad_c = len(k_rows) // 2 + 1, len(k_cols) // 2 + 1
-    occupied = image.any(axis=(0, 2))
-    if not occupied.any():
-        return
-    band = np.convolve(occupied, np.ones(2 * pad_r + 1), mode="same") > 0
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], band.astype(np.int8), [0]])))
-    for r0, r1 in zip(edges[::2], edges[1::2], strict=True):
-        cols = np.flatnonzero(image[:, r0:r1].any(axis=(0, 1)))
-        c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, W)
-        block = correlate1d(image[:, r0:r1, c0:c1], k_rows, axis=1, mode="constant")
-        image[:, r0:r1, c0:c1] = correlate1d(block, k_cols, axis=2, mode="constant")
+    window = np.ones(2 * pad_r + 1)
+    for f in range(n):
+        frame = image[f]
+        occupied = frame.any(axis=1)
+        if not occupied.any():
+            continue
+        band = np.convolve(occupied, window, mode="same") > 0
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], band.astype(np.int8), [0]])))
+        for r0, r1 in zip(edges[::2], edges[1::2], strict=True):
+            cols = np.flatnonzero(frame[r0:r1].any(axis=0))
+            c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, W)
+            block = correlate1d(frame[r0:r1, c0:c1], k_rows, axis=0, mode="constant")
+            frame[r0:r1, c0:c1] = correlate1d(block, k_cols, axis=1, mode="constant")
