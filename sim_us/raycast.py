@@ -94,10 +94,14 @@ class RayCaster:
         hi = np.max([p.mesh.bounds[1] for p in scene.parts], axis=0)
         self.origin = (lo + hi) / 2
         for part in scene.parts:
+            # Plain arrays: the binding reads trimesh's tracked arrays element by element,
+            # each read a subclass view (≈ 1 s per twin for the textured meshes).
             TriangleMesh(
                 scene=self._scene,
-                vertices=(part.mesh.vertices - self.origin).astype(np.float32),
-                indices=part.mesh.faces.astype(np.int32),
+                vertices=np.asarray(part.mesh.vertices - self.origin, dtype=np.float32).view(
+                    np.ndarray
+                ),
+                indices=np.asarray(part.mesh.faces, dtype=np.int32).view(np.ndarray),
             )
             self._faces.append(np.asarray(part.mesh.faces))
             if part.acoustic_vertices is not None:
