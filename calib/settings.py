@@ -105,8 +105,8 @@ class EvaluationConfig:
     workers: int = field(
         default=0,
         metadata={
-            "doc": "Processes running the datasets in parallel (0: one per dataset, at "
-            "most twice the cores).",
+            "doc": "Processes running the datasets and the reconstruction's tasks in "
+            "parallel (0: one per core).",
             "ge": 0,
             "le": 64,
         },
