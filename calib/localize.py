@@ -416,10 +416,16 @@ def _grid_sums(
                     continue
                 row = bits[j, d, fr]
                 dst = out[i, jj]
-                for q in range(lo, hi):
+                # A word at a time: load it once, shift it along the run's candidates.
+                q = lo
+                while q < hi:
                     b = q0 + q
-                    bright = np.int32((row[b >> 6] >> np.uint64(b & 63)) & one)
-                    dst[q] += 1 + 512 * bright
+                    word = row[b >> 6] >> np.uint64(b & 63)
+                    end = min(hi, q + 64 - (b & 63))
+                    while q < end:
+                        dst[q] += 1 + 512 * np.int32(word & one)
+                        word >>= one
+                        q += 1
     return out
 
 
