@@ -56,6 +56,7 @@ from calib.localize import localize_sphere
 from calib.records import Touch
 from calib.uncertainty import alternation_bound
 from twin.imager import acoustic_scene
+from twin.printing import use_disk_cache
 
 from . import progress as progress_report
 from .experiment import (
@@ -346,6 +347,12 @@ def _pool_task(fn: Callable[..., Any], *args: Any) -> Any:
         release_memory()
 
 
+def _worker_initializer(counts: Any, parts: Path) -> None:
+    """A pool worker: report progress to the run, share the run's printed parts."""
+    progress_report.worker_initializer(counts)
+    use_disk_cache(parts)
+
+
 def _workers(scenario: Scenario, n_tasks: int) -> int:
     """Worker processes: the scenario's number, or one per core (at most one per task).
     Since the reconstruction's tasks queue behind the datasets, a third worker on two
@@ -367,6 +374,24 @@ def run_evaluation(
     (:mod:`bench.recording`). ``save_dataset``: a directory that receives each dataset's
     acquisition, touches included, as ``<dir>/<name>`` (:mod:`calib.dataset_files`)."""
     say = progress or (lambda _msg: None)
+    # The run's scratch directory: the printed parts its processes share (built once,
+    # read by every worker), and the re-calibration scan's frames. Removed at the end.
+    with tempfile.TemporaryDirectory(prefix="uscal-run-") as tmp:
+        use_disk_cache(Path(tmp) / "printed-parts")
+        try:
+            return _run_evaluation(scenario, say, recording, save_dataset, Path(tmp))
+        finally:
+            use_disk_cache(None)
+
+
+def _run_evaluation(
+    scenario: Scenario,
+    say: Callable[[str], None],
+    recording: RecordingOptions | None,
+    save_dataset: Path | None,
+    scratch: Path,
+) -> EvaluationResult:
+    """:func:`run_evaluation` inside its scratch directory."""
     t_start = time.perf_counter()
     ev = scenario.evaluation
     names = list(ev.datasets)
@@ -433,79 +458,73 @@ def run_evaluation(
     scans: list[PhantomScan] = []
     recal: Recalibration | None = None
     spheres = recalibration_scenario(scenario).protocol.spheres if phantoms else ()
-    # The re-calibration scan's frames go to a scratch directory, mapped by each
-    # calibration task (removed when the pool is done).
-    with tempfile.TemporaryDirectory(prefix="uscal-remount-") as tmp:
-        scratch = Path(tmp)
-        if workers == 1:
-            outcomes = [_run_dataset(t) for t in tasks]
+    # The re-calibration scan's frames go to the scratch directory, mapped by each
+    # calibration task.
+    if workers == 1:
+        outcomes = [_run_dataset(t) for t in tasks]
+        if phantoms:
+            remount = [run_remount_scan(scenario, k, scratch) for k in spheres]
+            recal = Recalibration.merge(
+                [run_recalibration(scenario, m, tables, remount) for m in METHODS], remount
+            )
+            for kind in phantoms:
+                scan = run_scan(scenario, kind, recording)
+                scans.append(scan)
+                recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        counts = ctx.Queue()  # the workers' progress reports
+        with cf.ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=ctx,
+            initializer=_worker_initializer,
+            initargs=(counts, scratch / "printed-parts"),
+        ) as pool:
+
+            def result(future: cf.Future):
+                while not future.done():
+                    cf.wait([future], timeout=0.2)
+                    progress_report.drain(counts)
+                return future.result()
+
+            def submit(fn: Callable[..., Any], *args: Any) -> cf.Future:
+                return pool.submit(_pool_task, fn, *args)
+
+            # The datasets first: each is a long serial task, and one started late
+            # would run alone at the end. The reconstruction's small tasks follow,
+            # each queued as soon as what it needs is done: the sphere scans, a
+            # method's calibrations once its spheres are scanned (single-marker
+            # ahead of the phantom scans), the registrations.
+            dataset_futures = [submit(_run_dataset, t) for t in tasks]
             if phantoms:
-                remount = [run_remount_scan(scenario, k, scratch) for k in spheres]
-                recal = Recalibration.merge(
-                    [run_recalibration(scenario, m, tables, remount) for m in METHODS], remount
-                )
-                for kind in phantoms:
-                    scan = run_scan(scenario, kind, recording)
-                    scans.append(scan)
-                    recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            counts = ctx.Queue()  # the workers' progress reports
-            with cf.ProcessPoolExecutor(
-                max_workers=workers,
-                mp_context=ctx,
-                initializer=progress_report.worker_initializer,
-                initargs=(counts,),
-            ) as pool:
-
-                def result(future: cf.Future):
-                    while not future.done():
-                        cf.wait([future], timeout=0.2)
-                        progress_report.drain(counts)
-                    return future.result()
-
-                def submit(fn: Callable[..., Any], *args: Any) -> cf.Future:
-                    return pool.submit(_pool_task, fn, *args)
-
-                # The datasets first: each is a long serial task, and one started late
-                # would run alone at the end. The reconstruction's small tasks follow,
-                # each queued as soon as what it needs is done: the sphere scans, a
-                # method's calibrations once its spheres are scanned (single-marker
-                # ahead of the phantom scans), the registrations.
-                dataset_futures = [submit(_run_dataset, t) for t in tasks]
-                if phantoms:
-                    remount_futures = [
-                        submit(run_remount_scan, scenario, k, scratch) for k in spheres
-                    ]
-                    remount: list[RemountScan] = []
-                    recal_futures: dict[str, cf.Future] = {}
-                    scan_futures: list[cf.Future] = []
-                    for f in remount_futures:
-                        remount.append(result(f))
-                        scanned = {s.target for s in remount}
-                        for method, used in METHODS.items():
-                            if method not in recal_futures and set(used) <= scanned:
-                                # The last calibrations run mostly alone: two threads.
-                                threads = 2 if len(recal_futures) == len(METHODS) - 1 else 1
-                                recal_futures[method] = submit(
-                                    run_recalibration, scenario, method, tables,
-                                    list(remount), threads,
-                                )  # fmt: skip
-                        if not scan_futures:
-                            scan_futures = [
-                                submit(run_scan, scenario, kind, recording) for kind in phantoms
-                            ]
-                    recal = Recalibration.merge(
-                        [result(f) for f in recal_futures.values()], remount
-                    )
-                    recon_futures = [
-                        submit(reconstruct_phantom, scenario, result(f), recal, tables)
-                        for f in scan_futures
-                    ]
-                    recon_parts = [result(f) for f in recon_futures]
-                    scans = [f.result() for f in scan_futures]
-                outcomes = [result(f) for f in dataset_futures]
-                progress_report.drain(counts)
+                remount_futures = [submit(run_remount_scan, scenario, k, scratch) for k in spheres]
+                remount: list[RemountScan] = []
+                recal_futures: dict[str, cf.Future] = {}
+                scan_futures: list[cf.Future] = []
+                for f in remount_futures:
+                    remount.append(result(f))
+                    scanned = {s.target for s in remount}
+                    for method, used in METHODS.items():
+                        if method not in recal_futures and set(used) <= scanned:
+                            # The last calibrations run mostly alone: two threads.
+                            threads = 2 if len(recal_futures) == len(METHODS) - 1 else 1
+                            recal_futures[method] = submit(
+                                run_recalibration, scenario, method, tables,
+                                list(remount), threads,
+                            )  # fmt: skip
+                    if not scan_futures:
+                        scan_futures = [
+                            submit(run_scan, scenario, kind, recording) for kind in phantoms
+                        ]
+                recal = Recalibration.merge([result(f) for f in recal_futures.values()], remount)
+                recon_futures = [
+                    submit(reconstruct_phantom, scenario, result(f), recal, tables)
+                    for f in scan_futures
+                ]
+                recon_parts = [result(f) for f in recon_futures]
+                scans = [f.result() for f in scan_futures]
+            outcomes = [result(f) for f in dataset_futures]
+            progress_report.drain(counts)
     t_datasets = time.perf_counter() - t0
     log.debug("touches and DH refinement: %.1f s; pool: %.1f s", t_touch, t_datasets)
     for o in outcomes:

@@ -49,7 +49,12 @@ drawn and the phantom builder keeps today's meshes.
 
 from __future__ import annotations
 
+import hashlib
+import os
+import pickle
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -67,6 +72,7 @@ __all__ = [
     "roughness_height",
     "sphere_subdivisions",
     "texture_rms",
+    "use_disk_cache",
 ]
 
 Array = NDArray[np.float64]
@@ -137,11 +143,24 @@ def part_stream(rng: np.random.Generator, key: int, index: int) -> np.random.Gen
     return np.random.default_rng(child)
 
 
+_DISK_CACHE: Path | None = None
+
+
+def use_disk_cache(directory: str | os.PathLike[str] | None) -> None:
+    """Also keep printed parts in ``directory`` (None: memory only), so that the worker
+    processes of one run share them: the first process to build a part writes it, the
+    others read it (≈ 10 ms instead of 0.3-1.5 s per part, 2.5 s per twin with textured
+    spheres). The directory belongs to the run (e.g. its scratch directory)."""
+    global _DISK_CACHE
+    _DISK_CACHE = None if directory is None else Path(directory)
+
+
 def _cached(build):
     """Memoize a printed-part builder per process: a run builds its twin many times (one
     per dataset, per scan), and a textured part takes ≈ 0.3-1.5 s. The key is the
     part's inputs and its generator's seed sequence (what its streams derive from).
-    Callers must not modify the returned meshes (the twin copies before transforming)."""
+    Callers must not modify the returned meshes (the twin copies before transforming).
+    With :func:`use_disk_cache` the parts are also shared through files."""
     cache: dict[tuple, object] = {}
 
     def wrapper(*args):
@@ -155,13 +174,33 @@ def _cached(build):
         if key not in cache:
             if len(cache) >= _CACHE_SIZE:
                 cache.pop(next(iter(cache)))
-            cache[key] = build(*args)
+            cache[key] = _from_disk(build, key, args)
         return cache[key]
 
     wrapper.__doc__ = build.__doc__
     wrapper.__name__ = build.__name__
     wrapper.__wrapped__ = build  # the uncached builder
     return wrapper
+
+
+def _from_disk(build, key: tuple, args: tuple):
+    """``build(*args)``, through the disk cache when one is set: read the part if a file
+    holds it, else build it and write the file atomically (a process reading at the same
+    time sees the whole file or none)."""
+    if _DISK_CACHE is None:
+        return build(*args)
+    digest = hashlib.sha256(pickle.dumps((build.__name__, key))).hexdigest()[:32]
+    path = _DISK_CACHE / f"{build.__name__}-{digest}.pkl"
+    if path.exists():
+        with path.open("rb") as f:
+            return pickle.load(f)
+    part = build(*args)
+    _DISK_CACHE.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=_DISK_CACHE, suffix=".tmp")
+    with os.fdopen(fd, "wb") as f:
+        pickle.dump(part, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, path)
+    return part
 
 
 # ------------------------------------------------------------------------ texture
