@@ -353,6 +353,8 @@ class SimRobot:
         self._frame_rng: np.random.Generator | None = None  # vibration, stale frames
         self._T_before_move: Array | None = None
         self._moved = False
+        self._truth_key: tuple | None = None  # memo of the truth's flange pose
+        self._truth_T = np.eye(4)
 
     def mount(self, scene: SceneModel) -> None:
         """Change the tool: from now on collisions are checked in ``scene`` (the same arm
@@ -512,11 +514,16 @@ class SimRobot:
         """True joint angles and true flange pose (MuJoCo, true DH; with thermal drift the
         DH kinematics of the warmed table, which MuJoCo's model does not carry). Never
         reported."""
-        if self.cfg.thermal_rise_k == 0:
-            T = self.scene.flange_pose(self._q_true)
-        else:
-            T = forward_kinematics(self.true_table(), self._q_true)
-        return RobotTruth(q=self._q_true.copy(), T_base_ee=T)
+        # It changes only when the arm settles or the tool changes: memoised on those (a
+        # frame reads it up to three times: the move, the grab, the simulator's log).
+        key = (id(self.scene), self._settled_at_s, self._q_true.tobytes())
+        if self._truth_key != key:
+            if self.cfg.thermal_rise_k == 0:
+                T = self.scene.flange_pose(self._q_true)
+            else:
+                T = forward_kinematics(self.true_table(), self._q_true)
+            self._truth_key, self._truth_T = key, T
+        return RobotTruth(q=self._q_true.copy(), T_base_ee=self._truth_T.copy())
 
     @property
     def _frames_disturbed(self) -> bool:
