@@ -234,3 +234,39 @@ def test_printing_is_deterministic_for_a_seed():
     assert np.array_equal(a.vertices, b.vertices) and np.array_equal(ca, cb)
     assert not np.allclose(a.vertices, c.vertices, rtol=0, atol=1 * UM)
     assert not np.array_equal(ca, cc)
+
+
+def test_the_disk_cache_shares_printed_parts_between_processes(tmp_path):
+    """With a disk cache a part is built once and read back whole (mesh, its acoustic
+    metadata, the fitted centre and radius) wherever the same inputs come again: what the
+    run's worker processes share. Without one nothing is written."""
+    s = PhantomConfig(print_layer_mm=0.3, print_roughness_ra_um=20, sphere_roundness_mm=0.05)
+    calls = []
+
+    def build(*args):
+        calls.append(args)
+        return printing.printed_sphere.__wrapped__(*args)
+
+    build.__name__ = "printed_sphere"
+    centre, radius = np.array([0.0, 0.0, 20 * MM]), 5 * MM
+    args = (centre, radius, s.printing, 1, _rng(3))
+    key = ("inputs", "seed")
+    printing.use_disk_cache(None)
+    printing._from_disk(build, key, args)
+    assert len(calls) == 1 and not any(tmp_path.iterdir())
+    try:
+        printing.use_disk_cache(tmp_path)
+        built = printing._from_disk(build, key, args)
+        read = printing._from_disk(build, key, args)  # as another process would
+    finally:
+        printing.use_disk_cache(None)
+    assert len(calls) == 2  # the second came from the file
+    assert [p.suffix for p in tmp_path.iterdir()] == [".pkl"]
+    (m0, c0, r0), (m1, c1, r1) = built, read
+    np.testing.assert_array_equal(m0.vertices, m1.vertices)
+    np.testing.assert_array_equal(m0.faces, m1.faces)
+    np.testing.assert_array_equal(
+        m0.metadata["acoustic_vertices"], m1.metadata["acoustic_vertices"]
+    )
+    np.testing.assert_array_equal(m0.metadata["texture_rms_m"], m1.metadata["texture_rms_m"])
+    assert np.array_equal(c0, c1) and r0 == r1
