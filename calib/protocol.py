@@ -365,18 +365,26 @@ def acquire(
     sweeps = []
     for planned in plan:
         images, qs, poses, spacing = [], [], [], None
-        for j, T in enumerate(planned.T_base_ee):
-            reading = robot.move_to(T, f"{planned.target} sweep {planned.pose_id} frame {j}")
+        try:
+            for j, T in enumerate(planned.T_base_ee):
+                label = f"{planned.target} sweep {planned.pose_id} frame {j}"
+                reading = robot.move_to(T, label)
+                if deferred:
+                    imager.capture()
+                else:
+                    frame = imager.grab()
+                    images.append(frame.image)
+                    spacing = frame.spacing
+                qs.append(reading.q)
+                poses.append(reading.T_base_ee)
+                if on_frame is not None:
+                    on_frame(planned, j)
+        except BaseException:
             if deferred:
-                imager.capture()
-            else:
-                frame = imager.grab()
-                images.append(frame.image)
-                spacing = frame.spacing
-            qs.append(reading.q)
-            poses.append(reading.T_base_ee)
-            if on_frame is not None:
-                on_frame(planned, j)
+                # The frames noted before the failure are formed (and dropped) as grabbing
+                # would have formed them, so the imager starts the next sweep clean.
+                imager.develop()
+            raise
         if deferred:
             frames = imager.develop()
             images = [f.image for f in frames]

@@ -95,3 +95,53 @@ def test_parallel_sweeps_share_one_travel_direction():
     # The starting poses differ in position and orientation.
     R = np.array([p.T_base_ee[10][:3, :3] for p in plan])
     assert len({tuple(np.round(r.ravel(), 6)) for r in R}) == 9
+
+
+def test_an_interrupted_sweep_leaves_a_deferred_imager_clean():
+    """A deferred imager (the twin's) notes frames and forms them after the sweep; when a
+    move fails mid-sweep, the frames noted so far are formed and dropped, so the next
+    sweep holds only its own frames."""
+    from calib.protocol import DeferredImager, PlannedSweep, acquire
+    from calib.records import UsFrame
+
+    class Reading:
+        def __init__(self):
+            self.q = np.zeros(6)
+            self.T_base_ee = np.eye(4)
+
+    class Robot:
+        def __init__(self, fail_at=None):
+            self.calls, self.fail_at = 0, fail_at
+
+        def move_to(self, T, label=""):
+            self.calls += 1
+            if self.calls == self.fail_at:
+                raise CollisionError(f"moving to {label} hits the tank")
+            return Reading()
+
+    class Imager:
+        def __init__(self):
+            self.noted, self.developed = 0, []
+
+        def grab(self):  # pragma: no cover - the deferred path is taken
+            raise AssertionError("grab")
+
+        def capture(self):
+            self.noted += 1
+
+        def develop(self):
+            frames = [
+                UsFrame(np.full((4, 5), k, np.uint8), (1e-4, 1e-4)) for k in range(self.noted)
+            ]
+            self.developed.append(self.noted)
+            self.noted = 0
+            return frames
+
+    imager = Imager()
+    assert isinstance(imager, DeferredImager)
+    sweep = PlannedSweep("sphere_1", 0, 0, 0, np.repeat(np.eye(4)[None], 5, axis=0))
+    with pytest.raises(CollisionError, match="frame 2"):
+        acquire(Robot(fail_at=3), imager, [sweep])
+    assert imager.developed == [2] and imager.noted == 0
+    (done,) = acquire(Robot(), imager, [sweep])
+    assert done.images.shape == (5, 4, 5) and imager.developed == [2, 5]
