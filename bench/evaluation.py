@@ -114,6 +114,7 @@ class _DatasetTask:
     recording: RecordingOptions | None = None
     save_dir: Path | None = None  # write the acquisition (with its touches) here
     kinematic_rms_mm: float = 0.0  # the DH refinement's residual (RMS touch distance)
+    scratch: Path | None = None  # the run's scratch directory: the frames go there
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,6 +148,7 @@ def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
         rngs["protocol"],
         touches=task.touches,
         progress=f"{task.name}: acquire sweeps",
+        frames_dir=task.scratch,
     )
     t_sim = time.perf_counter() - t0
     if task.save_dir is not None:
@@ -444,6 +446,7 @@ def _run_evaluation(
             recording,
             Path(save_dataset) / name if save_dataset is not None else None,
             float(np.sqrt(np.mean(refinements[name].residuals_mm ** 2))),
+            scratch,
         )
         for i, (name, sc) in enumerate(zip(names, scans, strict=True))
     ]

@@ -7,6 +7,7 @@ import ctypes
 import gc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,6 +45,7 @@ __all__ = [
     "coarse_estimate",
     "dataset_rngs",
     "dataset_scenario",
+    "frames_to_file",
     "image_error_mm",
     "image_points",
     "make_imager",
@@ -200,6 +202,7 @@ def simulate_acquisition(
     protocol_rng: np.random.Generator | None = None,
     touches: Sequence[Touch] = (),
     progress: str | None = None,
+    frames_dir: Path | None = None,
 ) -> SimulatedAcquisition:
     """Teach, plan, check and acquire the scenario's spheres with the twin.
 
@@ -207,7 +210,10 @@ def simulate_acquisition(
     protocol's target depth, off by the teaching error; the robot records what its
     controller reports there. ``protocol_rng`` replaces the teaching-error stream;
     ``touches`` go into the dataset as they are; ``progress`` names the task whose
-    sweep counts :func:`bench.progress.report` receives.
+    sweep counts :func:`bench.progress.report` receives. ``frames_dir``: each sphere's
+    frames go to a file there as soon as it is scanned and the sweeps map it
+    (:func:`frames_to_file`), so a long acquisition never holds its frames and the twin
+    in memory at once.
     """
     rngs = stage_rngs(scenario)
     if protocol_rng is not None:
@@ -240,7 +246,10 @@ def simulate_acquisition(
             if j == len(planned.T_base_ee) - 1:
                 report(label, len(truth), total)
 
-        sweeps += acquire(twin.robot, imager, plan, on_frame=log)
+        scanned = acquire(twin.robot, imager, plan, on_frame=log)
+        if frames_dir is not None:
+            scanned = frames_to_file(scanned, frames_dir / f"{name}_{target}.npy")
+        sweeps += scanned
     meta = {
         "temperature_c": scenario.medium.temperature_c,
         "assumed_speed_m_s": scenario.imaging.assumed_speed_m_s,
@@ -251,6 +260,25 @@ def simulate_acquisition(
         coarse,
         {k: np.array(v) for k, v in truth.items()},
     )
+
+
+def frames_to_file(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:
+    """Write the sweeps' frames (all of one shape) to ``path`` (``.npy``) and return the
+    sweeps with their frames mapped from it, copy-on-write: the pages are the page
+    cache's, read back as the pipeline touches them, and writable, so the localizer's
+    compiled kernels take them as any frame array. Nothing else changes."""
+    shapes = {s.images.shape for s in sweeps}
+    if len(shapes) != 1:
+        return list(sweeps)
+    out = np.lib.format.open_memmap(
+        path, mode="w+", dtype=np.uint8, shape=(len(sweeps), *shapes.pop())
+    )
+    for i, s in enumerate(sweeps):
+        out[i] = s.images
+    out.flush()
+    del out
+    frames = np.load(path, mmap_mode="c")
+    return [replace(s, images=frames[i]) for i, s in enumerate(sweeps)]
 
 
 def true_centre_in_sweep(

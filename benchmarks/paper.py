@@ -35,11 +35,13 @@ from bench.scenario import load_scenario  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _tree_pss_bytes(pid: int) -> int:
+def _tree_pss_bytes(pid: int) -> tuple[int, int]:
     """Memory of a process and all its descendants (Linux /proc): the proportional set
     size, which counts pages shared between them (libraries) once, not once per process
-    as summing resident sizes would."""
-    total = 0
+    as summing resident sizes would; and the part of it that is not file-backed (the
+    frames a run maps from its scratch files are clean file pages, which the kernel can
+    drop and read back)."""
+    total = anon = 0
     stack = [pid]
     while stack:
         p = stack.pop()
@@ -47,11 +49,13 @@ def _tree_pss_bytes(pid: int) -> int:
             for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
                 if line.startswith("Pss:"):
                     total += int(line.split()[1]) * 1024
+                elif line.startswith(("Pss_Anon:", "Pss_Shmem:")):
+                    anon += int(line.split()[1]) * 1024
             children = Path(f"/proc/{p}/task/{p}/children").read_text().split()
         except (FileNotFoundError, ProcessLookupError, PermissionError):
             continue
         stack += [int(c) for c in children]
-    return total
+    return total, anon
 
 
 def main() -> None:
@@ -68,13 +72,14 @@ def main() -> None:
     if args.no_reconstruction:
         overrides.append("reconstruction.phantoms=[]")
     scenario = load_scenario(ROOT / "scenarios" / "paper.yaml", overrides)
-    peak = 0
+    peak = peak_anon = 0
     done = threading.Event()
 
     def sample() -> None:
-        nonlocal peak
+        nonlocal peak, peak_anon
         while not done.is_set():
-            peak = max(peak, _tree_pss_bytes(os.getpid()))
+            pss, anon = _tree_pss_bytes(os.getpid())
+            peak, peak_anon = max(peak, pss), max(peak_anon, anon)
             # Reading smaps_rollup walks each process's page tables: every 0.2 s this
             # thread took a fifth of a core from the run it measures (py-spy).
             done.wait(1.0)
@@ -108,6 +113,7 @@ def main() -> None:
     print(f"cpu_s={cpu:.1f} (this process and its finished workers)")
     if args.record:
         print(f"recording_s={t['recording']:.1f} (CPU, summed over processes) rrd_mb={rrd_mb:.0f}")
+    print(f"peak_not_file_backed_mb={peak_anon / 2**20:.0f}")
     print(f"wall_s={wall:.1f} peak_mb={peak / 2**20:.0f}")
 
 

@@ -121,3 +121,33 @@ def test_localizing_spheres_on_threads_changes_nothing():
     ]
     assert np.isfinite(centres[0]).all(axis=1).mean() > 0.8
     np.testing.assert_array_equal(*centres)
+
+
+def test_frames_to_file_maps_the_same_frames(tmp_path):
+    """A sphere's frames written to the run's scratch file come back identical, mapped
+    copy-on-write (a write changes the mapping, never the file), the sweeps otherwise
+    unchanged."""
+    from bench.experiment import frames_to_file
+    from calib.records import Sweep
+
+    rng = np.random.default_rng(0)
+    sweeps = [
+        Sweep(
+            "sphere_1",
+            k,
+            rng.integers(0, 256, (3, 8, 6), dtype=np.uint8),
+            (1e-4, 1e-4),
+            rng.normal(size=(3, 6)),
+            np.repeat(np.eye(4)[None], 3, axis=0),
+        )
+        for k in range(4)
+    ]
+    mapped = frames_to_file(sweeps, tmp_path / "A_sphere_1.npy")
+    for a, b in zip(sweeps, mapped, strict=True):
+        np.testing.assert_array_equal(a.images, b.images)
+        assert isinstance(b.images.base, np.memmap) or isinstance(b.images, np.memmap)
+        assert (a.target, a.pose_id, a.spacing) == (b.target, b.pose_id, b.spacing)
+        np.testing.assert_array_equal(a.q, b.q)
+    mapped[0].images[0, 0, 0] ^= 255
+    on_disk = np.load(tmp_path / "A_sphere_1.npy")
+    np.testing.assert_array_equal(on_disk[0], sweeps[0].images)
