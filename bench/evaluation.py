@@ -16,13 +16,14 @@ Stages (the split the timing figures use):
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import logging
 import multiprocessing
 import os
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,9 +58,11 @@ from calib.records import Touch
 from calib.uncertainty import alternation_bound
 from twin.imager import acoustic_scene
 from twin.printing import use_disk_cache
+from twin.world import GroundTruth
 
 from . import progress as progress_report
 from .experiment import (
+    SimulatedAcquisition,
     axial_scale,
     coarse_estimate,
     dataset_rngs,
@@ -133,35 +136,104 @@ class DatasetOutcome:
     uncertainty: dict[str, dict[str, Any]] = field(default_factory=dict)  # per fold name
 
 
-def _run_dataset(task: _DatasetTask) -> DatasetOutcome:
-    """Simulate one dataset's sweeps and run its folds (a process-pool task)."""
+@dataclass(frozen=True, eq=False)
+class _DatasetScan:
+    """A dataset's simulated acquisition, its truth and what the folds need of its twin.
+    From a pool task (``frames_dir`` set) the sweeps carry no frames: those stay in the
+    run's scratch files, and :meth:`acquisition_with_frames` maps them back."""
+
+    acquisition: SimulatedAcquisition
+    truth: GroundTruth
+    cad: dict[str, Array]  # the CAD's sphere centres
+    scene_view: tuple[Any, Any] | None  # what a recording shows of the scene
+    seconds: float
+    frames_dir: Path | None = None
+
+    def acquisition_with_frames(self) -> SimulatedAcquisition:
+        acq = self.acquisition
+        if self.frames_dir is None:
+            return acq
+        frames = {
+            t: np.load(self.frames_dir / f"{acq.dataset.name}_{t}.npy", mmap_mode="c")
+            for t in acq.dataset.targets()
+        }
+        seen = dict.fromkeys(frames, 0)
+        sweeps = []
+        for s in acq.dataset.sweeps:
+            sweeps.append(replace(s, images=frames[s.target][seen[s.target]]))
+            seen[s.target] += 1
+        return replace(acq, dataset=replace(acq.dataset, sweeps=tuple(sweeps)))
+
+
+def _simulate_dataset(
+    scenario: Scenario,
+    index: int,
+    name: str,
+    touches: tuple[Touch, ...] = (),
+    scratch: Path | None = None,
+    save_dir: Path | None = None,
+    scene: bool = False,
+    detach: bool = False,
+) -> _DatasetScan:
+    """Simulate one dataset's sweeps (the first half of a dataset's work: it needs no DH
+    model, so a pool runs it while the touches are refined). ``scratch``: the frames go
+    to files there (:func:`~bench.experiment.frames_to_file`); ``detach``: the returned
+    sweeps leave them there (a pool task's result crosses a pipe)."""
     t0 = time.perf_counter()
-    scenario = task.scenario
-    rngs = dataset_rngs(scenario, task.index)
+    rngs = dataset_rngs(scenario, index)
     twin = make_twin(scenario, rngs["joints"])
     imager = make_imager(scenario, twin, rngs["imaging"])
     acq = simulate_acquisition(
         scenario,
         twin,
         imager,
-        task.name,
+        name,
         rngs["protocol"],
-        touches=task.touches,
-        progress=f"{task.name}: acquire sweeps",
-        frames_dir=task.scratch,
+        touches=touches,
+        progress=f"{name}: acquire sweeps",
+        frames_dir=scratch,
     )
     t_sim = time.perf_counter() - t0
-    if task.save_dir is not None:
+    if save_dir is not None:
         from .offline import save_dataset
 
-        save_dataset(task.save_dir, scenario, twin, acq)
+        save_dataset(save_dir, scenario, twin, acq)
     truth = twin.truth
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
     # What a recording shows of the scene (small: meshes and the MuJoCo model).
-    scene_view = (acoustic_scene(twin.robot.scene.scene).parts, twin.scene.model)
+    scene_view = (acoustic_scene(twin.robot.scene.scene).parts, twin.scene.model) if scene else None
     # The scanner and scene are done: free them before the folds (memory per worker).
     del imager, twin
     release_memory()
+    frames_dir = None
+    mapped = all(isinstance(s.images.base, np.memmap) for s in acq.dataset.sweeps)
+    if detach and scratch is not None and mapped:
+        empty = np.zeros((0, 0, 0), dtype=np.uint8)
+        bare = tuple(replace(s, images=empty) for s in acq.dataset.sweeps)
+        acq = replace(acq, dataset=replace(acq.dataset, sweeps=bare))
+        frames_dir = scratch
+    return _DatasetScan(acq, truth, cad, scene_view, t_sim, frames_dir)
+
+
+def _run_dataset(task: _DatasetTask, scan: _DatasetScan | None = None) -> DatasetOutcome:
+    """Run one dataset's folds, after simulating its sweeps unless ``scan`` holds them
+    (a process-pool task)."""
+    if scan is None:
+        scan = _simulate_dataset(
+            task.scenario,
+            task.index,
+            task.name,
+            task.touches,
+            task.scratch,
+            task.save_dir,
+            scene=task.recording is not None,
+        )
+        acq = scan.acquisition
+    else:
+        acq = scan.acquisition_with_frames()
+        acq = replace(acq, dataset=replace(acq.dataset, touches=tuple(task.touches)))
+    scenario = task.scenario
+    truth, cad, scene_view, t_sim = scan.truth, scan.cad, scan.scene_view, scan.seconds
     radius = scenario.phantom.sphere_radius_mm * 1e-3
     scale = axial_scale(scenario)
     loc_cfg = scenario.localization
@@ -378,10 +450,11 @@ def run_evaluation(
     say = progress or (lambda _msg: None)
     # The run's scratch directory: the printed parts its processes share (built once,
     # read by every worker), and the re-calibration scan's frames. Removed at the end.
-    with tempfile.TemporaryDirectory(prefix="uscal-run-") as tmp:
+    # (The pool, entered into ``stack``, shuts down before the directory goes.)
+    with tempfile.TemporaryDirectory(prefix="uscal-run-") as tmp, contextlib.ExitStack() as stack:
         use_disk_cache(Path(tmp) / "printed-parts")
         try:
-            return _run_evaluation(scenario, say, recording, save_dataset, Path(tmp))
+            return _run_evaluation(scenario, say, recording, save_dataset, Path(tmp), stack)
         finally:
             use_disk_cache(None)
 
@@ -392,14 +465,54 @@ def _run_evaluation(
     recording: RecordingOptions | None,
     save_dataset: Path | None,
     scratch: Path,
+    stack: contextlib.ExitStack,
 ) -> EvaluationResult:
-    """:func:`run_evaluation` inside its scratch directory."""
+    """:func:`run_evaluation` inside its scratch directory; its process pool (if any)
+    lives in ``stack``."""
     t_start = time.perf_counter()
     ev = scenario.evaluation
     names = list(ev.datasets)
     scenarios = [dataset_scenario(scenario, i) for i in range(len(names))]
     # Where each dataset's sweeps find the phantom (moved since its touches, if at all).
     scans = [scan_scenario(scenario, i) for i in range(len(names))]
+    workers = _workers(scenario, len(names))
+    pool: cf.ProcessPoolExecutor | None = None
+    counts: Any = None
+    if workers > 1:
+        ctx = multiprocessing.get_context("spawn")
+        counts = ctx.Queue()  # the workers' progress reports
+        pool = stack.enter_context(
+            cf.ProcessPoolExecutor(
+                max_workers=workers,
+                mp_context=ctx,
+                initializer=_worker_initializer,
+                initargs=(counts, scratch / "printed-parts"),
+            )
+        )
+
+    def result(future: cf.Future):
+        while not future.done():
+            cf.wait([future], timeout=0.2)
+            progress_report.drain(counts)
+        return future.result()
+
+    def submit(fn: Callable[..., Any], *args: Any) -> cf.Future:
+        assert pool is not None
+        return pool.submit(_pool_task, fn, *args)
+
+    # The sweeps need no DH model: with a pool the datasets' simulations start now and
+    # run while the touches are simulated and refined below (their frames stay in the
+    # scratch directory). A recording or saved datasets need the twin after the
+    # simulation: then each dataset is one task, as without a pool.
+    split = pool is not None and recording is None and save_dataset is None
+    sim_futures = (
+        [
+            submit(_simulate_dataset, sc, i, name, (), scratch, None, False, True)
+            for i, (name, sc) in enumerate(zip(names, scans, strict=True))
+        ]
+        if split
+        else []
+    )
 
     # ---- stage 1: touches, DH refinement, references
     touches: dict[str, list[Touch]] = {}
@@ -452,7 +565,6 @@ def _run_evaluation(
     ]
     tables = {name: refinements[name].table for name in names}
     phantoms = scenario.reconstruction.phantoms
-    workers = _workers(scenario, len(tasks))
     say(f"{len(tasks)} datasets on {workers} worker process(es)")
     if phantoms:
         say(f"reconstruction of the {' and '.join(phantoms)} after them")
@@ -475,59 +587,47 @@ def _run_evaluation(
                 scans.append(scan)
                 recon_parts.append(reconstruct_phantom(scenario, scan, recal, tables))
     else:
-        ctx = multiprocessing.get_context("spawn")
-        counts = ctx.Queue()  # the workers' progress reports
-        with cf.ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=ctx,
-            initializer=_worker_initializer,
-            initargs=(counts, scratch / "printed-parts"),
-        ) as pool:
-
-            def result(future: cf.Future):
-                while not future.done():
-                    cf.wait([future], timeout=0.2)
-                    progress_report.drain(counts)
-                return future.result()
-
-            def submit(fn: Callable[..., Any], *args: Any) -> cf.Future:
-                return pool.submit(_pool_task, fn, *args)
-
-            # The datasets first: each is a long serial task, and one started late
-            # would run alone at the end. The reconstruction's small tasks follow,
-            # each queued as soon as what it needs is done: the sphere scans, a
-            # method's calibrations once its spheres are scanned (single-marker
-            # ahead of the phantom scans), the registrations.
+        # The datasets first: each is a long serial task, and one started late
+        # would run alone at the end. The reconstruction's small tasks follow,
+        # each queued as soon as what it needs is done: the sphere scans, a
+        # method's calibrations once its spheres are scanned (single-marker
+        # ahead of the phantom scans), the registrations.
+        if split:
+            # Each dataset's folds as soon as its sweeps are simulated.
+            dataset_futures = [
+                submit(_run_dataset, t, result(f)) for t, f in zip(tasks, sim_futures, strict=True)
+            ]
+        else:
             dataset_futures = [submit(_run_dataset, t) for t in tasks]
-            if phantoms:
-                remount_futures = [submit(run_remount_scan, scenario, k, scratch) for k in spheres]
-                remount: list[RemountScan] = []
-                recal_futures: dict[str, cf.Future] = {}
-                scan_futures: list[cf.Future] = []
-                for f in remount_futures:
-                    remount.append(result(f))
-                    scanned = {s.target for s in remount}
-                    for method, used in METHODS.items():
-                        if method not in recal_futures and set(used) <= scanned:
-                            # The last calibrations run mostly alone: two threads.
-                            threads = 2 if len(recal_futures) == len(METHODS) - 1 else 1
-                            recal_futures[method] = submit(
-                                run_recalibration, scenario, method, tables,
-                                list(remount), threads,
-                            )  # fmt: skip
-                    if not scan_futures:
-                        scan_futures = [
-                            submit(run_scan, scenario, kind, recording) for kind in phantoms
-                        ]
-                recal = Recalibration.merge([result(f) for f in recal_futures.values()], remount)
-                recon_futures = [
-                    submit(reconstruct_phantom, scenario, result(f), recal, tables)
-                    for f in scan_futures
-                ]
-                recon_parts = [result(f) for f in recon_futures]
-                scans = [f.result() for f in scan_futures]
-            outcomes = [result(f) for f in dataset_futures]
-            progress_report.drain(counts)
+        if phantoms:
+            remount_futures = [submit(run_remount_scan, scenario, k, scratch) for k in spheres]
+            remount: list[RemountScan] = []
+            recal_futures: dict[str, cf.Future] = {}
+            scan_futures: list[cf.Future] = []
+            for f in remount_futures:
+                remount.append(result(f))
+                scanned = {s.target for s in remount}
+                for method, used in METHODS.items():
+                    if method not in recal_futures and set(used) <= scanned:
+                        # The last calibrations run mostly alone: two threads.
+                        threads = 2 if len(recal_futures) == len(METHODS) - 1 else 1
+                        recal_futures[method] = submit(
+                            run_recalibration, scenario, method, tables,
+                            list(remount), threads,
+                        )  # fmt: skip
+                if not scan_futures:
+                    scan_futures = [
+                        submit(run_scan, scenario, kind, recording) for kind in phantoms
+                    ]
+            recal = Recalibration.merge([result(f) for f in recal_futures.values()], remount)
+            recon_futures = [
+                submit(reconstruct_phantom, scenario, result(f), recal, tables)
+                for f in scan_futures
+            ]
+            recon_parts = [result(f) for f in recon_futures]
+            scans = [f.result() for f in scan_futures]
+        outcomes = [result(f) for f in dataset_futures]
+        progress_report.drain(counts)
     t_datasets = time.perf_counter() - t0
     log.debug("touches and DH refinement: %.1f s; pool: %.1f s", t_touch, t_datasets)
     for o in outcomes:

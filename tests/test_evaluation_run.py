@@ -243,3 +243,35 @@ def test_the_phantom_moves_between_touches_and_sweeps_only_when_asked():
     assert np.std(shifts[:, :2], axis=0) == pytest.approx([0.5, 0.5], rel=0.15)
     assert scan_scenario(moved, 1) == scan_scenario(moved, 1)
     assert scan_scenario(moved, 1) != scan_scenario(moved, 2)
+
+
+@pytest.mark.slow
+def test_simulations_run_beside_the_touches_with_the_same_results(small_run, tmp_path):
+    """Without a recording or saved datasets the pool simulates the datasets while the
+    touches are refined (the frames wait in the run's scratch directory, removed at the
+    end); every figure is the same as when each dataset is one task."""
+    _, metrics, _ = small_run
+    out = tmp_path / "run"
+    args = ["run", str(ROOT / "scenarios" / "paper.yaml"), "--out", str(out), "--no-rrd"]
+    for o in SMALL:
+        args += ["--set", o]
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    r = uscal(*args, env={"TMPDIR": str(scratch)})
+    assert r.returncode == 0, r.stderr
+    assert not any(scratch.iterdir()), list(scratch.iterdir())
+    split = json.loads((out / "metrics.json").read_text())
+
+    def figures(m):
+        if isinstance(m, dict):
+            return {
+                k: figures(v)
+                for k, v in m.items()
+                if "timing" not in k and not k.endswith("_s") and k != "seconds"
+            }
+        if isinstance(m, list):
+            return [figures(v) for v in m]
+        return m
+
+    for section in ("evaluation", "reconstruction", "calibration", "localization"):
+        assert figures(split[section]) == figures(metrics[section]), section
