@@ -353,13 +353,13 @@ class SimRobot:
         self._frame_rng: np.random.Generator | None = None  # vibration, stale frames
         self._T_before_move: Array | None = None
         self._moved = False
-        self._truth_key: tuple | None = None  # memo of the truth's flange pose
-        self._truth_T = np.eye(4)
+        self._truth_T: Array | None = None  # the truth's flange pose, until the next settle
 
     def mount(self, scene: SceneModel) -> None:
         """Change the tool: from now on collisions are checked in ``scene`` (the same arm
         with another tool on the flange)."""
         self.scene = scene
+        self._truth_T = None
 
     # ------------------------------------------------------------------ settling a move
 
@@ -392,6 +392,7 @@ class SimRobot:
             self._T_before_move = self.truth.T_base_ee
         self._advance_clock(q_cmd, linear)
         self._q_true = q_true
+        self._truth_T = None
         self._q_motor = q_motor
         self._moved = True
         seen = q_true if self._joints is None or self.cfg.joint_encoders_output_side else q_motor
@@ -514,15 +515,13 @@ class SimRobot:
         """True joint angles and true flange pose (MuJoCo, true DH; with thermal drift the
         DH kinematics of the warmed table, which MuJoCo's model does not carry). Never
         reported."""
-        # It changes only when the arm settles or the tool changes: memoised on those (a
-        # frame reads it up to three times: the move, the grab, the simulator's log).
-        key = (id(self.scene), self._settled_at_s, self._q_true.tobytes())
-        if self._truth_key != key:
+        # It changes only when the arm settles or the tool changes (both clear the memo);
+        # a frame reads it up to three times: the move, the grab, the simulator's log.
+        if self._truth_T is None:
             if self.cfg.thermal_rise_k == 0:
-                T = self.scene.flange_pose(self._q_true)
+                self._truth_T = self.scene.flange_pose(self._q_true)
             else:
-                T = forward_kinematics(self.true_table(), self._q_true)
-            self._truth_key, self._truth_T = key, T
+                self._truth_T = forward_kinematics(self.true_table(), self._q_true)
         return RobotTruth(q=self._q_true.copy(), T_base_ee=self._truth_T.copy())
 
     @property
