@@ -23,14 +23,26 @@ _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
 _MIX2 = np.uint64(0x94D049BB133111EB)
 _PRIMES = (np.uint64(0x8DA6B343), np.uint64(0xD8163841), np.uint64(0xCB1AB31F))
 _TABLE_BITS = 16  # 65 536 amplitudes (fits the CPU cache); the hash scatters them
+_TABLE_SHIFT = np.uint64(64 - _TABLE_BITS)
 
 
-def _splitmix64(x: NDArray[np.uint64]) -> NDArray[np.uint64]:
-    """SplitMix64 finaliser (Steele et al. 2014): a well-mixed 64-bit hash of ``x``."""
-    x = x + _GOLDEN
-    x = (x ^ (x >> np.uint64(30))) * _MIX1
-    x = (x ^ (x >> np.uint64(27))) * _MIX2
-    return x ^ (x >> np.uint64(31))
+@numba.njit(cache=True, nogil=True)
+def _cell_slot(i0, i1, i2, key):  # pragma: no cover - compiled
+    """Table slot of grid cell (i0, i1, i2): the cell's coordinates mixed by odd
+    constants, then the SplitMix64 finaliser (Steele et al. 2014), a well-mixed 64-bit
+    hash; its top bits pick the slot."""
+    h = (np.uint64(i0) * _PRIMES[0]) ^ (np.uint64(i1) * _PRIMES[1]) ^ (np.uint64(i2) * _PRIMES[2])
+    h = (h ^ key) + _GOLDEN
+    h = (h ^ (h >> np.uint64(30))) * _MIX1
+    h = (h ^ (h >> np.uint64(27))) * _MIX2
+    h = h ^ (h >> np.uint64(31))
+    return np.intp(h >> _TABLE_SHIFT)
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _values_at_cells(idx, table, key, out):  # pragma: no cover - compiled
+    for i in range(idx.shape[0]):
+        out[i] = table[_cell_slot(idx[i, 0], idx[i, 1], idx[i, 2], key)]
 
 
 class ScattererField:
@@ -56,11 +68,11 @@ class ScattererField:
 
     def at_cells(self, idx: NDArray[np.int64]) -> NDArray[np.complex64]:
         """Amplitudes of integer grid cells (..., 3)."""
-        u = idx.view(np.uint64)
-        with np.errstate(over="ignore"):
-            h = (u[..., 0] * _PRIMES[0]) ^ (u[..., 1] * _PRIMES[1]) ^ (u[..., 2] * _PRIMES[2])
-            h = _splitmix64(h ^ self.key)
-        return self._table[(h >> np.uint64(64 - _TABLE_BITS)).astype(np.intp)]
+        idx = np.asarray(idx, dtype=np.int64)
+        flat = np.ascontiguousarray(idx.reshape(-1, 3))
+        out = np.empty(len(flat), dtype=np.complex64)
+        _values_at_cells(flat, self._table, self.key, out)
+        return out.reshape(idx.shape[:-1])
 
     def at(self, P_scene: NDArray[np.floating]) -> NDArray[np.complex64]:
         """Amplitudes at points (..., 3), metres (nearest-cell lookup)."""
@@ -125,9 +137,6 @@ class ScattererField:
         return acc / np.sqrt(norm).astype(np.float32)
 
 
-_TABLE_SHIFT = np.uint64(64 - _TABLE_BITS)
-
-
 # Written by hand and compiled with numba: the speckle of a scattering medium hashes one
 # scatterer per pixel and lattice line (millions a frame); fused here with the weighting
 # and the sum, it touches each term once.
@@ -155,16 +164,6 @@ def _add_lattice_lines(
                 i0 = np.int64(np.floor(r0 + shifted[c, 0]))
                 i1 = np.int64(np.floor(r1 + shifted[c, 1]))
                 i2 = np.int64(np.floor(r2 + shifted[c, 2]))
-                h = (
-                    (np.uint64(i0) * _PRIMES[0])
-                    ^ (np.uint64(i1) * _PRIMES[1])
-                    ^ (np.uint64(i2) * _PRIMES[2])
-                )
-                h = h ^ key
-                h = h + _GOLDEN
-                h = (h ^ (h >> np.uint64(30))) * _MIX1
-                h = (h ^ (h >> np.uint64(27))) * _MIX2
-                h = h ^ (h >> np.uint64(31))
-                v = table[np.intp(h >> _TABLE_SHIFT)]
+                v = table[_cell_slot(i0, i1, i2, key)]
                 # Rounded to complex64 after every line, as the line-by-line sum was.
                 acc[r, c] = np.complex64(np.complex128(acc[r, c]) + np.complex128(v) * b)
