@@ -300,6 +300,15 @@ class BmodeSimulator:
         medium_end = echoes.medium_end.reshape(n, K, L)[:, :, self._line_of_column]
         return image.reshape(n, H, W), speckled, medium_end
 
+    def _shallow_share(
+        self, plane: NDArray[np.int64], row_idx: NDArray[np.int64], rising: NDArray[np.bool_]
+    ) -> Array:
+        """Share of a slab's beam-profile density at the shallow end of its echo's depth
+        interval: the slab's low-z edge where the surface deepens with z (``rising``), its
+        high-z edge where it rises."""
+        share = self._edge_share[plane, row_idx]
+        return np.where(rising, share, 1.0 - share)
+
     def _slab_half_rows(self, plane: NDArray[np.int64], slope: Array) -> Array:
         """Half the depth span (rows) of each hit's elevation slab along its tangent plane."""
         slope = np.clip(slope, -_MAX_ELEVATION_SLOPE, _MAX_ELEVATION_SLOPE)
@@ -358,8 +367,7 @@ class BmodeSimulator:
         width = 2.0 * half[hit]
         y = row_f[hit] - half[hit] + u * width
         if slope is not None:
-            share = self._edge_share[plane[hit], row_idx[hit]]
-            p = np.where(slope[hit] >= 0, share, 1.0 - share)
+            p = self._shallow_share(plane[hit], row_idx[hit], slope[hit] >= 0)
             weight = (2.0 * p + 2.0 * (1.0 - 2.0 * p) * u) / m[hit]  # ρ(y) dy / energy
             sign = np.where(slope[hit] >= 0, 1.0, -1.0)
         else:
@@ -420,9 +428,8 @@ class BmodeSimulator:
         a, b = row_f - half, row_f + half
         keep = (b > -1) & (a < H)
         frame, plane, line, a, b, energy = (v[keep] for v in (frame, plane, line, a, b, energy))
-        share = self._edge_share[plane, row_idx[keep]]
         # Density (per row) at the shallow end a and the deep end b; it integrates to energy.
-        p = np.where(rising[keep], share, 1.0 - share)
+        p = self._shallow_share(plane, row_idx[keep], rising[keep])
         width = b - a
         rho_a = 2.0 * energy * p / width
         beta = 2.0 * energy * (1.0 - 2.0 * p) / width**2  # dρ/dy
@@ -531,10 +538,9 @@ class BmodeSimulator:
             image += parts[: len(T)] ** 2 + parts[len(T) :] ** 2
         if medium.backscatter_db is not None:
             sp = self._speckle(T, medium_end, medium)
-            # The real and imaginary parts through the amplitude PSF, in float32 (the same
-            # values as a complex64 blur, without its complex128 temporaries).
-            # Normalised so white scatterers keep unit mean intensity after the blur: a
-            # unit-sum Gaussian of σ keeps 1 / (2 √π σ) of white noise's power per axis.
+            # Through the amplitude PSF, normalised so white scatterers keep unit mean
+            # intensity: a unit-sum Gaussian of σ keeps 1 / (2 √π σ) of white noise's
+            # power per axis.
             norm = np.float32(4.0 * np.pi * sig_ax * sig_lat)
             _add_blurred_intensity(
                 image, sp, _gaussian_kernel(sig_ax), _gaussian_kernel(sig_lat), norm
