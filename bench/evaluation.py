@@ -77,6 +77,8 @@ from .experiment import (
     simulate_touches,
     stage_rngs,
     true_centre_in_sweep,
+    with_frames,
+    without_frames,
 )
 from .figures import LocalizationSnapshot
 from .offline import scenario_uncertainty, uncertainty_entry
@@ -153,15 +155,13 @@ class _DatasetScan:
         acq = self.acquisition
         if self.frames_dir is None:
             return acq
-        frames = {
-            t: np.load(self.frames_dir / f"{acq.dataset.name}_{t}.npy", mmap_mode="c")
+        # One file per sphere, scanned one after the other (simulate_acquisition).
+        name = acq.dataset.name
+        sweeps = [
+            s
             for t in acq.dataset.targets()
-        }
-        seen = dict.fromkeys(frames, 0)
-        sweeps = []
-        for s in acq.dataset.sweeps:
-            sweeps.append(replace(s, images=frames[s.target][seen[s.target]]))
-            seen[s.target] += 1
+            for s in with_frames(acq.dataset.of(t), self.frames_dir / f"{name}_{t}.npy")
+        ]
         return replace(acq, dataset=replace(acq.dataset, sweeps=tuple(sweeps)))
 
 
@@ -206,10 +206,8 @@ def _simulate_dataset(
     del imager, twin
     release_memory()
     frames_dir = None
-    mapped = all(isinstance(s.images.base, np.memmap) for s in acq.dataset.sweeps)
-    if detach and scratch is not None and mapped:
-        empty = np.zeros((0, 0, 0), dtype=np.uint8)
-        bare = tuple(replace(s, images=empty) for s in acq.dataset.sweeps)
+    if detach and scratch is not None:
+        bare = without_frames(acq.dataset.sweeps)
         acq = replace(acq, dataset=replace(acq.dataset, sweeps=bare))
         frames_dir = scratch
     return _DatasetScan(acq, truth, cad, scene_view, t_sim, frames_dir)

@@ -264,21 +264,30 @@ def simulate_acquisition(
 
 def frames_to_file(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:
     """Write the sweeps' frames (all of one shape) to ``path`` (``.npy``) and return the
-    sweeps with their frames mapped from it, copy-on-write: the pages are the page
-    cache's, read back as the pipeline touches them, and writable, so the localizer's
-    compiled kernels take them as any frame array. Nothing else changes."""
-    shapes = {s.images.shape for s in sweeps}
-    if len(shapes) != 1:
-        return list(sweeps)
+    sweeps with their frames mapped from it (:func:`with_frames`)."""
     out = np.lib.format.open_memmap(
-        path, mode="w+", dtype=np.uint8, shape=(len(sweeps), *shapes.pop())
+        path, mode="w+", dtype=np.uint8, shape=(len(sweeps), *sweeps[0].images.shape)
     )
     for i, s in enumerate(sweeps):
         out[i] = s.images
     out.flush()
     del out
+    return with_frames(sweeps, path)
+
+
+def with_frames(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:
+    """The sweeps with their frames mapped from the ``.npy`` file ``path`` (one frame
+    stack per sweep, in order), copy-on-write: the pages are the page cache's, shared by
+    every process that maps them, read as the pipeline touches them, and writable, so the
+    localizer's compiled kernels take them as any frame array. Nothing else changes."""
     frames = np.load(path, mmap_mode="c")
     return [replace(s, images=frames[i]) for i, s in enumerate(sweeps)]
+
+
+def without_frames(sweeps: Sequence[Sweep]) -> tuple[Sweep, ...]:
+    """The sweeps with their frames left out (while a file holds them), to cross a pipe."""
+    empty = np.zeros((0, 0, 0), dtype=np.uint8)
+    return tuple(replace(s, images=empty) for s in sweeps)
 
 
 def true_centre_in_sweep(

@@ -57,6 +57,7 @@ from .experiment import (
     axial_scale,
     coarse_estimate,
     dataset_rngs,
+    frames_to_file,
     image_error_mm,
     image_points,
     make_imager,
@@ -64,6 +65,8 @@ from .experiment import (
     release_memory,
     simulate_acquisition,
     stage_rngs,
+    with_frames,
+    without_frames,
 )
 from .progress import report
 from .recording_options import RecordingOptions
@@ -169,11 +172,7 @@ class RemountScan:
     timing_s: dict[str, float]
 
     def sweeps_with_frames(self) -> tuple[Sweep, ...]:
-        # Copy-on-write mapping: the pages are the page cache's, shared by every task
-        # that maps them; writable, so the localizer's compiled kernels take them as
-        # they take any frame array.
-        frames = np.asarray(np.load(self.images, mmap_mode="c"))
-        return tuple(replace(s, images=frames[i]) for i, s in enumerate(self.sweeps))
+        return tuple(with_frames(self.sweeps, self.images))
 
 
 def run_remount_scan(scenario: Scenario, index: int, scratch: Path) -> RemountScan:
@@ -206,11 +205,10 @@ def run_remount_scan(scenario: Scenario, index: int, scratch: Path) -> RemountSc
         sweeps, None, sc.phantom.sphere_radius_mm * 1e-3, sc.localization, axial_scale(sc)
     )
     path = scratch / f"remount_{target}.npy"
-    np.save(path, np.stack([s.images for s in sweeps]))
-    empty = np.zeros((0, *sweeps[0].images.shape[1:]), dtype=np.uint8)
+    frames_to_file(sweeps, path)
     scan = RemountScan(
         target,
-        tuple(replace(s, images=empty) for s in sweeps),
+        without_frames(sweeps),
         path,
         tuple(first),
         cad_centre,
