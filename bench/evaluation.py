@@ -419,6 +419,10 @@ def _pool_task(fn: Callable[..., Any], *args: Any) -> Any:
         release_memory()
 
 
+def _started() -> None:
+    """A no-op task: submitting it starts a worker process."""
+
+
 def _worker_initializer(counts: Any, parts: Path) -> None:
     """A pool worker: report progress to the run, share the run's printed parts."""
     progress_report.worker_initializer(counts)
@@ -503,6 +507,13 @@ def _run_evaluation(
     # scratch directory). A recording or saved datasets need the twin after the
     # simulation: then each dataset is one task, as without a pool.
     split = pool is not None and recording is None and save_dataset is None
+    if pool is not None:
+        # Start the workers (their imports take seconds) while this process prints the
+        # phantom into the run's disk cache: the datasets' twins then read it instead
+        # of each building the same parts at once (≈ 1.5 s of CPU per twin).
+        for _ in range(workers):
+            submit(_started)
+        make_twin(scenario)
     sim_futures = (
         [
             submit(_simulate_dataset, sc, i, name, (), scratch, None, False, True)

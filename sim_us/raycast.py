@@ -125,15 +125,19 @@ class RayCaster:
         faces = np.asarray(part.mesh.faces)
         tri = np.asarray(part.acoustic_vertices, dtype=float)[faces]
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 × area × normal
-        vn = np.zeros((len(part.acoustic_vertices), 3))
-        for j in range(3):
-            np.add.at(vn, faces[:, j], cross)
+        # Σ over a vertex's faces, per axis (bincount: ≈ 20× faster than np.add.at).
+        n_v, corners = len(part.acoustic_vertices), faces.T.ravel()
+        vn = np.column_stack(
+            [np.bincount(corners, np.tile(cross[:, k], 3), minlength=n_v) for k in range(3)]
+        )
         norm = np.linalg.norm(vn, axis=1, keepdims=True)
         vn = np.divide(vn, norm, out=np.zeros_like(vn), where=norm > 0)
         area = np.linalg.norm(cross, axis=1, keepdims=True)
         fn = np.divide(cross, area, out=np.zeros_like(cross), where=area > 0)
         cos_min = np.cos(_SMOOTH_MAX_ANGLE)
-        agree = np.einsum("fkj,fj->fk", vn[faces], fn).min(axis=1) > cos_min
+        agree = np.ones(len(faces), dtype=bool)
+        for j in range(3):
+            agree &= np.einsum("fj,fj->f", vn[faces[:, j]], fn) > cos_min
         self._vertex_normals.append(vn)
         self._face_normals.append(fn)
         self._smooth_faces.append(agree | (area[:, 0] == 0))

@@ -235,9 +235,18 @@ def roughness_height(points: Array, ra: float, length: float, rng: np.random.Gen
     k = rng.normal(0.0, 1.0 / length, (_ROUGHNESS_MODES, 3))
     phase = rng.uniform(0.0, 2 * np.pi, _ROUGHNESS_MODES)
     sigma = ra * np.sqrt(np.pi / 2)
+    # The cosines are summed in float32 (numpy's SIMD cosine: ≈ 9× faster than float64,
+    # ≈ 2 s of a paper run's phantom prints). The phases are taken about the points'
+    # centre (k·p + φ = k·(p − c) + (φ + k·c), the latter in float64), so the float32
+    # arguments stay within ≈ 100 rad and the field is the same to ≈ 1e-5 of its σ.
+    points = np.asarray(points, dtype=float)
+    centre = points.mean(axis=0) if len(points) else np.zeros(3)
+    k32 = k.T.astype(np.float32)
+    phase32 = np.mod(phase + k @ centre, 2 * np.pi).astype(np.float32)
     out = np.empty(len(points))
     for i in range(0, len(points), _CHUNK):
-        out[i : i + _CHUNK] = np.cos(points[i : i + _CHUNK] @ k.T + phase).sum(axis=1)
+        local = (points[i : i + _CHUNK] - centre).astype(np.float32)
+        out[i : i + _CHUNK] = np.cos(local @ k32 + phase32).sum(axis=1, dtype=np.float64)
     return sigma * np.sqrt(2.0 / _ROUGHNESS_MODES) * out
 
 
