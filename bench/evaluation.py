@@ -71,6 +71,7 @@ from .experiment import (
     image_points,
     make_imager,
     make_twin,
+    one_blas_thread,
     release_memory,
     scan_scenario,
     simulate_acquisition,
@@ -424,9 +425,11 @@ def _started() -> None:
 
 
 def _worker_initializer(counts: Any, parts: Path) -> None:
-    """A pool worker: report progress to the run, share the run's printed parts."""
+    """A pool worker: report progress to the run, share the run's printed parts, one
+    BLAS thread (:func:`~bench.experiment.one_blas_thread`)."""
     progress_report.worker_initializer(counts)
     use_disk_cache(parts)
+    one_blas_thread()
 
 
 def _workers(scenario: Scenario, n_tasks: int) -> int:
@@ -508,6 +511,7 @@ def _run_evaluation(
     # simulation: then each dataset is one task, as without a pool.
     split = pool is not None and recording is None and save_dataset is None
     if pool is not None:
+        stack.enter_context(one_blas_thread())
         # Start the workers (their imports take seconds) while this process prints the
         # phantom into the run's disk cache: the datasets' twins then read it instead
         # of each building the same parts at once (≈ 1.5 s of CPU per twin).

@@ -46,6 +46,7 @@ from .experiment import (
     image_error_mm,
     make_imager,
     make_twin,
+    one_blas_thread,
     release_memory,
     simulate_acquisition,
     true_centre_in_sweep,
@@ -279,7 +280,9 @@ def executor(scheduler: str | None, workers: int | None):
     if scheduler is None:
         n = workers or os.cpu_count() or 1
         pool = cf.ProcessPoolExecutor(
-            max_workers=n, mp_context=multiprocessing.get_context("spawn")
+            max_workers=n,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=one_blas_thread,  # n processes on the cores: no BLAS threads
         )
         return pool.submit, pool.shutdown
     try:
