@@ -57,7 +57,7 @@ from calib.localize import localize_sphere
 from calib.records import Touch
 from calib.uncertainty import alternation_bound
 from twin.imager import acoustic_scene
-from twin.printing import use_disk_cache
+from twin.printing import forget_parts, use_disk_cache
 from twin.world import GroundTruth
 
 from . import progress as progress_report
@@ -413,10 +413,12 @@ class EvaluationResult:
 
 
 def _pool_task(fn: Callable[..., Any], *args: Any) -> Any:
-    """Run a pool task, then release the memory it freed."""
+    """Run a pool task, then release the memory it freed (its printed parts included:
+    a worker's next task reads them back from the run's disk cache)."""
     try:
         return fn(*args)
     finally:
+        forget_parts()
         release_memory()
 
 
@@ -534,9 +536,16 @@ def _run_evaluation(
         rngs = dataset_rngs(scenario, i)
         twin = make_twin(sc, rngs["touch_joints"])
         touches[name] = simulate_touches(sc, twin, rngs["touch_contact"])
+        del twin
     progress_report.report("touches (datasets)", len(names), len(names))
     twin = make_twin(scenario)
     cad_vertices = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("vertex_")}
+    truth = twin.truth
+    # The scene (printed meshes, ≈ 100 MB) is done with: this process only waits on the
+    # pool from here.
+    del twin
+    forget_parts()
+    release_memory()
     tip_cad = np.array(ev.stylus_tip_cad_mm) * 1e-3
     nominal = scenario.robot.nominal_table
     refinements: dict[str, DHRefinement] = {}
@@ -654,7 +663,7 @@ def _run_evaluation(
         t_record = time.perf_counter() - t1
 
     metrics = _metrics(
-        scenario, names, touches, refinements, references, outcomes, twin, cad_vertices
+        scenario, names, touches, refinements, references, outcomes, truth, cad_vertices
     )
     metrics["timing_s"] = {
         "touches_and_dh": t_touch,
@@ -746,9 +755,8 @@ def _tables_json(table: dict[str, dict[str, Summary]]) -> dict[str, Any]:
 
 
 def _metrics(
-    scenario, names, touches, refinements, references, outcomes, twin, cad_vertices
+    scenario, names, touches, refinements, references, outcomes, truth, cad_vertices
 ) -> dict[str, Any]:
-    truth = twin.truth
     first = outcomes[0]
     single = next(r for r in first.folds if r.fold.kind == "single")
     three = next((r for r in first.folds if r.fold.kind == "three"), None)
