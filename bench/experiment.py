@@ -5,7 +5,8 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import gc
-from collections.abc import Callable, Sequence
+import mmap
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -287,6 +288,20 @@ def with_frames(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:
     localizer's compiled kernels take them as any frame array. Nothing else changes."""
     frames = np.load(path, mmap_mode="c")
     return [replace(s, images=frames[i]) for i, s in enumerate(sweeps)]
+
+
+def drop_frame_pages(sweeps: Iterable[Sweep]) -> None:
+    """Let go of the resident pages of the sweeps' frames mapped from scratch files
+    (:func:`with_frames`), e.g. between folds that use different spheres: the frames
+    stay valid, and the pages a later step touches are read back from the page cache
+    (a minor fault each). Frames held in memory are left alone."""
+    maps = {}
+    for s in sweeps:
+        m = getattr(s.images, "_mmap", None)
+        if m is not None:
+            maps[id(m)] = m
+    for m in maps.values():
+        m.madvise(mmap.MADV_DONTNEED)
 
 
 def without_frames(sweeps: Sequence[Sweep]) -> tuple[Sweep, ...]:
