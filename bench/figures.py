@@ -7,8 +7,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from matplotlib.figure import Figure
-from matplotlib.patches import Circle
 from numpy.typing import NDArray
 
 from calib.calibrate import AlternationResult
@@ -33,6 +31,21 @@ __all__ = [
 
 Array = NDArray[np.float64]
 Circle3 = tuple[float, float, float]  # (column, row, radius) in pixels
+
+
+def _figure(**kwargs):
+    """A matplotlib ``Figure``, imported here: the pool's workers import this module
+    (for its snapshot types) and never draw; matplotlib costs ≈ 0.25 s to import."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kwargs)
+
+
+def _circle(*args, **kwargs):
+    """A matplotlib ``Circle`` patch (imported here, as :func:`_figure`)."""
+    from matplotlib.patches import Circle
+
+    return Circle(*args, **kwargs)
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,7 +139,7 @@ def overlay_figure(snap: LocalizationSnapshot, path: str | Path) -> Path:
     cols = min(k, 4)
     rows = -(-k // cols)
     H, W = snap.frames.shape[1:]
-    fig = Figure(figsize=(2.4 * cols, 2.4 * rows * H / W + 0.5), layout="constrained")
+    fig = _figure(figsize=(2.4 * cols, 2.4 * rows * H / W + 0.5), layout="constrained")
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
     for ax, img, z, det, tru in zip(
         axes, snap.frames, snap.elevation_mm, snap.detected, snap.true, strict=False
@@ -135,7 +148,7 @@ def overlay_figure(snap: LocalizationSnapshot, path: str | Path) -> Path:
         for circle, colour in ((tru, "#30c050"), (det, "#e02020")):
             if circle is not None:
                 c, r, rad = circle
-                ax.add_patch(Circle((c, r), rad, fill=False, color=colour, lw=1.0))
+                ax.add_patch(_circle((c, r), rad, fill=False, color=colour, lw=1.0))
         ax.set_title(f"{z:+.1f} mm", fontsize=8)
         ax.set_axis_off()
     for ax in axes[k:]:
@@ -150,7 +163,7 @@ def profile_figure(snap: LocalizationSnapshot, path: str | Path) -> Path:
     crossings that set the interior and shell bands (paper, threshold-free localization)."""
     path = Path(path)
     prof = snap.profile
-    fig = Figure(figsize=(5.0, 3.0), layout="constrained")
+    fig = _figure(figsize=(5.0, 3.0), layout="constrained")
     ax = fig.subplots()
     ax.plot(prof.radii * 1e3, prof.profile, color="#2060c0")
     for x, y, label, crossed in zip(
@@ -179,7 +192,7 @@ def profile_figure(snap: LocalizationSnapshot, path: str | Path) -> Path:
 def convergence_figure(alternations: Mapping[str, AlternationResult], path: str | Path) -> Path:
     """Loss and estimate change per localize/calibrate alternation."""
     path = Path(path)
-    fig = Figure(figsize=(7.5, 2.8), layout="constrained")
+    fig = _figure(figsize=(7.5, 2.8), layout="constrained")
     ax_loss, ax_change = fig.subplots(1, 2)
     for name, alt in alternations.items():
         it = [h["iteration"] for h in alt.history]
@@ -221,7 +234,7 @@ def observability_figure(eigenvalues: Mapping[str, Array], path: str | Path) -> 
     rad, translation in mm; points in mm), log scale: the smallest is the weakest
     direction of the pose set."""
     path = Path(path)
-    fig = Figure(figsize=(5.0, 3.0), layout="constrained")
+    fig = _figure(figsize=(5.0, 3.0), layout="constrained")
     ax = fig.subplots()
     width = 0.8 / max(len(eigenvalues), 1)
     for i, (name, w) in enumerate(eigenvalues.items()):
@@ -249,7 +262,7 @@ def reconstruction_heatmaps(
     points per panel are drawn (a random subset)."""
     path = Path(path)
     columns = [(m, s) for m in METHODS for s in sets]
-    fig = Figure(figsize=(2.6 * len(columns) + 1.0, 2.8 * len(parts)), layout="constrained")
+    fig = _figure(figsize=(2.6 * len(columns) + 1.0, 2.8 * len(parts)), layout="constrained")
     axes = fig.subplots(len(parts), len(columns), squeeze=False)
     for row, part in zip(axes, parts, strict=True):
         top = float(np.percentile(np.concatenate([d for _, d in part.points.values()]), 99))

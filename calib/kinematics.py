@@ -29,7 +29,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
-from scipy.stats import qmc
 
 from . import se3
 from .dh import DHDeltas, DHTable, forward_kinematics, frame_transforms
@@ -225,6 +224,8 @@ def _starts(n: int, scale: float, n_sets: int) -> list[Array]:
     Halton sequence spread over ± ``scale`` (° / mm)."""
     starts = [np.zeros(24 + 3 * n_sets)]
     if n > 1:
+        from scipy.stats import qmc  # ≈ 0.25 s to import: only when there are starts
+
         halton = qmc.Halton(d=24 + 3 * n_sets, scramble=False).random(n)[1:]
         starts += [(2 * h - 1) * scale for h in halton]
     return starts

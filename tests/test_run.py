@@ -151,3 +151,60 @@ def test_frames_to_file_maps_the_same_frames(tmp_path):
     mapped[0].images[0, 0, 0] ^= 255
     on_disk = np.load(tmp_path / "A_sphere_1.npy")
     np.testing.assert_array_equal(on_disk[0], sweeps[0].images)
+
+
+def _mapped_file_kib() -> int:
+    """This process's resident pages mapped from files (kB, /proc/self/smaps_rollup)."""
+    for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
+        if line.startswith("Pss_File:"):
+            return int(line.split()[1])
+    raise AssertionError("no Pss_File in smaps_rollup")
+
+
+def test_drop_frame_pages_lets_go_of_mapped_frames_and_keeps_them_valid(tmp_path):
+    """Frames mapped from a scratch file hold their pages once read; dropping them gives
+    the pages back (64 MB here) and the frames still read the same; a sweep whose frames
+    are in memory is left alone."""
+    from bench.experiment import drop_frame_pages, frames_to_file
+    from calib.records import Sweep
+
+    rng = np.random.default_rng(1)
+    sweeps = [
+        Sweep(
+            "sphere_1",
+            k,
+            rng.integers(0, 256, (4, 1024, 1024), dtype=np.uint8),
+            (1e-4, 1e-4),
+            np.zeros((4, 6)),
+            np.repeat(np.eye(4)[None], 4, axis=0),
+        )
+        for k in range(16)
+    ]
+    sums = [int(s.images.sum(dtype=np.int64)) for s in sweeps]
+    mapped = frames_to_file(sweeps, tmp_path / "A_sphere_1.npy")
+    before = _mapped_file_kib()
+    assert [int(s.images.sum(dtype=np.int64)) for s in mapped] == sums  # pages read in
+    touched = _mapped_file_kib()
+    assert touched - before > 48 * 1024  # most of the 64 MB is resident
+    drop_frame_pages([*mapped, *sweeps])  # the in-memory ones are ignored
+    assert touched - _mapped_file_kib() > 48 * 1024
+    assert [int(s.images.sum(dtype=np.int64)) for s in mapped] == sums
+    assert [int(s.images.sum(dtype=np.int64)) for s in sweeps] == sums
+
+
+def test_one_blas_thread_limits_blas_inside_and_restores_after():
+    """The limiter a pool's processes use: one BLAS thread while it holds, the previous
+    count after."""
+    from threadpoolctl import threadpool_info
+
+    from bench.experiment import one_blas_thread
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    np.ones((4, 4)) @ np.ones((4, 4))  # BLAS loaded
+    outside = blas_threads()
+    assert outside
+    with one_blas_thread():
+        assert blas_threads() == [1] * len(outside)
+    assert blas_threads() == outside
