@@ -269,14 +269,15 @@ def frames_to_file(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:
     """Write the sweeps' frames (all of one shape) to ``path`` (``.npy``) and return the
     sweeps with their frames mapped from it (:func:`with_frames`)."""
     shape = (len(sweeps), *sweeps[0].images.shape)
+    for s in sweeps:  # checked before anything is written
+        if s.images.shape != shape[1:]:
+            raise ValueError(f"sweep {s.pose_id}: frames {s.images.shape}, not {shape[1:]}")
     # Written, not through a writable map: a map takes a page fault per 4 KiB written
     # (≈ 1 s of CPU per dataset's 577 MB).
     with open(path, "wb") as f:
         header = {"descr": "|u1", "fortran_order": False, "shape": shape}
         np.lib.format.write_array_header_1_0(f, header)
         for s in sweeps:
-            if s.images.shape != shape[1:]:
-                raise ValueError(f"sweep {s.pose_id}: frames {s.images.shape}, not {shape[1:]}")
             f.write(np.ascontiguousarray(s.images, dtype=np.uint8).data)
     return with_frames(sweeps, path)
 

@@ -123,25 +123,30 @@ def test_localizing_spheres_on_threads_changes_nothing():
     np.testing.assert_array_equal(*centres)
 
 
+def _random_sweeps(rng: np.random.Generator, n: int, shape: tuple[int, int, int]) -> list:
+    """``n`` sweeps of sphere 1 with random frames of ``shape`` and random joint angles."""
+    from calib.records import Sweep
+
+    return [
+        Sweep(
+            "sphere_1",
+            k,
+            rng.integers(0, 256, shape, dtype=np.uint8),
+            (1e-4, 1e-4),
+            rng.normal(size=(shape[0], 6)),
+            np.repeat(np.eye(4)[None], shape[0], axis=0),
+        )
+        for k in range(n)
+    ]
+
+
 def test_frames_to_file_maps_the_same_frames(tmp_path):
     """A sphere's frames written to the run's scratch file come back identical, mapped
     copy-on-write (a write changes the mapping, never the file), the sweeps otherwise
     unchanged."""
     from bench.experiment import frames_to_file
-    from calib.records import Sweep
 
-    rng = np.random.default_rng(0)
-    sweeps = [
-        Sweep(
-            "sphere_1",
-            k,
-            rng.integers(0, 256, (3, 8, 6), dtype=np.uint8),
-            (1e-4, 1e-4),
-            rng.normal(size=(3, 6)),
-            np.repeat(np.eye(4)[None], 3, axis=0),
-        )
-        for k in range(4)
-    ]
+    sweeps = _random_sweeps(np.random.default_rng(0), 4, (3, 8, 6))
     mapped = frames_to_file(sweeps, tmp_path / "A_sphere_1.npy")
     for a, b in zip(sweeps, mapped, strict=True):
         np.testing.assert_array_equal(a.images, b.images)
@@ -151,6 +156,11 @@ def test_frames_to_file_maps_the_same_frames(tmp_path):
     mapped[0].images[0, 0, 0] ^= 255
     on_disk = np.load(tmp_path / "A_sphere_1.npy")
     np.testing.assert_array_equal(on_disk[0], sweeps[0].images)
+    # Frames of another shape: one clear error, and no file half written.
+    odd = [*sweeps, *_random_sweeps(np.random.default_rng(2), 1, (3, 8, 7))]
+    with pytest.raises(ValueError, match=r"frames \(3, 8, 7\), not \(3, 8, 6\)"):
+        frames_to_file(odd, tmp_path / "B_sphere_1.npy")
+    assert not (tmp_path / "B_sphere_1.npy").exists()
 
 
 def _mapped_file_kib() -> int:
@@ -166,20 +176,8 @@ def test_drop_frame_pages_lets_go_of_mapped_frames_and_keeps_them_valid(tmp_path
     the pages back (64 MB here) and the frames still read the same; a sweep whose frames
     are in memory is left alone."""
     from bench.experiment import drop_frame_pages, frames_to_file
-    from calib.records import Sweep
 
-    rng = np.random.default_rng(1)
-    sweeps = [
-        Sweep(
-            "sphere_1",
-            k,
-            rng.integers(0, 256, (4, 1024, 1024), dtype=np.uint8),
-            (1e-4, 1e-4),
-            np.zeros((4, 6)),
-            np.repeat(np.eye(4)[None], 4, axis=0),
-        )
-        for k in range(16)
-    ]
+    sweeps = _random_sweeps(np.random.default_rng(1), 16, (4, 1024, 1024))
     sums = [int(s.images.sum(dtype=np.int64)) for s in sweeps]
     mapped = frames_to_file(sweeps, tmp_path / "A_sphere_1.npy")
     before = _mapped_file_kib()
