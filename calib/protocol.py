@@ -26,6 +26,7 @@ from .records import RobotReading, Sweep, Touch, UsFrame
 
 __all__ = [
     "Imager",
+    "PlanChecker",
     "PlannedSweep",
     "PlannedTouch",
     "ProtocolConfig",
@@ -173,6 +174,17 @@ class Robot(Protocol):
         ...
 
 
+@runtime_checkable
+class PlanChecker(Protocol):
+    """A robot that checks many poses in one call (the twin: its inverse kinematics
+    solves a plan's frame poses at once). :func:`check_plan` uses it when the robot has
+    it; it raises as :meth:`Robot.check_pose` would for the first pose that fails."""
+
+    def check_poses(self, T_base_ee: NDArray[np.float64], pose_labels: Sequence[str]) -> None:
+        """Check poses (n, 4, 4) in order; ``pose_labels`` (n) name them in errors."""
+        ...
+
+
 class TouchGuide(Protocol):
     """Who brings the stylus tip onto a vertex: an operator hand-guiding the real arm, or
     the twin's emulation of one (which places the true tip on the true vertex)."""
@@ -280,9 +292,17 @@ def plan_parallel_sweeps(
 def check_plan(robot: Robot, plan: Sequence[PlannedSweep]) -> None:
     """Reachability and collision checks of every frame pose before any motion; the
     error names the sweep and frame that fails."""
-    for sweep in plan:
-        for j, T in enumerate(sweep.T_base_ee):
-            robot.check_pose(T, f"{sweep.target} sweep {sweep.pose_id} frame {j}")
+    poses = [
+        (T, f"{s.target} sweep {s.pose_id} frame {j}")
+        for s in plan
+        for j, T in enumerate(s.T_base_ee)
+    ]
+    if isinstance(robot, PlanChecker):
+        if poses:
+            robot.check_poses(np.array([T for T, _ in poses]), [label for _, label in poses])
+        return
+    for T, label in poses:
+        robot.check_pose(T, label)
 
 
 @dataclass(frozen=True)

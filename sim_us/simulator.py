@@ -748,6 +748,8 @@ def _blur_where_nonzero(
     twice the pixels (the result is the same: outside its echoes a frame is zero)."""
     n, _, W = image.shape
     pad_r, pad_c = len(k_rows) // 2 + 1, len(k_cols) // 2 + 1
+    # The ring-down kernel is one-sided: a third of its taps are zeros.
+    (k_rows, o_rows), (k_cols, o_cols) = _without_zero_taps(k_rows), _without_zero_taps(k_cols)
     window = np.ones(2 * pad_r + 1)
     for f in range(n):
         frame = image[f]
@@ -759,5 +761,19 @@ def _blur_where_nonzero(
         for r0, r1 in zip(edges[::2], edges[1::2], strict=True):
             cols = np.flatnonzero(frame[r0:r1].any(axis=0))
             c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, W)
-            block = correlate1d(frame[r0:r1, c0:c1], k_rows, axis=0, mode="constant")
-            frame[r0:r1, c0:c1] = correlate1d(block, k_cols, axis=1, mode="constant")
+            block = correlate1d(frame[r0:r1, c0:c1], k_rows, axis=0, mode="constant", origin=o_rows)
+            frame[r0:r1, c0:c1] = correlate1d(block, k_cols, axis=1, mode="constant", origin=o_cols)
+
+
+def _without_zero_taps(kernel: NDArray[np.float32]) -> tuple[NDArray[np.float32], int]:
+    """(taps, origin) for ``scipy.ndimage.correlate1d`` that correlate exactly as the
+    centred ``kernel`` does, without its leading and trailing zero taps (a zero tap adds
+    exactly 0)."""
+    nz = np.flatnonzero(kernel)
+    if len(nz) == 0:
+        return kernel, 0
+    taps = kernel[nz[0] : nz[-1] + 1]
+    origin = (len(kernel) // 2 - int(nz[0])) - len(taps) // 2
+    if not -(len(taps) // 2) <= origin <= (len(taps) - 1) // 2:
+        return kernel, 0  # the centre lies outside the non-zero taps
+    return taps, origin

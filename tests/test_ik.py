@@ -90,3 +90,42 @@ def test_joint_limits_are_enforced():
     q = np.radians([20, -80, -100, -90, 80, 10])
     with pytest.raises(UnreachablePoseError, match="joint limits"):
         solve_ik(table, forward_kinematics(table, q), q, limits=(-0.1, 0.1))
+
+
+def test_many_poses_at_once_match_one_by_one(rng):
+    """The vectorised closed form a plan is checked with gives, pose by pose, the same
+    branches (bit for bit) and the same failure reasons as a single pose."""
+    from twin.ik import _closed_form, _closed_form_many
+
+    table = NOMINAL_TABLES["ur3"]
+    T = np.array([forward_kinematics(table, q) for q in rng.uniform(-np.pi, np.pi, (200, 6))])
+    far = T[:20].copy()
+    far[:, :3, 3] = [0.9, 0.0, 0.2]  # beyond the elbow's reach (UR3: 0.5 m)
+    near_axis = T[:20].copy()
+    # The wrist centre on the base axis, inside the shoulder offset.
+    near_axis[:, :2, 3] = table.as_array()[5, 1] * near_axis[:, :2, 2]
+    poses = np.concatenate([T, far, near_axis])
+    branches = _closed_form_many(table, poses)
+    # Every random pose has branches, some all eight, some only part (reasons compared).
+    all_eight = branches.ok[:200].all(axis=1)
+    assert branches.ok[:200].any(axis=1).all() and 0 < all_eight.sum() < 200
+    assert not branches.ok[200:220].any() and not branches.ok[220:].any()
+    for i, T_i in enumerate(poses):
+        single, reasons = _closed_form(table, T_i)
+        np.testing.assert_array_equal(branches.of(i), single)
+        assert branches.reasons(i) == reasons
+    assert "elbow cannot span" in branches.reasons(200)[0]
+    assert "closer than the shoulder offset" in branches.reasons(220)[0]
+
+
+def test_poses_solved_ahead_are_what_solve_ik_returns(rng):
+    from twin.ik import solve_poses
+
+    table = NOMINAL_TABLES["ur3e"]
+    qs = rng.uniform(-np.pi, np.pi, (50, 6))
+    T = np.array([forward_kinematics(table, q) for q in qs])
+    before = [solve_ik(table, T_i + 0.0, q) for T_i, q in zip(T, qs, strict=True)]
+    solve_poses(table, T)
+    after = [solve_ik(table, T_i, q) for T_i, q in zip(T, qs, strict=True)]
+    np.testing.assert_array_equal(before, after)
+    np.testing.assert_allclose(after, qs, atol=TOL)

@@ -18,6 +18,7 @@ printed holder's deflection under the probe's weight.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -36,7 +37,7 @@ from .arm_errors import (
     thermal_table,
     trapezoid_time_s,
 )
-from .ik import describe_pose, solve_ik
+from .ik import describe_pose, solve_ik, solve_poses
 from .scene import SceneModel
 from .tools import holder_deflection
 
@@ -451,6 +452,16 @@ class SimRobot:
                 f"pose {pose_label or describe_pose(T)} would put {c.robot_geom} "
                 f"{1e3 * c.depth:.1f} mm into {c.environment_geom}"
             )
+
+    def check_poses(self, T_base_ee: ArrayLike, pose_labels: Sequence[str]) -> None:
+        """:meth:`check_pose` of many poses (n, 4, 4) in order, their inverse kinematics
+        solved at once (kept for the moves to them)."""
+        T = np.asarray(T_base_ee, dtype=float).reshape(-1, 4, 4)
+        if len(pose_labels) != len(T):
+            raise ValueError(f"{len(pose_labels)} labels for {len(T)} poses")
+        solve_poses(self.nominal, T)
+        for pose, label in zip(T, pose_labels, strict=True):
+            self.check_pose(pose, label)
 
     def teach(self, T_base_ee_true: ArrayLike, pose_label: str = "") -> RobotReading:
         """Emulate an operator jogging the arm until the *true* flange sits at a pose (the
