@@ -471,6 +471,10 @@ def identifiability(
     for k in np.flatnonzero(rel < weak_threshold):
         v = Vt[k]
         order = np.argsort(-np.abs(v))
+        # A singular vector's sign is arbitrary (rounding flips it): its largest component
+        # is reported positive. (Within a null space of several dimensions the basis
+        # itself is arbitrary; ``unobservable`` is the basis-free summary.)
+        v = v * np.sign(v[order[0]])
         comps = {_DH_NAMES[i]: round(float(v[i]), 3) for i in order[:4] if abs(v[i]) >= 0.05}
         weak.append(WeakDirection(float(rel[k]), comps))
     return Identifiability(
