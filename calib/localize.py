@@ -19,8 +19,19 @@ Per sweep:
    shell band lies between its 0.75 crossings. Those bands replace the initial samples for
    the refinement passes.
 
-``method="paper"`` stops there (grid-point centres). ``method="refined"`` then takes the
-centre sub-voxel from the moments of the cap's echo (see ``_refine_centre``).
+``method="paper"`` stops there (grid-point centres). ``method="refined"`` differs in
+three ways, each for a failure of the paper's score measured on the twin (a bright plate
+or floor taken for the sphere in ≈ 10-60 % of sweeps at low gain, a small sphere or a deep
+target):
+
+- *Hypotheses.* The exhaustive search keeps the grid's ``_HYPOTHESES`` best maxima more
+  than R apart and looks at each on a grid twice as fine: a faint thin cap straddled by
+  the 1 mm grid recovers its contrast there, a flat reflector does not.
+- *Confinement.* Each is judged by ``f_shell − max(f_interior, f_outer)``, ``f_outer`` the
+  bright share in the band ``_OUTER_BAND`` × R outside the sphere on the probe side: water
+  for a sphere, more of the reflector for a plate. A detection whose cap does not stand
+  out from that band by ``min_score`` is rejected with its reason.
+- *Sub-voxel centre* from the moments of the cap's echo (see ``_refine_centre``).
 
 Frames of one sweep share their orientation (a linear sweep); the re-stack applies each
 frame's in-plane and elevational offset and treats the frames as parallel (the residual
@@ -67,6 +78,11 @@ _OUTSIDE, _DARK, _BRIGHT = 0, 1, 1 + _UNIT
 MAX_SAMPLES = _UNIT - 1
 _GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 _REFINE_ROUNDS = 4
+# The confinement test's band (× the CAD radius) on the probe side: a sphere's echo ends
+# at its surface, a flat reflector's (a plate, the tank floor) runs on past it.
+_OUTER_BAND = (1.3, 1.8)
+# Separate local maxima of the coarse grid searched finely (method "refined").
+_HYPOTHESES = 4
 _REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
 _MM = 1e-3
 
@@ -78,8 +94,10 @@ class LocalizerConfig:
     method: Literal["paper", "refined", "fixed_threshold"] = field(
         default="refined",
         metadata={
-            "doc": "'paper': grid-point centres exactly as published; 'refined': plus a "
-            "sub-voxel centre from the moments of the cap's echo; 'fixed_threshold': the "
+            "doc": "'paper': grid-point centres exactly as published; 'refined': the "
+            "grid's best separate maxima looked at finely, a sphere's echo required to "
+            "stop at the CAD radius (a flat reflector's runs on) and a sub-voxel centre "
+            "from the moments of the cap's echo; 'fixed_threshold': the "
             "baseline the paper argues against (one absolute grey-level threshold, "
             "largest bright set, least-squares sphere; calib/baseline.py)."
         },
@@ -562,16 +580,25 @@ def score_candidates(
     −inf. Samples take the voxel at candidate + rounded offset, so a candidate on the
     voxel grid sees exactly the voxels the reference implementation looks up one by one.
     """
-    fractions = {}
-    for name, P in (("shell", shell), ("interior", interior)):
-        o = _offsets_vox(vol, P)
-        sums = np.empty(len(candidates), dtype=np.int64)
-        for s in range(0, len(candidates), 2048):
-            idx = candidates[s : s + 2048, None, :] + o[None, :, :]
-            block = vol.label_at(idx[..., 0], idx[..., 1], idx[..., 2])
-            sums[s : s + 2048] = block.sum(axis=1, dtype=np.int64)
-        fractions[name] = _bright_fraction(sums, len(o), min_coverage)
+    fractions = {
+        "shell": _fractions(vol, candidates, shell, min_coverage),
+        "interior": _fractions(vol, candidates, interior, min_coverage),
+    }
     return _contrast(fractions)
+
+
+def _fractions(
+    vol: SweepVolume, candidates: NDArray[np.int64], P: Array, min_coverage: float
+) -> Array:
+    """Bright share of the samples ``P`` (m, 3) about each candidate voxel (N, 3), NaN
+    where fewer than ``min_coverage`` of them lie inside the volume."""
+    o = _offsets_vox(vol, P)
+    sums = np.empty(len(candidates), dtype=np.int64)
+    for s in range(0, len(candidates), 2048):
+        idx = candidates[s : s + 2048, None, :] + o[None, :, :]
+        block = vol.label_at(idx[..., 0], idx[..., 1], idx[..., 2])
+        sums[s : s + 2048] = block.sum(axis=1, dtype=np.int64)
+    return _bright_fraction(sums, len(o), min_coverage)
 
 
 def score_grid(
@@ -660,7 +687,8 @@ class SweepLocalization:
 
     ``centre`` (3,) metres in the sweep's reference frame (NaN when rejected); ``score`` the
     peak score; ``f_shell``/``f_interior`` its two fractions (their difference is the
-    contrast); ``accepted`` and, if not, ``reason``.
+    contrast; with ``method="refined"`` the score is the confined contrast ``f_shell −
+    max(f_interior, f_outer)``); ``accepted`` and, if not, ``reason``.
     """
 
     target: str
@@ -671,6 +699,7 @@ class SweepLocalization:
     f_interior: float
     accepted: bool
     reason: str = ""
+    f_outer: float = float("nan")  # bright share outside the sphere, probe side ("refined")
 
 
 def _candidate_grid(
@@ -694,6 +723,93 @@ def _best_on_grid(vol, start, step, count, shell, interior, min_coverage):
     i = np.unravel_index(int(np.argmax(score)), score.shape)
     cv = np.array(start) + np.array(step) * np.array(i)
     return cv, float(score[i]), float(fs[i]), float(fi[i])
+
+
+@dataclass(frozen=True)
+class _Hypothesis:
+    """A candidate centre (voxel) with its confined contrast ``f_shell − max(f_interior,
+    f_outer)`` and the three fractions."""
+
+    voxel: NDArray[np.int64]
+    score: float
+    f_shell: float
+    f_interior: float
+    f_outer: float
+
+
+def _outer_samples(n: int, radius: float) -> Array:
+    """The confinement band's samples: the probe-side half-shell ``_OUTER_BAND`` × R."""
+    return half_ball_samples(n, _OUTER_BAND[1] * radius, _OUTER_BAND[0] * radius)
+
+
+def _confined(
+    vol: SweepVolume,
+    candidates: NDArray[np.int64],
+    shell: Array,
+    interior: Array,
+    outer: Array,
+    min_coverage: float,
+) -> _Hypothesis:
+    """The candidate with the best confined contrast: its cap must stand out from the inside of the
+    sphere *and* from the water just outside it on the probe side, where a sphere has no
+    echo and a flat reflector (plate, floor) does. An outer band that lies wholly outside
+    the image is no evidence either way."""
+    fs = _fractions(vol, candidates, shell, min_coverage)
+    fi = _fractions(vol, candidates, interior, min_coverage)
+    fo = _fractions(vol, candidates, outer, 0.0)
+    score = fs - np.fmax(fi, fo)
+    score = np.where(np.isnan(score), -np.inf, score)
+    i = int(np.argmax(score))
+    return _Hypothesis(candidates[i], float(score[i]), float(fs[i]), float(fi[i]), float(fo[i]))
+
+
+def _local_maxima(vol, start, step, count, score, radius, k: int) -> list[NDArray[np.int64]]:
+    """Up to ``k`` best grid candidates more than ``radius`` apart (greedy, best first)."""
+    flat = score.ravel()
+    order = np.argsort(-flat, kind="stable")[:4096]
+    chosen: list[NDArray[np.int64]] = []
+    where: list[Array] = []
+    for i in order:
+        if not np.isfinite(flat[i]):
+            break
+        v = np.array(start) + np.array(step) * np.array(np.unravel_index(i, score.shape))
+        p = vol.position(*v.astype(float))
+        if all(np.linalg.norm(p - q) > radius for q in where):
+            chosen.append(v)
+            where.append(p)
+            if len(chosen) == k:
+                break
+    return chosen
+
+
+def _fine_candidates(vol: SweepVolume, voxel: NDArray[np.int64], grid: float) -> NDArray[np.int64]:
+    """Candidates within one coarse grid step of ``voxel`` at half its spacing, inside the
+    volume: the coarse grid can miss a thin cap's shell by up to half a step."""
+    half = candidate_step(vol.spacing, grid)
+    fine = candidate_step(vol.spacing, grid / 2)
+    axes = [
+        np.arange(max(v - h, 0), min(v + h, n - 1) + 1, f)
+        for v, h, f, n in zip(voxel, half, fine, vol.shape, strict=True)
+    ]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.int64)
+
+
+def _hypothesis_search(
+    vol: SweepVolume, radius: float, grid: float, shell: Array, interior: Array, cfg
+) -> list[_Hypothesis]:
+    """The whole candidate grid scored as the paper scores it, then its ``_HYPOTHESES``
+    best separate maxima searched finely and judged by their confined contrast; best
+    first. A faint thin cap that the coarse grid straddles scores below a strong flat
+    reflector there, and recovers its contrast on the fine grid, where the reflector
+    gains little (it looks the same from any nearby point)."""
+    start, step, count = _candidate_grid(vol, radius, grid)
+    score, _, _ = score_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
+    outer = _outer_samples(len(shell), radius)
+    found = []
+    for voxel in _local_maxima(vol, start, step, count, score, radius, _HYPOTHESES):
+        fine = _fine_candidates(vol, voxel, grid)
+        found.append(_confined(vol, fine, shell, interior, outer, cfg.min_coverage))
+    return sorted(found, key=lambda h: -h.score)
 
 
 def _local_window(
@@ -921,6 +1037,11 @@ def _seed_search(vol, radius, grid, shell, interior, cfg, previous):
                 index, start, count, full_start, full_count, step
             ):
                 return best
+    if cfg.method == "refined":
+        hyps = _hypothesis_search(vol, radius, grid, shell, interior, cfg)
+        if hyps:
+            h = hyps[0]
+            return h.voxel, h.score, h.f_shell, h.f_interior
     return _best_on_grid(vol, full_start, step, full_count, shell, interior, cfg.min_coverage)
 
 
@@ -987,14 +1108,29 @@ def localize_sphere(
             for vol, res in zip(vols, results, strict=True)
         ]
     out = []
+    outer = _outer_samples(len(shell), radius)
     for sweep, vol, (cv, score, fs, fi) in zip(sweeps, vols, results, strict=True):
         centre = vol.position(*np.asarray(cv, dtype=float))
+        fo = float("nan")
         accepted = bool(score >= cfg.min_score)
         reason = (
             "" if accepted else (f"no sphere found: best score {score:.2f} < {cfg.min_score:.2f}")
         )
         if accepted and cfg.method == "refined":
-            centre = _refine_centre(vol, centre, radius)
+            # Evidence beyond the score that picked it: the CAD sphere's cap must stand
+            # out from the water just outside it as well (a flat reflector does not).
+            fine = _fine_candidates(vol, np.asarray(cv, dtype=np.int64), grid)
+            h = _confined(vol, fine, shell, interior, outer, 0.0)
+            fo = h.f_outer
+            if h.f_shell - h.f_outer < cfg.min_score:
+                accepted = False
+                reason = (
+                    f"not a sphere: its echo runs on outside the CAD radius (bright share "
+                    f"{h.f_shell:.2f} on the sphere, {h.f_outer:.2f} at "
+                    f"{_OUTER_BAND[0]:g}-{_OUTER_BAND[1]:g} R; a flat reflector?)"
+                )
+            else:
+                centre = _refine_centre(vol, centre, radius)
         out.append(
             SweepLocalization(
                 sweep.target,
@@ -1005,6 +1141,7 @@ def localize_sphere(
                 fi,
                 accepted,
                 reason,
+                fo,
             )
         )
     return out
