@@ -28,6 +28,7 @@ from . import se3
 from .errors import CalibrationError
 from .localize import LocalizerConfig, SweepLocalization, localize_sphere
 from .records import Sweep
+from .robust import outlier_limit, robust_inliers
 
 __all__ = [
     "AlternationResult",
@@ -120,29 +121,6 @@ def linear_initialisation(obs: Sequence[Observation]) -> Array:
     b2 = b - A[:, 0:9] @ R_X.ravel()
     sol2, *_ = np.linalg.lstsq(A[:, 9:], b2, rcond=None)
     return se3.make(R_X, sol2[:3])
-
-
-def outlier_limit(dist_mm: Array, floor_mm: float) -> float:
-    """Distance from the centroid beyond which a centre is an outlier:
-    ``max(floor_mm, 3 · 1.4826 · MAD)`` of the distances (a robust 3σ)."""
-    mad = float(np.median(np.abs(dist_mm - np.median(dist_mm)))) if len(dist_mm) else 0.0
-    return max(floor_mm, 3.0 * 1.4826 * mad)
-
-
-def robust_inliers(points: Array, floor_mm: float = 2.0) -> NDArray[np.bool_]:
-    """Centres (n, 3, metres) of one sphere that agree with their centroid: the outlier
-    test of :func:`calibrate`, repeated with the centroid of the retained ones until the
-    retained set settles."""
-    keep = np.ones(len(points), dtype=bool)
-    for _ in range(10):
-        if not keep.any():
-            break
-        d = np.linalg.norm(points - points[keep].mean(axis=0), axis=1) * _MM
-        new = d <= outlier_limit(d[keep], floor_mm)
-        if np.array_equal(new, keep):
-            break
-        keep = new
-    return keep
 
 
 def _params_to_T(x: Array, T0: Array) -> Array:
@@ -293,6 +271,35 @@ def _observations(
     return obs
 
 
+def _consensus_seeds(
+    sweeps: Mapping[str, Sequence[Sweep]],
+    locs: Mapping[str, Sequence[SweepLocalization]],
+    obs: Sequence[Observation],
+    result: CalibrationResult,
+    rejected: set[tuple[str, int]],
+) -> dict[str, list[Array | None]]:
+    """Where each sweep the calibration rejected, or the localizer found nothing in,
+    should find its sphere: the retained sweeps' centroid (base frame) through the new
+    calibration into the sweep's reference frame; None for the others. So one bad sweep
+    (a plate or a reverberation taken for the sphere) is searched again about its
+    siblings' consensus instead of over its whole grid, which found the wrong thing."""
+    X = reconstruct(obs, result.T_ee_us)
+    out: dict[str, list[Array | None]] = {}
+    for t, ss in sweeps.items():
+        idx = [i for i, o in enumerate(obs) if o.target == t and result.retained[i]]
+        if not idx:
+            out[t] = [None] * len(ss)
+            continue
+        centroid = X[idx].mean(axis=0)
+        out[t] = [
+            se3.apply(se3.invert(s.T_base_ee[s.reference_index] @ result.T_ee_us), centroid)
+            if (t, s.pose_id) in rejected or not loc.accepted
+            else None
+            for s, loc in zip(ss, locs[t], strict=True)
+        ]
+    return out
+
+
 def alternate(
     sweeps: Mapping[str, Sequence[Sweep]],
     radius: float,
@@ -317,13 +324,16 @@ def alternate(
     """
 
     def localize_all(
-        T: Array | None, previous: Mapping[str, Sequence[SweepLocalization | None]] | None
+        T: Array | None,
+        previous: Mapping[str, Sequence[SweepLocalization | None]] | None,
+        expected: Mapping[str, Sequence[Array | None]] | None = None,
     ) -> tuple[dict[str, list[SweepLocalization]], float]:
         t0 = time.perf_counter()
 
         def one(t: str) -> list[SweepLocalization]:
             prev = previous[t] if previous else None
-            return localize_sphere(sweeps[t], T, radius, localizer, axial_scale, prev)
+            exp = expected[t] if expected else None
+            return localize_sphere(sweeps[t], T, radius, localizer, axial_scale, prev, exp)
 
         if threads > 1 and len(sweeps) > 1:
             with ThreadPoolExecutor(min(threads, len(sweeps))) as ex:
@@ -385,6 +395,11 @@ def alternate(
             ]
             for t, ls in locs.items()
         }
-        locs, t_localize = localize_all(T_prev, seeds)
+        expected = (
+            None
+            if localizer.method == "paper"
+            else _consensus_seeds(sweeps, locs, obs, result, rejected)
+        )
+        locs, t_localize = localize_all(T_prev, seeds, expected)
     assert result is not None
     return AlternationResult(result, obs, used, history)

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import weakref
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numba
@@ -52,6 +52,7 @@ from numpy.typing import NDArray
 from . import se3
 from .errors import LocalizationError
 from .records import Sweep
+from .robust import outlier_limit
 
 __all__ = [
     "LocalizerConfig",
@@ -742,7 +743,7 @@ def _outer_samples(n: int, radius: float) -> Array:
     return half_ball_samples(n, _OUTER_BAND[1] * radius, _OUTER_BAND[0] * radius)
 
 
-def _confined(
+def _best_nearby(
     vol: SweepVolume,
     candidates: NDArray[np.int64],
     shell: Array,
@@ -750,17 +751,24 @@ def _confined(
     outer: Array,
     min_coverage: float,
 ) -> _Hypothesis:
-    """The candidate with the best confined contrast: its cap must stand out from the inside of the
-    sphere *and* from the water just outside it on the probe side, where a sphere has no
-    echo and a flat reflector (plate, floor) does. An outer band that lies wholly outside
-    the image is no evidence either way."""
+    """The candidate the paper's contrast ``f_shell − f_interior`` prefers, with its
+    confined contrast: its cap must stand out from the inside of the sphere *and* from the
+    water just outside it on the probe side, where a sphere has no echo and a flat
+    reflector (plate, floor) does. An outer band wholly outside the image is no evidence
+    either way."""
     fs = _fractions(vol, candidates, shell, min_coverage)
     fi = _fractions(vol, candidates, interior, min_coverage)
-    fo = _fractions(vol, candidates, outer, 0.0)
-    score = fs - np.fmax(fi, fo)
-    score = np.where(np.isnan(score), -np.inf, score)
-    i = int(np.argmax(score))
-    return _Hypothesis(candidates[i], float(score[i]), float(fs[i]), float(fi[i]), float(fo[i]))
+    paper = np.where(np.isnan(fs - fi), -np.inf, fs - fi)
+    i = int(np.argmax(paper))
+    fo = float(_fractions(vol, candidates[i : i + 1], outer, 0.0)[0])
+    confined = fs[i] - np.fmax(fi[i], fo)
+    return _Hypothesis(
+        candidates[i],
+        float(confined) if np.isfinite(confined) else -np.inf,
+        float(fs[i]),
+        float(fi[i]),
+        fo,
+    )
 
 
 def _local_maxima(vol, start, step, count, score, radius, k: int) -> list[NDArray[np.int64]]:
@@ -796,20 +804,28 @@ def _fine_candidates(vol: SweepVolume, voxel: NDArray[np.int64], grid: float) ->
 
 def _hypothesis_search(
     vol: SweepVolume, radius: float, grid: float, shell: Array, interior: Array, cfg
-) -> list[_Hypothesis]:
+) -> list[tuple[NDArray[np.int64], float, float, float]]:
     """The whole candidate grid scored as the paper scores it, then its ``_HYPOTHESES``
-    best separate maxima searched finely and judged by their confined contrast; best
-    first. A faint thin cap that the coarse grid straddles scores below a strong flat
-    reflector there, and recovers its contrast on the fine grid, where the reflector
+    best separate maxima searched finely and judged by their confined contrast there;
+    best first, each as (grid voxel, score, f_shell, f_interior) of the grid point. A
+    faint thin cap that the coarse grid straddles scores below a strong flat reflector
+    there, and recovers its contrast on the fine grid, where the reflector
     gains little (it looks the same from any nearby point)."""
     start, step, count = _candidate_grid(vol, radius, grid)
-    score, _, _ = score_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
+    score, fs, fi = score_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
     outer = _outer_samples(len(shell), radius)
     found = []
     for voxel in _local_maxima(vol, start, step, count, score, radius, _HYPOTHESES):
         fine = _fine_candidates(vol, voxel, grid)
-        found.append(_confined(vol, fine, shell, interior, outer, cfg.min_coverage))
-    return sorted(found, key=lambda h: -h.score)
+        h = _best_nearby(vol, fine, shell, interior, outer, cfg.min_coverage)
+        found.append((h.score, voxel))
+    # Ranked by the confined contrast found nearby; each seed stays the coarse grid
+    # point (the paper's seed whenever its best maximum wins).
+    out = []
+    for _, voxel in sorted(found, key=lambda f: -f[0]):
+        i = tuple((voxel - np.array(start)) // np.array(step))
+        out.append((voxel, float(score[i]), float(fs[i]), float(fi[i])))
+    return out
 
 
 def _local_window(
@@ -1023,9 +1039,17 @@ def _on_window_edge(index: tuple[int, ...], start, count, full_start, full_count
     return False
 
 
-def _seed_search(vol, radius, grid, shell, interior, cfg, previous):
-    """The exhaustive search, or around a previous centre when there is one."""
+def _seed_search(vol, radius, grid, shell, interior, cfg, previous, expected=None):
+    """The exhaustive search, or around a previous centre when there is one, or only
+    around an expected centre when one is given."""
     full_start, step, full_count = _candidate_grid(vol, radius, grid)
+    if expected is not None:
+        k, r, c = (int(v) for v in vol.index(np.asarray(expected, dtype=float)))
+        start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
+        start = tuple(max(s0, fs) for s0, fs in zip(start, full_start, strict=True))
+        if all(n > 0 for n in count):
+            return _best_on_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
+        return (np.array([k, r, c]), -np.inf, np.nan, np.nan)
     if previous is not None and previous.accepted:
         k, r, c = (int(v) for v in vol.index(previous.centre))
         start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
@@ -1040,9 +1064,70 @@ def _seed_search(vol, radius, grid, shell, interior, cfg, previous):
     if cfg.method == "refined":
         hyps = _hypothesis_search(vol, radius, grid, shell, interior, cfg)
         if hyps:
-            h = hyps[0]
-            return h.voxel, h.score, h.f_shell, h.f_interior
+            return hyps[0]
     return _best_on_grid(vol, full_start, step, full_count, shell, interior, cfg.min_coverage)
+
+
+# Consensus of one sphere's sweeps in the base frame: centres within _CLUSTER_MM of
+# each other form a cluster; a centre agrees with the densest cluster within
+# max(_AGREE_FLOOR_MM, a robust 3σ of the cluster's spread).
+_CLUSTER_MM = 2.0
+_AGREE_FLOOR_MM = 1.0
+
+
+def _agreeing(base: Array, found: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], Array, float]:
+    """(agree, consensus, limit_mm): which of the found centres (n, 3, base frame) agree
+    with the densest cluster of them, its mean, and the distance limit. The densest
+    cluster, not the mean of all: wrong candidates scatter (a plate offers one anywhere
+    along it) while right ones agree, even when they are fewer than half."""
+    idx = np.flatnonzero(found)
+    pts = base[idx]
+    near = np.linalg.norm(pts[:, None] - pts[None], axis=-1) < _CLUSTER_MM * _MM
+    cluster = near[int(np.argmax(near.sum(axis=1)))] if len(idx) else np.zeros(0, bool)
+    if cluster.sum() < 3:
+        return found.copy(), np.full(3, np.nan), float("inf")
+    consensus = pts[cluster].mean(axis=0)
+    d = np.linalg.norm(base - consensus, axis=1) / _MM
+    limit = outlier_limit(d[idx][cluster], _AGREE_FLOOR_MM)
+    return found & (d <= limit), consensus, limit
+
+
+def _base_centres(sweeps, vols, voxels, T_ee_us) -> tuple[list[Array], Array]:
+    """Each sweep's reference pose ``T_base_ee[ref] @ T_ee_us`` and its centre voxel's
+    position in the base frame (n, 3)."""
+    T_ref = [s.T_base_ee[s.reference_index] @ np.asarray(T_ee_us) for s in sweeps]
+    base = np.array(
+        [
+            se3.apply(T, v.position(*np.asarray(c, dtype=float)))
+            for T, v, c in zip(T_ref, vols, voxels, strict=True)
+        ]
+    )
+    return T_ref, base
+
+
+def _consensus(sweeps, vols, results, T_ee_us, radius, grid, shell, interior, cfg):
+    """With a calibration every sweep's centre maps into the robot base, where all of one
+    sphere's must agree: a sweep whose seed disagrees with its siblings' (a plate or a
+    reverberation won its whole grid) or that found nothing is searched again only
+    within ``relocalize_window_mm`` of their consensus mapped into its frame."""
+    T_ref, base = _base_centres(sweeps, vols, [r[0] for r in results], T_ee_us)
+    found = np.array([r[1] >= cfg.min_score for r in results])
+    agree, consensus, limit = _agreeing(base, found)
+    notes: dict[int, str] = {}
+    if not np.isfinite(consensus).all():
+        return results, notes
+    out = list(results)
+    for i in np.flatnonzero(~agree):
+        expected = se3.apply(se3.invert(T_ref[i]), consensus)
+        out[i] = _seed_search(vols[i], radius, grid, shell, interior, cfg, None, expected)
+        if found[i]:
+            d = float(np.linalg.norm(base[i] - consensus) / _MM)
+            notes[i] = (
+                f"disagrees with the sphere's other sweeps: its best candidate lay {d:.2f} mm "
+                f"from their consensus (limit {limit:.2f} mm), and nothing near the "
+                f"consensus looks like the sphere"
+            )
+    return out, notes
 
 
 def localize_sphere(
@@ -1052,6 +1137,7 @@ def localize_sphere(
     cfg: LocalizerConfig,
     axial_scale: float = 1.0,
     previous: Sequence[SweepLocalization | None] | None = None,
+    expected: Sequence[Array | None] | None = None,
 ) -> list[SweepLocalization]:
     """Localize one sphere in each of its sweeps (centres in each sweep's reference frame).
 
@@ -1068,6 +1154,10 @@ def localize_sphere(
         Each sweep with one is then searched within ``relocalize_window_mm`` of its
         previous centre (falling back to the whole grid as described there); None entries
         get the whole grid.
+    expected : a predicted centre (3,) per sweep, or None, in its reference frame (e.g. its
+        siblings' consensus through the current calibration): the sweep is searched only
+        within ``relocalize_window_mm`` of it (its whole grid found something else). It
+        takes precedence over ``previous``.
     """
     if cfg.method == "fixed_threshold":
         from .baseline import localize_sphere_fixed_threshold
@@ -1078,14 +1168,30 @@ def localize_sphere(
     interior = half_ball_samples(cfg.interior_samples, radius)
     if previous is not None and len(previous) != len(sweeps):
         raise ValueError(f"{len(previous)} previous localizations for {len(sweeps)} sweeps")
+    if expected is not None and len(expected) != len(sweeps):
+        raise ValueError(f"{len(expected)} expected centres for {len(sweeps)} sweeps")
     vols = []
     for s in sweeps:
         column_step = candidate_step((s.spacing[0], s.spacing[1], 1.0), grid)[2]
         vols.append(stack_sweep(s, T_ee_us, axial_scale, column_step))
     results = [
-        _seed_search(vol, radius, grid, shell, interior, cfg, previous[i] if previous else None)
+        _seed_search(
+            vol,
+            radius,
+            grid,
+            shell,
+            interior,
+            cfg,
+            previous[i] if previous else None,
+            expected[i] if expected else None,
+        )
         for i, vol in enumerate(vols)
     ]
+    notes: dict[int, str] = {}
+    if T_ee_us is not None and cfg.method != "paper":
+        results, notes = _consensus(
+            sweeps, vols, results, T_ee_us, radius, grid, shell, interior, cfg
+        )
     radii = np.arange(0.0, 1.6 * radius, min(vols[0].spacing[:2]))
     for _ in range(cfg.refinement_passes):
         ok = [i for i, r in enumerate(results) if r[1] >= cfg.min_score]
@@ -1109,18 +1215,20 @@ def localize_sphere(
         ]
     out = []
     outer = _outer_samples(len(shell), radius)
-    for sweep, vol, (cv, score, fs, fi) in zip(sweeps, vols, results, strict=True):
+    for i, (sweep, vol, (cv, score, fs, fi)) in enumerate(zip(sweeps, vols, results, strict=True)):
         centre = vol.position(*np.asarray(cv, dtype=float))
         fo = float("nan")
         accepted = bool(score >= cfg.min_score)
         reason = (
-            "" if accepted else (f"no sphere found: best score {score:.2f} < {cfg.min_score:.2f}")
+            ""
+            if accepted
+            else notes.get(i, f"no sphere found: best score {score:.2f} < {cfg.min_score:.2f}")
         )
         if accepted and cfg.method == "refined":
             # Evidence beyond the score that picked it: the CAD sphere's cap must stand
             # out from the water just outside it as well (a flat reflector does not).
             fine = _fine_candidates(vol, np.asarray(cv, dtype=np.int64), grid)
-            h = _confined(vol, fine, shell, interior, outer, 0.0)
+            h = _best_nearby(vol, fine, shell, interior, outer, 0.0)
             fo = h.f_outer
             if h.f_shell - h.f_outer < cfg.min_score:
                 accepted = False
@@ -1144,6 +1252,37 @@ def localize_sphere(
                 fo,
             )
         )
+    if T_ee_us is not None and cfg.method != "paper":
+        out = _reject_disagreeing(sweeps, out, T_ee_us)
+    return out
+
+
+def _reject_disagreeing(sweeps, locs, T_ee_us) -> list[SweepLocalization]:
+    """Evidence from the siblings: an accepted centre that disagrees with the consensus of
+    the sphere's other sweeps (base frame, through the calibration) is rejected with the
+    distance and the limit."""
+    base = np.array(
+        [
+            se3.apply(s.T_base_ee[s.reference_index] @ np.asarray(T_ee_us), loc.centre)
+            for s, loc in zip(sweeps, locs, strict=True)
+        ]
+    )
+    found = np.array([loc.accepted for loc in locs])
+    agree, consensus, limit = _agreeing(base, found)
+    out = []
+    for i, loc in enumerate(locs):
+        if loc.accepted and not agree[i]:
+            d = float(np.linalg.norm(base[i] - consensus) / _MM)
+            loc = replace(
+                loc,
+                centre=np.full(3, np.nan),
+                accepted=False,
+                reason=(
+                    f"disagrees with the sphere's other sweeps: {d:.2f} mm from their "
+                    f"consensus (limit {limit:.2f} mm)"
+                ),
+            )
+        out.append(loc)
     return out
 
 
