@@ -85,6 +85,9 @@ _OUTER_BAND = (1.3, 1.8)
 # Separate local maxima of the coarse grid searched finely (method "refined").
 _HYPOTHESES = 4
 _REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
+# Slices whose cap echo peaks within this many grey levels of the brightest are clipped
+# together (saturation at 255; frame means differ by a level or so).
+_CLIPPED_GREY = 1.5
 _MM = 1e-3
 
 
@@ -1019,12 +1022,40 @@ def _elevation_vertex(w: Array, zs: Array, z_mean: float, dz: float) -> float:
     k = int(np.argmax(peaks))
     if k == 0 or k == len(peaks) - 1 or peaks[k] <= 0:
         return z_mean
+    top = np.flatnonzero(peaks >= peaks[k] - _CLIPPED_GREY)
+    if len(top) > 1:
+        # The echo clips at 255 in several slices (high gain): the vertex of three
+        # clipped values is undefined. The profile across elevation is symmetric about
+        # the centre (the section's top echo and the beam alike), and so is its clipping:
+        # the midpoint of its half-maximum crossings on either side is unbiased.
+        return _half_maximum_midpoint(peaks, zs, int(top[0]), int(top[-1]), z_mean)
     a, b, c = peaks[k - 1], peaks[k], peaks[k + 1]
     denom = a - 2 * b + c
     if denom >= 0:
         return z_mean
     shift = 0.5 * (a - c) / denom  # in slices, within (-0.5, 0.5)
     return float(zs[k] + shift * dz)
+
+
+def _half_maximum_midpoint(
+    peaks: Array, zs: Array, first: int, last: int, fallback: float
+) -> float:
+    """Midpoint of the elevations where ``peaks`` crosses half its maximum below slice
+    ``first`` and above slice ``last`` (linearly interpolated); ``fallback`` when the
+    profile does not fall to half on both sides."""
+    half = 0.5 * peaks[first : last + 1].max()
+
+    def crossing(inner: int, step: int) -> float | None:
+        i = inner
+        while 0 <= i + step < len(peaks):
+            a, b = peaks[i], peaks[i + step]
+            if b < half <= a:
+                return float(zs[i] + (a - half) / (a - b) * (zs[i + step] - zs[i]))
+            i += step
+        return None
+
+    lo, hi = crossing(first, -1), crossing(last, +1)
+    return fallback if lo is None or hi is None else 0.5 * (lo + hi)
 
 
 def _on_window_edge(index: tuple[int, ...], start, count, full_start, full_count, step) -> bool:
