@@ -87,14 +87,35 @@ class SweepSpec:
     methods: tuple[str, ...]
 
     def points(self) -> list[tuple[tuple[tuple[str, Any], ...], int]]:
-        """(overrides, seed) of every point: the grid's full product × the seeds."""
+        """(overrides, seed) of every point: the grid's full product × the seeds; a
+        linked entry (``"a, b": [[a1, b1], ...]``) sets its keys together."""
         keys = list(self.grid)
         combos = itertools.product(*(self.grid[k] for k in keys)) if keys else [()]
         return [
-            (tuple(zip(keys, values, strict=True)), seed)
+            (
+                tuple(
+                    pair
+                    for key, value in zip(keys, values, strict=True)
+                    for pair in zip(linked_keys(key), _linked_values(key, value), strict=True)
+                ),
+                seed,
+            )
             for values in combos
             for seed in self.seeds
         ]
+
+    def override_keys(self) -> list[str]:
+        """Every key path the grid sets, linked entries' keys one by one."""
+        return [k for key in self.grid for k in linked_keys(key)]
+
+
+def linked_keys(key: str) -> list[str]:
+    """The key paths of a grid entry: ``"a, b"`` sets a and b together."""
+    return [k.strip() for k in key.split(",")]
+
+
+def _linked_values(key: str, value: Any) -> list[Any]:
+    return list(value) if len(linked_keys(key)) > 1 else [value]
 
 
 def _fail(source: Path, where: str, what: str) -> SweepError:
@@ -134,15 +155,35 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     methods = data.get("methods", ["refined", "fixed_threshold"])
     if not (isinstance(methods, list) and methods and set(methods) <= set(METHODS)):
         raise _fail(source, "methods", f"a non-empty list from {list(METHODS)}")
+    for key, values in grid.items():
+        n = len(linked_keys(key))
+        if n > 1 and not all(isinstance(v, list) and len(v) == n for v in values):
+            raise _fail(source, f"grid: {key}", f"linked keys: each value a list of {n} values")
     # Fail now on a bad base or value (load_scenario names the key and what is allowed).
     load_scenario(base)
     for key, values in grid.items():
         for v in values:
-            load_scenario(base, [_override(key, v)])
+            load_scenario(
+                base,
+                [
+                    _override(k, x)
+                    for k, x in zip(linked_keys(key), _linked_values(key, v), strict=True)
+                ],
+            )
     return SweepSpec(
         source, base, base.read_text(encoding="utf-8"), {k: list(v) for k, v in grid.items()},
         tuple(seeds), tuple(stages), tuple(methods),
     )  # fmt: skip
+
+
+#: The localization figures of a row, in the order ``results.csv`` lists them.
+LOCALIZATION_METRICS = (
+    "localization_median_error_mm",
+    "rejected_fraction",
+    "localization_max_error_mm",
+    "false_acceptances",
+    "sweeps",
+)
 
 
 def _override(key: str, value: Any) -> str:
@@ -205,7 +246,7 @@ def run_point(
     rows = []
     for method in methods:
         cfg = replace(scenario.localization, method=method)
-        errors, n, rejected = [], 0, 0
+        errors, n, rejected = [], 0, 0  # errors of the accepted sweeps, mm
         for t in targets:
             sweeps = acq.dataset.of(t)
             # The localizer alone: the sweeps stacked with the true T_ee_us (the twin's),
@@ -219,11 +260,17 @@ def run_point(
                     continue
                 p_true = true_centre_in_sweep(acq, truth, t, sweep)
                 errors.append(float(np.linalg.norm(loc.centre - p_true)) * 1e3)
+        e = np.array(errors)
         row: dict[str, Any] = {
             "seed": seed,
             "method": method,
-            "localization_median_error_mm": float(np.median(errors)) if errors else float("nan"),
+            "localization_median_error_mm": float(np.median(e)) if len(e) else float("nan"),
             "rejected_fraction": rejected / n if n else float("nan"),
+            "localization_max_error_mm": float(e.max()) if len(e) else float("nan"),
+            # Accepted centres more than 1 mm from the truth: wrong answers handed back
+            # as good ones.
+            "false_acceptances": int((e > 1.0).sum()),
+            "sweeps": n,
         }
         if "calibrate" in stages:
             row["calibration_image_mm"] = float("nan")
@@ -361,8 +408,8 @@ def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any]]) -> str:
     """One row per point, seed and method: the grid keys (named by key path), then
     seed, method and the metrics; a failed point gives one row per method with the
     error."""
-    keys = list(spec.grid)
-    metrics = ["localization_median_error_mm", "rejected_fraction"]
+    keys = spec.override_keys()
+    metrics = list(LOCALIZATION_METRICS)
     if "calibrate" in spec.stages:
         metrics.append("calibration_image_mm")
     lines = [",".join([*keys, "seed", "method", *metrics, "error"])]

@@ -19,6 +19,8 @@ __all__ = ["sweep_html", "sweep_table"]
 _METRICS = {
     "localization_median_error_mm": "localization error, median over sweeps (mm)",
     "rejected_fraction": "sweeps without a detection (share)",
+    "false_acceptances": "accepted centres > 1 mm from the truth (count)",
+    "localization_max_error_mm": "localization error, worst accepted sweep (mm)",
     "calibration_image_mm": "calibration: true image error (mm)",
 }
 
@@ -71,10 +73,19 @@ def sweep_html(spec, points: Sequence[dict[str, Any]], out: Path) -> str:
     """The page (and its figures, written into ``out/figures``)."""
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
-    metrics = ["localization_median_error_mm", "rejected_fraction"]
+    metrics = ["localization_median_error_mm", "rejected_fraction", "false_acceptances"]
     if "calibrate" in spec.stages:
         metrics.append("calibration_image_mm")
     failed = [d for d in points if "error" in d]
+    false_total = {
+        m: sum(
+            int(r.get("false_acceptances", 0))
+            for d in points
+            for r in d.get("rows", [])
+            if r["method"] == m
+        )
+        for m in spec.methods
+    }
     lines = [
         "# uscal sweep",
         "",
@@ -84,16 +95,23 @@ def sweep_html(spec, points: Sequence[dict[str, Any]], out: Path) -> str:
         f"{', '.join(spec.methods)}. Lines: median over seeds and the other keys; bands: "
         "25th-75th percentile. Every row is in `results.csv`.",
         "",
+        "Accepted centres more than 1 mm from the truth, over the whole grid: "
+        + ", ".join(f"{m} **{n}**" for m, n in false_total.items())
+        + ".",
+        "",
     ]
     if failed:
         lines += [f"**{len(failed)} point(s) failed**:", ""]
         lines += [f"- {d['overrides']}, seed {d['seed']}: {d['error']}" for d in failed]
         lines.append("")
-    for key in spec.grid:
-        if len(spec.grid[key]) < 2:
+    for entry in spec.grid:
+        if len(spec.grid[entry]) < 2:
             continue  # a fixed setting, not a varied one
-        lines += [f"## {key}", ""]
-        numeric = all(isinstance(v, (int, float)) for v in spec.grid[key])
+        # Linked keys (set together) are shown against the first.
+        key = entry.split(",")[0].strip()
+        values = [v[0] if "," in entry else v for v in spec.grid[entry]]
+        lines += [f"## {entry}", ""]
+        numeric = all(isinstance(v, (int, float)) for v in values)
         for metric in metrics if numeric else []:
             name = f"{key.replace('.', '_')}__{metric}.png"
             _figure(points, key, metric, fig_dir / name)

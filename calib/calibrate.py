@@ -287,7 +287,10 @@ def _consensus_seeds(
     out: dict[str, list[Array | None]] = {}
     for t, ss in sweeps.items():
         idx = [i for i, o in enumerate(obs) if o.target == t and result.retained[i]]
-        if not idx:
+        n_obs = sum(o.target == t for o in obs)
+        if len(idx) < max(4, n_obs // 2):
+            # Fewer than half retained: the consensus itself is in doubt (the fit may
+            # have followed the wrong detections); those sweeps get their whole grid.
             out[t] = [None] * len(ss)
             continue
         centroid = X[idx].mean(axis=0)
@@ -333,7 +336,9 @@ def alternate(
         def one(t: str) -> list[SweepLocalization]:
             prev = previous[t] if previous else None
             exp = expected[t] if expected else None
-            return localize_sphere(sweeps[t], T, radius, localizer, axial_scale, prev, exp)
+            return localize_sphere(
+                sweeps[t], T, radius, localizer, axial_scale, prev, exp, consensus=False
+            )
 
         if threads > 1 and len(sweeps) > 1:
             with ThreadPoolExecutor(min(threads, len(sweeps))) as ex:

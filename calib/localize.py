@@ -722,7 +722,10 @@ def _candidate_grid(
 
 
 def _best_on_grid(vol, start, step, count, shell, interior, min_coverage):
-    """(centre voxel, score, f_shell, f_interior) of the best candidate of a grid."""
+    """(centre voxel, score, f_shell, f_interior) of the best candidate of a grid; score
+    −inf for a grid without candidates (a window wholly outside the volume)."""
+    if min(count) <= 0:
+        return np.array(start), -np.inf, float("nan"), float("nan")
     score, fs, fi = score_grid(vol, start, step, count, shell, interior, min_coverage)
     i = np.unravel_index(int(np.argmax(score)), score.shape)
     cv = np.array(start) + np.array(step) * np.array(i)
@@ -1113,8 +1116,10 @@ def _agreeing(base: Array, found: NDArray[np.bool_]) -> tuple[NDArray[np.bool_],
     along it) while right ones agree, even when they are fewer than half."""
     idx = np.flatnonzero(found)
     pts = base[idx]
+    if len(idx) == 0:
+        return found.copy(), np.full(3, np.nan), float("inf")
     near = np.linalg.norm(pts[:, None] - pts[None], axis=-1) < _CLUSTER_MM * _MM
-    cluster = near[int(np.argmax(near.sum(axis=1)))] if len(idx) else np.zeros(0, bool)
+    cluster = near[int(np.argmax(near.sum(axis=1)))]
     if cluster.sum() < 3:
         return found.copy(), np.full(3, np.nan), float("inf")
     consensus = pts[cluster].mean(axis=0)
@@ -1169,6 +1174,7 @@ def localize_sphere(
     axial_scale: float = 1.0,
     previous: Sequence[SweepLocalization | None] | None = None,
     expected: Sequence[Array | None] | None = None,
+    consensus: bool = True,
 ) -> list[SweepLocalization]:
     """Localize one sphere in each of its sweeps (centres in each sweep's reference frame).
 
@@ -1189,6 +1195,11 @@ def localize_sphere(
         siblings' consensus through the current calibration): the sweep is searched only
         within ``relocalize_window_mm`` of it (its whole grid found something else). It
         takes precedence over ``previous``.
+    consensus : with ``T_ee_us`` (and a method other than "paper"), use the sphere's other
+        sweeps as evidence: seeds that disagree with their consensus in the base frame
+        are searched again about it, centres that still disagree are rejected. For a
+        trusted calibration; the alternation turns it off (its estimate may still be far
+        off, and the calibration's own outlier stage does the same about its consensus).
     """
     if cfg.method == "fixed_threshold":
         from .baseline import localize_sphere_fixed_threshold
@@ -1219,7 +1230,7 @@ def localize_sphere(
         for i, vol in enumerate(vols)
     ]
     notes: dict[int, str] = {}
-    if T_ee_us is not None and cfg.method != "paper":
+    if consensus and T_ee_us is not None and cfg.method != "paper":
         results, notes = _consensus(
             sweeps, vols, results, T_ee_us, radius, grid, shell, interior, cfg
         )
@@ -1283,7 +1294,7 @@ def localize_sphere(
                 fo,
             )
         )
-    if T_ee_us is not None and cfg.method != "paper":
+    if consensus and T_ee_us is not None and cfg.method != "paper":
         out = _reject_disagreeing(sweeps, out, T_ee_us)
     return out
 

@@ -52,6 +52,14 @@ def _sweep_file(tmp_path: Path, grid: str, seeds="[0]", methods="[refined, fixed
         (f"base: {QUICK}\ngrid:\n  imaging.gain_db: 3\n", "grid: a mapping of key path"),
         (f"base: {QUICK}\ngrid:\n  imaging.gain_db: [loud]\n", "imaging.gain_db"),
         (f"base: {QUICK}\ngrid:\n  imaging.gane_db: [0]\n", "gane_db"),
+        (
+            f"base: {QUICK}\ngrid:\n  protocol.target_depth_mm, imaging.depth_mm: [[10]]\n",
+            "linked keys: each value a list of 2 values",
+        ),
+        (
+            f"base: {QUICK}\ngrid:\n  protocol.target_depth_mm, imaging.depth_mm: [[10, -5]]\n",
+            "imaging.depth_mm",
+        ),
         ("base: nowhere.yaml\n", "nowhere.yaml"),
     ],
 )
@@ -188,3 +196,36 @@ def test_a_failing_point_records_its_error_and_the_sweep_goes_on(tmp_path):
     rows = _rows(tmp_path / "out")
     assert len(rows) == 2 and all("base.yaml" in r["error"] for r in rows)
     assert "2 point(s) failed" in (tmp_path / "out" / "sweep.html").read_text()
+
+
+def test_linked_keys_are_set_together_and_reported(tmp_path):
+    """A grid entry of several keys (the image depth following the target depth) sets
+    them together: one point per value, each key in the point's overrides and its own
+    column of results.csv; the page shows the entry against its first key."""
+    from bench.sweep import results_csv
+    from bench.sweep_report import sweep_html
+
+    path = _write(
+        tmp_path / "sweep.yaml",
+        f"base: {QUICK}\ngrid:\n  imaging.gain_db: [0, 10]\n"
+        "  protocol.target_depth_mm, imaging.depth_mm: [[15, 30], [25, 40]]\n"
+        "seeds: [0]\nstages: [localize]\nmethods: [refined]\n",
+    )
+    spec = load_sweep(path)
+    points = spec.points()
+    assert len(points) == 4
+    assert points[1][0] == (
+        ("imaging.gain_db", 0),
+        ("protocol.target_depth_mm", 25),
+        ("imaging.depth_mm", 40),
+    )
+    rows = [
+        {"overrides": list(o), "seed": s, "rows": [{"method": "refined", "false_acceptances": 0,
+         "localization_median_error_mm": 0.1 * (i + 1), "rejected_fraction": 0.0}]}
+        for i, (o, s) in enumerate(points)
+    ]  # fmt: skip
+    header = results_csv(spec, rows).splitlines()[0].split(",")
+    assert header[:3] == ["imaging.gain_db", "protocol.target_depth_mm", "imaging.depth_mm"]
+    page = sweep_html(spec, rows, tmp_path)
+    assert "protocol.target_depth_mm, imaging.depth_mm" in page
+    assert "refined <strong>0</strong>" in page or "refined **0**" in page
