@@ -8,6 +8,8 @@ A sweep file::
     grid:                            # key path (as for --set) -> values; full product
       imaging.gain_db: [-20, -10, 0, 10, 20]
       imaging.depth_mm: [30, 50, 70]
+      # linked keys, set together (one grid axis):
+      # protocol.target_depth_mm, imaging.depth_mm: [[10, 25], [20, 35]]
     seeds: [0, 1, 2]
     stages: [localize]               # or [localize, calibrate]
     methods: [refined, fixed_threshold]
