@@ -744,13 +744,6 @@ class _Hypothesis:
     f_outer: float
 
 
-def _background_share(images: NDArray[np.uint8], means: Array) -> float:
-    """Share of a sweep's pixels above their frame's mean (what noise, clutter or a
-    medium's speckle give any region), counted as :func:`frame_bits` counts bright."""
-    thresholds = np.floor(means).astype(np.int64) + 1
-    return float(np.mean(images >= np.minimum(thresholds, 255)[:, None, None].astype(np.uint8)))
-
-
 def _outer_samples(n: int, radius: float) -> Array:
     """The confinement band's samples: the probe-side half-shell ``_OUTER_BAND`` × R."""
     return half_ball_samples(n, _OUTER_BAND[1] * radius, _OUTER_BAND[0] * radius)
@@ -1276,22 +1269,15 @@ def localize_sphere(
         if accepted and cfg.method == "refined":
             # Evidence beyond the score that picked it: the CAD sphere's cap must stand
             # out from the water just outside it as well (a flat reflector does not).
-            # Against the sweep's background (its share of pixels above their frame's
-            # mean: noise at depth or a gel's speckle put it near a half or more): the band
-            # outside may not exceed it by more than half of what the cap does, beyond the
-            # counting noise of its samples (two binomial σ).
             fine = _fine_candidates(vol, np.asarray(cv, dtype=np.int64), grid)
             h = _best_nearby(vol, fine, shell, interior, outer, 0.0)
             fo = h.f_outer
-            bg = _background_share(sweep.images, vol._means)
-            margin = 2.0 * np.sqrt(bg * (1.0 - bg) / len(outer))
-            if h.f_outer > bg + 0.5 * max(h.f_shell - bg, 0.0) + margin:
+            if h.f_shell - h.f_outer < cfg.min_score:
                 accepted = False
                 reason = (
                     f"not a sphere: its echo runs on outside the CAD radius (bright share "
                     f"{h.f_shell:.2f} on the sphere, {h.f_outer:.2f} at "
-                    f"{_OUTER_BAND[0]:g}-{_OUTER_BAND[1]:g} R, {bg:.2f} in the sweep; a "
-                    f"flat reflector?)"
+                    f"{_OUTER_BAND[0]:g}-{_OUTER_BAND[1]:g} R; a flat reflector?)"
                 )
             else:
                 centre = _refine_centre(vol, centre, radius)
