@@ -20,9 +20,9 @@ Per sweep:
    the refinement passes.
 
 ``method="paper"`` stops there (grid-point centres). ``method="refined"`` differs in
-three ways, each for a failure of the paper's score measured on the twin (a bright plate
+four ways, each for a failure of the paper's score measured on the twin (a bright plate
 or floor taken for the sphere in ≈ 10-60 % of sweeps at low gain, a small sphere or a deep
-target):
+target; a biased centre where the cap saturates):
 
 - *Hypotheses.* The exhaustive search keeps the grid's ``_HYPOTHESES`` best maxima more
   than R apart and looks at each on a grid twice as fine: a faint thin cap straddled by
@@ -31,7 +31,13 @@ target):
   bright share in the band ``_OUTER_BAND`` × R outside the sphere on the probe side: water
   for a sphere, more of the reflector for a plate. A detection whose cap does not stand
   out from that band by ``min_score`` is rejected with its reason.
-- *Sub-voxel centre* from the moments of the cap's echo (see ``_refine_centre``).
+- *The other sweeps as evidence* (with a calibration, ``consensus=True``): the centres of
+  one sphere must agree in the robot base. A seed that disagrees with the densest
+  cluster is searched again about it; a centre that still disagrees is rejected with the
+  distance (see ``_consensus``, ``_reject_disagreeing``).
+- *Sub-voxel centre* from the moments of the cap's echo (see ``_refine_centre``); where
+  the echo clips at 255 in several frames, its elevation from the midpoint of the
+  half-maximum crossings (``_elevation_vertex``).
 
 Frames of one sweep share their orientation (a linear sweep); the re-stack applies each
 frame's in-plane and elevational offset and treats the frames as parallel (the residual
