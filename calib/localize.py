@@ -1087,9 +1087,7 @@ def _seed_search(vol, radius, grid, shell, interior, cfg, previous, expected=Non
         k, r, c = (int(v) for v in vol.index(np.asarray(expected, dtype=float)))
         start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
         start = tuple(max(s0, fs) for s0, fs in zip(start, full_start, strict=True))
-        if all(n > 0 for n in count):
-            return _best_on_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
-        return (np.array([k, r, c]), -np.inf, np.nan, np.nan)
+        return _best_on_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
     if previous is not None and previous.accepted:
         k, r, c = (int(v) for v in vol.index(previous.centre))
         start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
@@ -1134,17 +1132,11 @@ def _agreeing(base: Array, found: NDArray[np.bool_]) -> tuple[NDArray[np.bool_],
     return found & (d <= limit), consensus, limit
 
 
-def _base_centres(sweeps, vols, voxels, T_ee_us) -> tuple[list[Array], Array]:
-    """Each sweep's reference pose ``T_base_ee[ref] @ T_ee_us`` and its centre voxel's
-    position in the base frame (n, 3)."""
+def _in_base(sweeps, centres, T_ee_us) -> tuple[list[Array], Array]:
+    """Each sweep's reference pose ``T_base_ee[ref] @ T_ee_us`` and its centre (3, in that
+    frame) in the base frame, (n, 3)."""
     T_ref = [s.T_base_ee[s.reference_index] @ np.asarray(T_ee_us) for s in sweeps]
-    base = np.array(
-        [
-            se3.apply(T, v.position(*np.asarray(c, dtype=float)))
-            for T, v, c in zip(T_ref, vols, voxels, strict=True)
-        ]
-    )
-    return T_ref, base
+    return T_ref, np.array([se3.apply(T, c) for T, c in zip(T_ref, centres, strict=True)])
 
 
 def _consensus(sweeps, vols, results, T_ee_us, radius, grid, shell, interior, cfg):
@@ -1152,7 +1144,10 @@ def _consensus(sweeps, vols, results, T_ee_us, radius, grid, shell, interior, cf
     sphere's must agree: a sweep whose seed disagrees with its siblings' (a plate or a
     reverberation won its whole grid) or that found nothing is searched again only
     within ``relocalize_window_mm`` of their consensus mapped into its frame."""
-    T_ref, base = _base_centres(sweeps, vols, [r[0] for r in results], T_ee_us)
+    centres = [
+        v.position(*np.asarray(r[0], dtype=float)) for v, r in zip(vols, results, strict=True)
+    ]
+    T_ref, base = _in_base(sweeps, centres, T_ee_us)
     found = np.array([r[1] >= cfg.min_score for r in results])
     agree, consensus, limit = _agreeing(base, found)
     notes: dict[int, str] = {}
@@ -1236,7 +1231,8 @@ def localize_sphere(
         for i, vol in enumerate(vols)
     ]
     notes: dict[int, str] = {}
-    if consensus and T_ee_us is not None and cfg.method != "paper":
+    use_consensus = consensus and T_ee_us is not None and cfg.method != "paper"
+    if use_consensus:
         results, notes = _consensus(
             sweeps, vols, results, T_ee_us, radius, grid, shell, interior, cfg
         )
@@ -1300,7 +1296,7 @@ def localize_sphere(
                 fo,
             )
         )
-    if consensus and T_ee_us is not None and cfg.method != "paper":
+    if use_consensus:
         out = _reject_disagreeing(sweeps, out, T_ee_us)
     return out
 
@@ -1309,12 +1305,7 @@ def _reject_disagreeing(sweeps, locs, T_ee_us) -> list[SweepLocalization]:
     """Evidence from the siblings: an accepted centre that disagrees with the consensus of
     the sphere's other sweeps (base frame, through the calibration) is rejected with the
     distance and the limit."""
-    base = np.array(
-        [
-            se3.apply(s.T_base_ee[s.reference_index] @ np.asarray(T_ee_us), loc.centre)
-            for s, loc in zip(sweeps, locs, strict=True)
-        ]
-    )
+    _, base = _in_base(sweeps, [loc.centre for loc in locs], T_ee_us)
     found = np.array([loc.accepted for loc in locs])
     agree, consensus, limit = _agreeing(base, found)
     out = []

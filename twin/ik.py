@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calib import se3
-from calib.dh import DHTable, forward_kinematics
+from calib.dh import DHTable, forward_kinematics, link_transform
 from calib.errors import UnreachablePoseError
 
 __all__ = [
@@ -73,27 +73,6 @@ def is_ur_structured(table: DHTable, tol: float = 1e-12) -> bool:
 @functools.lru_cache(maxsize=64)
 def _as_array(table: DHTable) -> Array:
     return table.as_array()
-
-
-def _links(theta: Array, d: float, a: float, alpha: float) -> Array:
-    """DH link transforms (n, 4, 4) for joint angles ``theta`` (n,)."""
-    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
-    out = np.zeros((len(theta), 4, 4))
-    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2], out[:, 0, 3] = ct, -st * ca, st * sa, a * ct
-    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2], out[:, 1, 3] = st, ct * ca, -ct * sa, a * st
-    out[:, 2, 1], out[:, 2, 2], out[:, 2, 3] = sa, ca, d
-    out[:, 3, 3] = 1.0
-    return out
-
-
-def _inverts(T: Array) -> Array:
-    """Inverses of rigid transforms (n, 4, 4)."""
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
-    out[:, :3, :3] = Rt
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
 
 
 @dataclass(frozen=True)
@@ -160,14 +139,14 @@ def _closed_form_many(table: DHTable, T: Array, slack: float = 1e-12) -> _Branch
     bad_r05 = r05 * (1.0 + slack) < abs(d4)
     phi = np.arctan2(p05[:, 1], p05[:, 0])
     psi = np.arccos(np.clip(d4 / np.maximum(r05, abs(d4)), -1.0, 1.0))
-    T_inv = _inverts(T)
+    T_inv = se3.invert(T)
     X, Y = T_inv[:, :3, 0], T_inv[:, :3, 1]
     for i, th1 in enumerate((phi + psi + np.pi / 2, phi - psi + np.pi / 2)):
         s1, c1 = np.sin(th1), np.cos(th1)
         c5 = (T[:, 0, 3] * s1 - T[:, 1, 3] * c1 - d4) / d6
         bad_c5[:, i] = ~bad_r05 & (np.abs(c5) > 1.0 + slack)
         th5_base = np.arccos(np.clip(c5, -1.0, 1.0))
-        A1_inv = _inverts(_links(th1, d1, 0.0, np.pi / 2))
+        A1_inv = se3.invert(link_transform(th1, d1, 0.0, np.pi / 2))
         for j, th5 in enumerate((th5_base, -th5_base)):
             s5 = np.sin(th5)
             # At the wrist singularity θ6 is free: 0 (the refinement or the caller keep it).
@@ -178,8 +157,8 @@ def _closed_form_many(table: DHTable, T: Array, slack: float = 1e-12) -> _Branch
                 0.0,
                 np.arctan2((-X[:, 1] * s1 + Y[:, 1] * c1) / s5, (X[:, 0] * s1 - Y[:, 0] * c1) / s5),
             )
-            A56 = _links(th5, d5, 0.0, -np.pi / 2) @ _links(th6, d6, 0.0, 0.0)
-            T14 = A1_inv @ T @ _inverts(A56)
+            A56 = link_transform(th5, d5, 0.0, -np.pi / 2) @ link_transform(th6, d6, 0.0, 0.0)
+            T14 = A1_inv @ T @ se3.invert(A56)
             # Joints 2 and 3 rotate about z1: a planar two-link arm in the x1-y1 plane
             # (the d4 offset lies along z1 and drops out).
             px, py = T14[:, 0, 3], T14[:, 1, 3]
@@ -189,8 +168,8 @@ def _closed_form_many(table: DHTable, T: Array, slack: float = 1e-12) -> _Branch
             th3_base = np.arccos(np.clip(c3, -1.0, 1.0))
             for k, th3 in enumerate((th3_base, -th3_base)):
                 th2 = np.arctan2(py, px) - np.arctan2(a3 * np.sin(th3), a2 + a3 * np.cos(th3))
-                A23 = _links(th2, 0.0, a2, 0.0) @ _links(th3, 0.0, a3, 0.0)
-                T34 = _inverts(A23) @ T14
+                A23 = link_transform(th2, 0.0, a2, 0.0) @ link_transform(th3, 0.0, a3, 0.0)
+                T34 = se3.invert(A23) @ T14
                 th4 = np.arctan2(T34[:, 1, 0], T34[:, 0, 0])
                 q[:, i, j, k] = np.stack([th1, th2, th3, th4, th5, th6], axis=1) - p[:, 0]
                 ok[:, i, j, k] = ~bad_r05 & ~bad_c5[:, i] & ~bad_c3[:, i, j]
