@@ -83,7 +83,7 @@ from .experiment import (
     without_frames,
 )
 from .figures import LocalizationSnapshot
-from .offline import scenario_uncertainty, uncertainty_entry
+from .offline import layout_entry, scenario_uncertainty, uncertainty_entry
 from .reconstruction import (
     METHODS,
     PhantomReconstruction,
@@ -98,7 +98,7 @@ from .reconstruction import (
     run_scan,
 )
 from .recording_options import RecordingOptions
-from .scenario import Scenario
+from .scenario import Scenario, layout_sigma_mm
 
 __all__ = ["DatasetOutcome", "EvaluationResult", "run_evaluation"]
 
@@ -264,6 +264,7 @@ def _run_dataset(task: _DatasetTask, scan: _DatasetScan | None = None) -> Datase
                 cad,
                 acq.T_ee_us_coarse,
                 scenario.calibration.max_alternations,
+                layout_sigma_mm(scenario),
             )
         )
     progress_report.report(f"{task.name}: folds", len(fold_list), len(fold_list))
@@ -796,6 +797,7 @@ def _metrics(
             "history": alt.history,
             "trained_on": list(r.fold.train),
             "tested_on": list(r.fold.test),
+            **layout_entry(alt),
             **(
                 {"uncertainty": fold_bounds[r.fold.name]["uncertainty"]}
                 if r.fold.name in fold_bounds

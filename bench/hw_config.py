@@ -131,6 +131,7 @@ class HwConfig:
             medium=self.rig.medium,
             stylus_tip_cad_mm=self.rig.stylus_tip_mm,
             source="hardware",
+            target_depth_mm=self.protocol.target_depth_mm,
             extra={"hw_config": self.source, "robot": self.robot.host},
         )
 

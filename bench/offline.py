@@ -10,6 +10,7 @@ the built-in default unless the user names one.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from dataclasses import dataclass
@@ -33,7 +34,7 @@ from calib.uncertainty import Bound95, UncertaintyInputs, alternation_bound, ima
 from .experiment import SimulatedAcquisition, speed_ratio
 from .figures import dataset_snapshot
 from .progress import report
-from .scenario import Scenario
+from .scenario import Scenario, layout_sigma_mm
 
 __all__ = [
     "THERMOMETER_UNCERTAINTY_C",
@@ -66,6 +67,7 @@ def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> Acquisi
         medium=scenario.medium.kind,
         stylus_tip_cad_mm=tuple(scenario.evaluation.stylus_tip_cad_mm),
         source="twin",
+        target_depth_mm=scenario.protocol.target_depth_mm,
         extra={"scenario": scenario.source, "seed": scenario.seed},
     )
 
@@ -137,8 +139,11 @@ def calibrate_markers(
     T_coarse: Array,
     max_alternations: int,
     markers: tuple[int, ...] = (1, 3),
+    layout_sigma_mm: float = 0.0,
 ) -> MarkerCalibrations:
-    """Localize ↔ calibrate (the paper's alternation) with one and/or three markers."""
+    """Localize ↔ calibrate (the paper's alternation) with one and/or three markers;
+    the three-marker fit estimates the printed layout at ``layout_sigma_mm`` (see
+    :func:`calib.calibrate.calibrate`)."""
     targets = dataset.targets()
     by_target = {t: dataset.of(t) for t in targets}
     if 3 in markers and len(targets) < 3 and 1 not in markers:
@@ -176,6 +181,7 @@ def calibrate_markers(
             {t: cad_centres[t] for t in targets[:3]},
             T_coarse,
             max_alternations,
+            layout_sigma_mm=layout_sigma_mm,
         )
         report("calibrations", n_cal, n_cal)
     return MarkerCalibrations(targets, single, three)
@@ -263,6 +269,21 @@ def calibration_entry(
         "trained_on": list(train),
         "tested_on": list(test),
         **(uncertainty_entry(*bound) if bound is not None else {}),
+        **layout_entry(alt),
+    }
+
+
+def layout_entry(alt: AlternationResult) -> dict[str, Any]:
+    """The printed sphere layout a multi-marker fit estimated (phantom frame, mm; with
+    the phantom pose it came with), or nothing."""
+    layout = alt.result.layout
+    if layout is None:
+        return {}
+    return {
+        "layout_estimated_mm": {
+            t: [round(float(v) * _MM, 4) for v in c] for t, c in layout.items()
+        },
+        "layout_prior_weight": alt.result.layout_weight,
     }
 
 
@@ -372,6 +393,14 @@ def calibrate_recorded(
     leave-one-out) scored by precision and accuracy against the touch reference."""
     t0 = time.perf_counter()
     dataset, info = read_dataset(directory)
+    # Where this dataset's plan put the spheres, not where the settings' protocol would
+    # (a dataset that did not record it is searched over the whole image).
+    settings = dataclasses.replace(
+        settings,
+        localization=dataclasses.replace(
+            settings.localization, expected_depth_mm=info.target_depth_mm
+        ),
+    )
     others = [read_dataset(d) for d in dh_from]
     for d, _ in others:
         if not d.touches:
@@ -412,6 +441,7 @@ def calibrate_recorded(
         info.T_ee_us_coarse,
         settings.calibration.max_alternations,
         markers,
+        layout_sigma_mm(settings),
     )
     targets = cals.targets
     final: dict[str, Any] = {}
@@ -506,6 +536,7 @@ def _folds(dataset, reference, radius, settings, scale, cad, T_coarse) -> dict[s
             cad,
             T_coarse,
             settings.calibration.max_alternations,
+            layout_sigma_mm(settings),
         )
         rows.append(
             {

@@ -70,7 +70,7 @@ from .experiment import (
 )
 from .progress import report
 from .recording_options import RecordingOptions
-from .scenario import Scenario
+from .scenario import Scenario, layout_sigma_mm
 
 __all__ = [
     "METHODS",
@@ -294,6 +294,7 @@ def run_recalibration(
             sc.calibration.max_alternations,
             initial=start,
             threads=threads,
+            layout_sigma_mm=layout_sigma_mm(sc),
         )
         start = alt.localizations
         X = alt.result.T_ee_us

@@ -34,7 +34,7 @@ from .figures import LocalizationSnapshot, dataset_snapshot
 from .offline import calibrate_markers, calibration_entry, scenario_uncertainty
 from .offline import save_dataset as save_dataset_files
 from .recording_options import RecordingOptions
-from .scenario import Scenario
+from .scenario import Scenario, layout_sigma_mm
 
 __all__ = ["RunResult", "run"]
 
@@ -222,7 +222,14 @@ def run(
     cal = scenario.calibration
 
     cals = calibrate_markers(
-        acq.dataset, radius, loc_cfg, scale, cad, acq.T_ee_us_coarse, cal.max_alternations
+        acq.dataset,
+        radius,
+        loc_cfg,
+        scale,
+        cad,
+        acq.T_ee_us_coarse,
+        cal.max_alternations,
+        layout_sigma_mm=layout_sigma_mm(scenario),
     )
     single, three = cals.single, cals.three
     assert single is not None  # markers 1 and 3: the single-marker calibration always runs

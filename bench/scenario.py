@@ -43,6 +43,7 @@ __all__ = [
     "Scenario",
     "apply_overrides",
     "check_geometry",
+    "layout_sigma_mm",
     "load_scenario",
     "scenario_from_mapping",
     "scenarios_markdown",
@@ -281,6 +282,11 @@ def scenario_from_mapping(data: Any, source: str = "<scenario>") -> Scenario:
     sections = {
         name: _build_section(cls, data.get(name), name, source) for name, cls in SECTIONS.items()
     }
+    if sections["localization"].expected_depth_mm is None:
+        # The plan says where the sphere will be: the localizer searches there.
+        sections["localization"] = dataclasses.replace(
+            sections["localization"], expected_depth_mm=sections["protocol"].target_depth_mm
+        )
     scenario = Scenario(seed=seed, source=source, **sections)
     _check_consistency(scenario)
     return scenario
@@ -308,6 +314,14 @@ def apply_overrides(data: Any, overrides: typing.Sequence[str], source: str) -> 
             node = child
         node[keys[-1]] = value
     return data
+
+
+def layout_sigma_mm(scenario: Scenario) -> float:
+    """The multi-marker fit's layout prior (1 σ per axis, mm): the phantom's print
+    tolerance, or 0 when the scenario takes the CAD layout as exact."""
+    if scenario.calibration.layout == "estimated":
+        return scenario.phantom.tolerance_position_mm
+    return 0.0
 
 
 def load_scenario(
@@ -373,6 +387,16 @@ def _check_consistency(s: Scenario) -> None:
                 value=p.vertex_offset_mm,
                 allowed=f"≥ spacing/2 + radius + 8 = {half + r + 8:g}",
             )
+    loc, proto = s.localization, s.protocol
+    need = proto.translation_mm + 3 * proto.teaching_error_mm
+    if loc.method == "refined" and loc.expected_window_mm < need:
+        raise ScenarioError(
+            "the localizer's window would not cover where the plan puts the sphere",
+            source=src,
+            key="localization.expected_window_mm",
+            value=loc.expected_window_mm,
+            allowed=f"≥ protocol.translation_mm + 3 × protocol.teaching_error_mm = {need:g}",
+        )
     if s.protocol.target_depth_mm >= s.imaging.depth_mm:
         raise ScenarioError(
             "the target would lie below the imaged depth",

@@ -11,6 +11,15 @@ with ``C_s = R c_s^CAD + t`` the CAD sphere centres at the unknown phantom pose 
 for two or more markers; single-marker keeps the first term). Solved with scipy's
 ``least_squares(method="trf")``, residuals in millimetres, from a closed-form linear
 initialisation that needs no coarse estimate.
+
+The paper treats the CAD layout as exact. A printed phantom is not: with a stated print
+tolerance σ_tol (1 σ per axis of a sphere centre) the multi-marker fit estimates the
+printed layout too, ``C_s = Y (c_s^CAD + δ_s)``, with the CAD as a prior: each ``δ_s``
+adds the residual ``(σ_loc / σ_tol) δ_s`` (σ_loc, per axis, the localized centres'
+scatter about their sphere), the maximum a posteriori estimate when the misprint is
+Gaussian. σ_tol → 0 gives the paper's exact layout; a loose tolerance lets each sphere
+float and leaves the fit with what the spheres share (one ``T_ee_us``), never worse
+than one marker.
 """
 
 from __future__ import annotations
@@ -76,6 +85,11 @@ class CalibrationResult:
         the Jacobian and the residuals' variance (first order).
     cost : float
         Final loss (mm²).
+    layout : dict or None
+        The estimated printed layout, sphere name → (3,) metres in the phantom frame
+        (multi-marker with a print tolerance; None otherwise).
+    layout_weight : float
+        σ_loc / σ_tol of the layout prior (0: the CAD layout taken as exact).
     """
 
     T_ee_us: Array
@@ -85,6 +99,8 @@ class CalibrationResult:
     covariance: Array
     cost: float
     rejection_reasons: dict[str, str] = field(default_factory=dict)
+    layout: dict[str, Array] | None = None
+    layout_weight: float = 0.0
 
 
 def reconstruct(obs: Sequence[Observation], T_ee_us: Array) -> Array:
@@ -132,6 +148,7 @@ def calibrate(
     cad_centres: Mapping[str, Array] | None = None,
     T_init: Array | None = None,
     outlier_mm: float = 2.0,
+    layout_sigma_mm: float = 0.0,
 ) -> CalibrationResult:
     """Estimate ``T_ee_us`` from localized sphere centres.
 
@@ -143,6 +160,9 @@ def calibrate(
     T_init : starting calibration; None uses :func:`linear_initialisation`
     outlier_mm : an observation farther than ``max(outlier_mm, 3·1.4826·MAD)`` from its
         sphere's centroid after a robust fit is rejected, and the fit repeated without it
+    layout_sigma_mm : the phantom's print tolerance (1 σ per axis of a sphere centre):
+        with two or more markers the printed layout is estimated with the CAD as its
+        prior (module docstring); 0 takes the CAD layout as exact
 
     Raises
     ------
@@ -157,13 +177,14 @@ def calibrate(
     T0 = linear_initialisation(obs) if T_init is None else np.asarray(T_init, dtype=float)
     keep = np.ones(len(obs), dtype=bool)
     reasons: dict[str, str] = {}
+    if layout_sigma_mm < 0:
+        raise ValueError(f"layout_sigma_mm must be ≥ 0, got {layout_sigma_mm}")
+    weight = 0.0
     for _ in range(5):
-        sol, T_base_phantom = _solve(
-            [o for o, k in zip(obs, keep, strict=True) if k],
-            targets,
-            cad_centres if multi else None,
-            T0,
-        )
+        kept = [o for o, k in zip(obs, keep, strict=True) if k]
+        if multi and layout_sigma_mm > 0:
+            weight = _localization_sigma_mm(kept, targets, T0) / layout_sigma_mm
+        sol, T_base_phantom = _solve(kept, targets, cad_centres if multi else None, T0, weight)
         T_X = _params_to_T(sol.x[:6], T0)
         X = reconstruct(obs, T_X)
         dist = np.zeros(len(obs))
@@ -184,11 +205,12 @@ def calibrate(
         T0 = T_X
         if keep.sum() < 4:
             raise CalibrationError("fewer than 4 sweeps left after outlier rejection")
-    J = sol.jac[:, :6]  # residuals in mm per (m, rad) of the se(3) increment (ρ, ω)
+    J = sol.jac  # residuals in mm per (m, rad) of the se(3) increment (ρ, ω), then Y, δ
     dof = max(len(sol.fun) - len(sol.x), 1)
     sigma2 = 2 * sol.cost / dof  # mm², so the covariance below is in m² and rad²
     try:
-        cov = np.linalg.inv(J.T @ J) * sigma2
+        # Marginal over the phantom pose and layout (they are estimated too).
+        cov = np.linalg.inv(J.T @ J)[:6, :6] * sigma2
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.nan)
     # The increment acts on the left, T = exp(ρ, ω) T_X: to first order the rotation
@@ -200,17 +222,48 @@ def calibrate(
     A[3:, :3] = np.eye(3)  # translation ← ρ
     A[3:, 3:] = -t_hat  # … − [t]× ω
     cov = A @ cov @ A.T
-    return CalibrationResult(T_X, T_base_phantom, keep, dist, cov, float(2 * sol.cost), reasons)
+    layout = None
+    if multi and weight > 0:
+        names = [
+            t for t in targets if any(o.target == t for o, k in zip(obs, keep, strict=True) if k)
+        ]
+        delta = sol.x[12:].reshape(-1, 3)
+        layout = {
+            t: np.asarray(cad_centres[t], dtype=float) + d
+            for t, d in zip(names, delta, strict=True)
+        }
+    return CalibrationResult(
+        T_X,
+        T_base_phantom,
+        keep,
+        dist,
+        cov,
+        float(2 * sol.cost),
+        reasons,
+        layout,
+        weight,
+    )
 
 
-def _solve(obs, targets, cad_centres, T0):
+def _localization_sigma_mm(obs, targets, T0) -> float:
+    """σ_loc: 1 σ per axis (mm) of the localized centres about their sphere, from the
+    fit of the first term alone (every sphere free; it needs no layout)."""
+    sol, _ = _solve(obs, targets, None, T0)
+    n_s = len({o.target for o in obs})
+    dof = max(3 * len(obs) - 3 * n_s - 6, 1)
+    return float(np.sqrt(2 * sol.cost / dof))
+
+
+def _solve(obs, targets, cad_centres, T0, layout_weight: float = 0.0):
     """One TRF solve of the paper's loss; parameters: se(3) increment of X (6), then the
-    phantom pose (6) when markers' CAD geometry is used."""
+    phantom pose (6) when markers' CAD geometry is used, then the per-sphere misprints δ
+    (3 each, metres, phantom frame) when ``layout_weight`` (σ_loc / σ_tol) > 0."""
     T_b = np.array([o.T_base_ee for o in obs])
     P = np.array([o.p_us for o in obs])
     groups = [np.array([i for i, o in enumerate(obs) if o.target == s]) for s in targets]
     groups = [g for g in groups if len(g)]
     multi = cad_centres is not None
+    floating = multi and layout_weight > 0
     if multi:
         C_cad = np.array([cad_centres[obs[g[0]].target] for g in groups])
 
@@ -226,12 +279,15 @@ def _solve(obs, targets, cad_centres, T0):
             res.append((X[g] - m).ravel())
         if multi:
             Y = se3.exp(x[6:12])
-            C = se3.apply(Y, C_cad)
+            delta = x[12:].reshape(-1, 3) if floating else 0.0
+            C = se3.apply(Y, C_cad + delta)
             for g, m, c in zip(groups, means, C, strict=True):
                 res.append(np.sqrt(len(g)) * (m - c))
+            if floating:
+                res.append(layout_weight * x[12:])  # the CAD layout as a prior
         return np.concatenate(res) * _MM
 
-    x0 = np.zeros(12 if multi else 6)
+    x0 = np.zeros(6 + 6 * multi + 3 * len(groups) * floating)
     if multi:
         # Phantom pose start: align the CAD centres to the centroids under T0 (Kabsch).
         X0 = reconstruct(obs, T0)
@@ -315,6 +371,7 @@ def alternate(
     tol_deg: float = 0.01,
     initial: Mapping[str, Sequence[SweepLocalization]] | None = None,
     threads: int = 1,
+    layout_sigma_mm: float = 0.0,
 ) -> AlternationResult:
     """Localize → calibrate → re-stack with the new ``T_ee_us`` → re-localize, until the
     estimate changes by less than ``tol_mm`` and ``tol_deg`` or ``max_iterations``.
@@ -324,6 +381,7 @@ def alternate(
     closed-form initialisation; ``T_coarse`` (the holder's CAD) is only a fallback check:
     if the closed form lands far from it, a start from the coarse estimate is tried too
     and the lower loss wins. Each re-localization searches around the previous centres.
+    ``layout_sigma_mm`` is the phantom's print tolerance (see :func:`calibrate`).
     """
 
     def localize_all(
@@ -358,14 +416,16 @@ def alternate(
         obs = _observations(sweeps, locs)
         used = locs
         t0 = time.perf_counter()
-        result = calibrate(obs, cad_centres, T_init=T_prev)
+        result = calibrate(obs, cad_centres, T_init=T_prev, layout_sigma_mm=layout_sigma_mm)
         if T_prev is None and T_coarse is not None:
             far = (
                 se3.translation_distance(result.T_ee_us, T_coarse) > 0.03
                 or np.degrees(se3.rotation_angle(result.T_ee_us, T_coarse)) > 30
             )
             if far:
-                other = calibrate(obs, cad_centres, T_init=T_coarse)
+                other = calibrate(
+                    obs, cad_centres, T_init=T_coarse, layout_sigma_mm=layout_sigma_mm
+                )
                 if other.cost < result.cost:
                     result = other
         t_calibrate = time.perf_counter() - t0

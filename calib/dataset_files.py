@@ -334,7 +334,9 @@ class AcquisitionInfo:
     ``sphere_radius_mm`` the CAD radius; ``temperature_c`` the medium's;
     ``assumed_speed_m_s`` the scanner's; ``sound_speed_correction`` whether the axial
     spacing is to be rescaled; ``stylus_tip_cad_mm`` the stylus tip in the flange
-    frame (touches only); ``source`` "twin" or "hardware"; ``extra`` anything else.
+    frame (touches only); ``source`` "twin" or "hardware"; ``target_depth_mm`` the depth
+    at which the plan put each sphere in the image (the localizer searches about it; None:
+    not recorded, the whole image); ``extra`` anything else.
     """
 
     T_ee_us_coarse: Array
@@ -346,6 +348,7 @@ class AcquisitionInfo:
     medium: str = "water"
     stylus_tip_cad_mm: tuple[float, float, float] | None = None
     source: str = "hardware"
+    target_depth_mm: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_yaml(self) -> dict[str, Any]:
@@ -361,6 +364,8 @@ class AcquisitionInfo:
         }
         if self.stylus_tip_cad_mm is not None:
             out["stylus_tip_cad_mm"] = [float(v) for v in self.stylus_tip_cad_mm]
+        if self.target_depth_mm is not None:
+            out["target_depth_mm"] = float(self.target_depth_mm)
         if self.extra:
             out["extra"] = self.extra
         return out
@@ -574,6 +579,13 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
     radius = float(_get(path, acq, "sphere_radius_mm", _NUMBER))
     if not 0 < radius < 1000:
         raise DatasetError(f"{path}: acquisition.sphere_radius_mm = {radius} is out of range")
+    depth = acq.get("target_depth_mm")
+    if depth is not None:
+        depth = float(_get(path, acq, "target_depth_mm", _NUMBER))
+        if not 0 < depth <= 200:
+            raise DatasetError(
+                f"{path}: acquisition.target_depth_mm = {depth} is out of range (0, 200]"
+            )
     return AcquisitionInfo(
         T_ee_us_coarse=_matrix(path, "acquisition.T_ee_us_coarse_mm", acq.get("T_ee_us_coarse_mm")),
         landmarks={
@@ -593,6 +605,7 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
             else tuple(float(v) for v in _vector(path, "acquisition.stylus_tip_cad_mm", tip, 3))
         ),
         source=str(acq.get("source", "hardware")),
+        target_depth_mm=depth,
         extra=dict(acq.get("extra") or {}),
     )
 

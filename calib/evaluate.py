@@ -185,11 +185,13 @@ def evaluate_fold(
     cad_centres: Mapping[str, Array],
     T_coarse: Array | None,
     max_iterations: int,
+    layout_sigma_mm: float = 0.0,
 ) -> FoldResult:
     """Calibrate on the fold's training spheres (alternating localization and
     calibration, from the shared first localization ``initial``), then re-stack and
     localize its test spheres with the result and score them against ``references``
-    (base-frame touch-reference centres)."""
+    (base-frame touch-reference centres). ``layout_sigma_mm``: the print tolerance the
+    multi-marker folds estimate the printed layout with (0: the CAD layout as exact)."""
     alt = alternate(
         {t: sweeps[t] for t in fold.train},
         radius,
@@ -199,6 +201,7 @@ def evaluate_fold(
         T_coarse,
         max_iterations,
         initial={t: initial[t] for t in fold.train},
+        layout_sigma_mm=layout_sigma_mm,
     )
     T = alt.result.T_ee_us
     centres, precision, accuracy, test_locs = {}, {}, {}, {}

@@ -20,10 +20,15 @@ Per sweep:
    the refinement passes.
 
 ``method="paper"`` stops there (grid-point centres). ``method="refined"`` differs in
-four ways, each for a failure of the paper's score measured on the twin (a bright plate
+five ways, each for a failure of the paper's score measured on the twin (a bright plate
 or floor taken for the sphere in ≈ 10-60 % of sweeps at low gain, a small sphere or a deep
 target; a biased centre where the cap saturates):
 
+- *The plan's window.* With ``expected_depth_mm`` (the protocol's target depth) the
+  search covers only ± ``expected_window_mm`` about it and about the centre line, where
+  the plan put the sphere: where the cap sinks into the noise floor, the plate under
+  the sphere (the same spot from every view, so the siblings agree on it) is not there
+  to be found.
 - *Hypotheses.* The exhaustive search keeps the grid's ``_HYPOTHESES`` best maxima more
   than R apart and looks at each on a grid twice as fine: a faint thin cap straddled by
   the 1 mm grid recovers its contrast there, a flat reflector does not.
@@ -34,7 +39,8 @@ target; a biased centre where the cap saturates):
 - *The other sweeps as evidence* (with a calibration, ``consensus=True``): the centres of
   one sphere must agree in the robot base. A seed that disagrees with the densest
   cluster is searched again about it; a centre that still disagrees is rejected with the
-  distance (see ``_consensus``, ``_reject_disagreeing``).
+  distance, and where no three centres agree none is confirmed (see ``_consensus``,
+  ``_reject_disagreeing``).
 - *Sub-voxel centre* from the moments of the cap's echo (see ``_refine_centre``); where
   the echo clips at 255 in several frames, its elevation from the midpoint of the
   half-maximum crossings (``_elevation_vertex``).
@@ -172,6 +178,29 @@ class LocalizerConfig:
             "candidate lies on the window's edge, or the sweep had no centre).",
             "gt": 0,
             "le": 20,
+        },
+    )
+    expected_depth_mm: float | None = field(
+        default=None,
+        metadata={
+            "doc": "Depth of the sphere centre the acquisition plan puts in the image. "
+            "Method 'refined' searches only within ± expected_window_mm of it and of the "
+            "image's centre line: a bright reflector elsewhere (the plate under the "
+            "sphere, the tank floor) cannot win a sweep whose sphere is too faint to see. "
+            "Unset in a scenario: protocol.target_depth_mm; `uscal calibrate` uses the "
+            "depth a dataset recorded (the whole image if it recorded none).",
+            "gt": 0,
+            "le": 200,
+        },
+    )
+    expected_window_mm: float = field(
+        default=10.0,
+        metadata={
+            "doc": "Half-width of that window, laterally and in depth: it must cover the "
+            "plan's in-plane offsets (protocol.translation_mm) and how far the taught "
+            "pose may miss the target (3 × protocol.teaching_error_mm).",
+            "gt": 0,
+            "le": 200,
         },
     )
     min_score: float = field(
@@ -713,17 +742,27 @@ class SweepLocalization:
 
 
 def _candidate_grid(
-    vol: SweepVolume, radius: float, grid: float
+    vol: SweepVolume, radius: float, grid: float, cfg: LocalizerConfig | None = None
 ) -> tuple[tuple[int, int, int], tuple[int, int, int], tuple[int, int, int]]:
     """(start, step, count) in voxels of the 1 mm candidate grid over the sweep, starting
-    one radius below the face."""
-    dy = vol.spacing[1]
+    one radius below the face; with method "refined" and an expected depth, only within
+    the plan's window (``expected_window_mm`` about the expected depth and the centre
+    line)."""
+    dx, dy = vol.spacing[:2]
     K, H, W = vol.shape
     step = candidate_step(vol.spacing, grid)
-    start = (0, max(int(np.ceil(radius / dy)) - vol.row0, 0), 0)
-    count = tuple(
-        max(0, -(-(n - s0) // st)) for n, s0, st in zip((K, H, W), start, step, strict=True)
-    )
+    lo = [0, max(int(np.ceil(radius / dy)) - vol.row0, 0), 0]
+    hi = [K, H, W]  # exclusive
+    if cfg is not None and cfg.method == "refined" and cfg.expected_depth_mm is not None:
+        half = cfg.expected_window_mm * _MM
+        depth = cfg.expected_depth_mm * _MM
+        centre_col = (vol.width - 1) / 2 - vol.col0
+        lo[1] = max(lo[1], int(np.ceil((depth - half) / dy)) - vol.row0)
+        hi[1] = min(hi[1], int(np.floor((depth + half) / dy)) - vol.row0 + 1)
+        lo[2] = max(lo[2], int(np.ceil(centre_col - half / dx)))
+        hi[2] = min(hi[2], int(np.floor(centre_col + half / dx)) + 1)
+    start = tuple(lo)
+    count = tuple(max(0, -(-(n - s0) // st)) for n, s0, st in zip(hi, start, step, strict=True))
     return start, step, count
 
 
@@ -823,7 +862,9 @@ def _hypothesis_search(
     faint thin cap that the coarse grid straddles scores below a strong flat reflector
     there, and recovers its contrast on the fine grid, where the reflector
     gains little (it looks the same from any nearby point)."""
-    start, step, count = _candidate_grid(vol, radius, grid)
+    start, step, count = _candidate_grid(vol, radius, grid, cfg)
+    if min(count) <= 0:
+        return []
     score, fs, fi = score_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
     outer = _outer_samples(len(shell), radius)
     found = []
@@ -1082,7 +1123,7 @@ def _on_window_edge(index: tuple[int, ...], start, count, full_start, full_count
 def _seed_search(vol, radius, grid, shell, interior, cfg, previous, expected=None):
     """The exhaustive search, or around a previous centre when there is one, or only
     around an expected centre when one is given."""
-    full_start, step, full_count = _candidate_grid(vol, radius, grid)
+    full_start, step, full_count = _candidate_grid(vol, radius, grid, cfg)
     if expected is not None:
         k, r, c = (int(v) for v in vol.index(np.asarray(expected, dtype=float)))
         start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
@@ -1111,6 +1152,7 @@ def _seed_search(vol, radius, grid, shell, interior, cfg, previous, expected=Non
 # max(_AGREE_FLOOR_MM, a robust 3σ of the cluster's spread).
 _CLUSTER_MM = 2.0
 _AGREE_FLOOR_MM = 1.0
+_MIN_CLUSTER = 3  # centres that agree before any is confirmed
 
 
 def _agreeing(base: Array, found: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], Array, float]:
@@ -1124,7 +1166,7 @@ def _agreeing(base: Array, found: NDArray[np.bool_]) -> tuple[NDArray[np.bool_],
         return found.copy(), np.full(3, np.nan), float("inf")
     near = np.linalg.norm(pts[:, None] - pts[None], axis=-1) < _CLUSTER_MM * _MM
     cluster = near[int(np.argmax(near.sum(axis=1)))]
-    if cluster.sum() < 3:
+    if cluster.sum() < _MIN_CLUSTER:
         return found.copy(), np.full(3, np.nan), float("inf")
     consensus = pts[cluster].mean(axis=0)
     d = np.linalg.norm(base - consensus, axis=1) / _MM
@@ -1263,11 +1305,7 @@ def localize_sphere(
         centre = vol.position(*np.asarray(cv, dtype=float))
         fo = float("nan")
         accepted = bool(score >= cfg.min_score)
-        reason = (
-            ""
-            if accepted
-            else notes.get(i, f"no sphere found: best score {score:.2f} < {cfg.min_score:.2f}")
-        )
+        reason = "" if accepted else notes.get(i, _not_found(score, cfg))
         if accepted and cfg.method == "refined":
             # Evidence beyond the score that picked it: the CAD sphere's cap must stand
             # out from the water just outside it as well (a flat reflector does not).
@@ -1301,16 +1339,42 @@ def localize_sphere(
     return out
 
 
+def _not_found(score: float, cfg: LocalizerConfig) -> str:
+    if np.isfinite(score):
+        return f"no sphere found: best score {score:.2f} < {cfg.min_score:.2f}"
+    where = (
+        f"within {cfg.expected_window_mm:g} mm of the plan's target depth "
+        f"{cfg.expected_depth_mm:g} mm and the centre line"
+        if cfg.method == "refined" and cfg.expected_depth_mm is not None
+        else "in the sweep"
+    )
+    return f"no sphere found: no candidate centre {where} lies in the image"
+
+
 def _reject_disagreeing(sweeps, locs, T_ee_us) -> list[SweepLocalization]:
     """Evidence from the siblings: an accepted centre that disagrees with the consensus of
     the sphere's other sweeps (base frame, through the calibration) is rejected with the
-    distance and the limit."""
+    distance and the limit. Where no three accepted centres agree (the sphere at the
+    noise floor: a few caps and a few spots of the plate, scattered), none is
+    confirmed, and none is accepted."""
     _, base = _in_base(sweeps, [loc.centre for loc in locs], T_ee_us)
     found = np.array([loc.accepted for loc in locs])
     agree, consensus, limit = _agreeing(base, found)
+    unconfirmed = len(locs) >= _MIN_CLUSTER and not np.isfinite(consensus).all()
     out = []
     for i, loc in enumerate(locs):
-        if loc.accepted and not agree[i]:
+        if loc.accepted and unconfirmed:
+            loc = replace(
+                loc,
+                centre=np.full(3, np.nan),
+                accepted=False,
+                reason=(
+                    f"unconfirmed: fewer than {_MIN_CLUSTER - 1} other sweeps of the sphere "
+                    f"put its centre within {_CLUSTER_MM:g} mm of this one's ({int(found.sum())} "
+                    f"of {len(locs)} sweeps found a candidate)"
+                ),
+            )
+        elif loc.accepted and not agree[i]:
             d = float(np.linalg.norm(base[i] - consensus) / _MM)
             loc = replace(
                 loc,

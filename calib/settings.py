@@ -33,6 +33,15 @@ class CalibrationConfig:
     max_alternations: int = field(
         default=5, metadata={"doc": "Localize/calibrate alternations at most.", "ge": 1, "le": 50}
     )
+    layout: Literal["estimated", "cad"] = field(
+        default="estimated",
+        metadata={
+            "doc": "Multi-marker: 'estimated' fits the printed sphere layout with the CAD "
+            "as its prior at the phantom's print tolerance (phantom."
+            "tolerance_position_mm) and reports it; 'cad' takes the CAD layout as exact "
+            "(the paper's loss)."
+        },
+    )
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,9 @@ speed-of-sound scale). The covariance here adds:
   95 % quantile uses Student's t with g − 1 degrees of freedom (g groups estimate it).
 - **declared systematic terms**, propagated to first order through the solve
   (``dθ = −(JᵀJ)⁻¹ Jᵀ ∂r/∂e · de``): the print tolerance of the CAD sphere layout
-  (multi-marker; 1 σ per axis per centre, the phantom's print specification), the
+  (multi-marker with the CAD layout taken as exact; 1 σ per axis per centre, the
+  phantom's print specification — a fit that estimated the layout has it as its prior,
+  so it is in the covariance instead), the
   kinematic model's residual after a DH refinement (1 σ per axis of each view's
   reconstructed point, from the touch fit's residual), and the uncertainty of the axial
   scale (speed of sound).
@@ -137,16 +139,22 @@ def orientation_groups(obs: Sequence[Observation], tol_deg: float = 5.0) -> NDAr
     return out
 
 
-def _residual_model(obs, targets, cad, T_X, T_Y):
+def _residual_model(obs, targets, cad, T_X, T_Y, layout=None, weight=0.0):
     """Residuals (mm) of the calibration's loss at ``exp(ξ_X) T_X`` (and phantom pose
     ``exp(ξ_Y) T_Y``) with perturbations: ``e_cad`` (s, 3) metres on the CAD centres,
-    ``e_pt`` (n, 3) metres on the reconstructed points, ``e_scale`` on the axial scale."""
+    ``e_pt`` (n, 3) metres on the reconstructed points, ``e_scale`` on the axial scale.
+    With an estimated ``layout`` (name → centre, phantom frame) and its prior's
+    ``weight`` (σ_loc / σ_tol), the parameters go on with an increment of each sphere's
+    printed position and the residuals with the prior's rows, as in the fit."""
     T_b = np.array([o.T_base_ee for o in obs])
     P = np.array([o.p_us for o in obs])
     groups = [np.array([i for i, o in enumerate(obs) if o.target == s]) for s in targets]
     groups = [g for g in groups if len(g)]
     multi = cad is not None
     C_cad = np.array([cad[obs[g[0]].target] for g in groups]) if multi else None
+    floating = multi and layout is not None and weight > 0
+    if floating:
+        delta0 = np.array([layout[obs[g[0]].target] for g in groups]) - C_cad
 
     def residuals(x, e_cad=None, e_pt=None, e_scale=0.0):
         """(n_res,) for x (n_p,), or (k, n_res) for a batch x (k, n_p)."""
@@ -165,14 +173,22 @@ def _residual_model(obs, targets, cad, T_X, T_Y):
             res.append((X[:, g] - m[:, None]).reshape(k, -1))
         if multi:
             C = C_cad if e_cad is None else C_cad + e_cad
+            if floating:
+                delta = delta0 + xb[:, 12:].reshape(k, -1, 3)  # (k, s, 3)
+                C = C + delta
             Y = se3.exp(xb[:, 6:12]) @ T_Y
-            C = np.einsum("kij,sj->ksi", Y[:, :3, :3], C) + Y[:, None, :3, 3]
+            if floating:
+                C = np.einsum("kij,ksj->ksi", Y[:, :3, :3], C) + Y[:, None, :3, 3]
+            else:
+                C = np.einsum("kij,sj->ksi", Y[:, :3, :3], C) + Y[:, None, :3, 3]
             for s, (g, m) in enumerate(zip(groups, means, strict=True)):
                 res.append(np.sqrt(len(g)) * (m - C[:, s]))
+            if floating:
+                res.append(weight * delta.reshape(k, -1))
         out = np.concatenate(res, axis=1) * _MM
         return out if np.ndim(x) == 2 else out[0]
 
-    return residuals, len(groups), multi
+    return residuals, len(groups), multi, 3 * len(groups) * floating
 
 
 def _jacobian(f, x0, h=1e-7):
@@ -182,13 +198,13 @@ def _jacobian(f, x0, h=1e-7):
     return R[0], (R[1:] - R[0]).T / h
 
 
-def _resolve(obs, targets, cad, T_X, T_Y, n_p, iterations=3) -> Array:
+def _resolve(obs, targets, cad, T_X, T_Y, layout=None, weight=0.0, iterations=3) -> Array:
     """Re-solve the calibration on a subset of the observations from the full estimate:
     Gauss-Newton steps (the loss is nearly quadratic this close to its minimum; each
     step costs a finite-difference Jacobian, ≈ 1 ms). Returns the left increment ξ of
     ``T_ee_us`` (6,)."""
-    f, _, _ = _residual_model(obs, targets, cad, T_X, T_Y)
-    x = np.zeros(n_p)
+    f, _, multi, n_layout = _residual_model(obs, targets, cad, T_X, T_Y, layout, weight)
+    x = np.zeros(6 + 6 * multi + n_layout)
     for _ in range(iterations):
         r, J = _jacobian(f, x)
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
@@ -294,13 +310,16 @@ def bound95(
     cad = {t: np.asarray(cad_centres[t], dtype=float) for t in targets} if multi else None
     T_X = result.T_ee_us
     T_Y = result.T_base_phantom if multi else np.eye(4)
-    f, n_s, multi = _residual_model(obs, targets, cad, T_X, T_Y)
-    n_p = 12 if multi else 6
+    layout = result.layout if multi else None
+    weight = result.layout_weight if layout is not None else 0.0
+    f, n_s, multi, n_layout = _residual_model(obs, targets, cad, T_X, T_Y, layout, weight)
+    n_p = 6 + 6 * multi + n_layout
     x0 = np.zeros(n_p)
     r0, J = _jacobian(f, x0)
     JtJ_inv = np.linalg.pinv(J.T @ J)
     # Unknown sphere centres are eliminated inside the residuals (centroids): count them.
-    dof = max(len(r0) - n_p - 3 * n_s, 1)
+    # (An estimated layout's increments and its prior's rows cancel in the count.)
+    dof = max(len(r0) - n_p - 3 * n_s + n_layout, 1)
     cov_fo = (JtJ_inv * float(r0 @ r0) / dof)[:6, :6]
 
     # ---- grouped jackknife: leave out one view (orientation group) at a time, re-solve.
@@ -313,7 +332,7 @@ def bound95(
         sub = [o for o, gk in zip(obs, groups, strict=True) if gk != k]
         if len({o.target for o in sub}) < len(targets) or len(sub) < 4:
             continue
-        thetas.append(_resolve(sub, targets, cad, T_X, T_Y, n_p))
+        thetas.append(_resolve(sub, targets, cad, T_X, T_Y, layout, weight))
     thetas = np.array(thetas)
     m = len(thetas)
     if m >= 2:
@@ -339,7 +358,9 @@ def bound95(
     cov_sys = np.zeros((6, 6))
     h = 1e-6
     layout_observed = 0.0
-    if multi:
+    # With an estimated layout (n_layout > 0) the print tolerance is the fit's prior:
+    # its uncertainty is in the covariance above, through the prior's rows, not a term.
+    if multi and not n_layout:
         D = np.empty((len(r0), 3 * n_s))
         for j in range(3 * n_s):
             e = np.zeros(3 * n_s)

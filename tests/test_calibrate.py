@@ -118,3 +118,59 @@ def test_too_few_observations():
     obs = observations(np.array([0.3, 0.0, 0.02]))[:3]
     with pytest.raises(CalibrationError, match="at least 4"):
         calibrate(obs)
+
+
+CAD_LAYOUT = {
+    "sphere_1": np.array([-0.025, -0.025, 0.02]),
+    "sphere_2": np.array([0.025, -0.025, 0.02]),
+    "sphere_3": np.array([0.025, 0.025, 0.02]),
+}
+Y_PHANTOM = se3.make(se3.matrix_from_euler(np.radians([0.5, -0.3, 4.0])), [0.3, 0.01, 0.0])
+
+
+def _layout_misfit_mm(layout, printed):
+    names = sorted(printed)
+    P = np.array([layout[t] for t in names])
+    Q = np.array([printed[t] for t in names])
+    aligned = se3.apply(se3.kabsch(P, Q), P)
+    return float(np.sqrt(np.mean(np.sum((aligned - Q) ** 2, axis=1))) * 1e3)
+
+
+def test_estimated_layout_is_never_worse_than_one_marker(rng):
+    """A phantom printed 0.3 mm (1 σ per axis) off its CAD: the fit with the CAD as a prior
+    at that tolerance estimates the printed layout (closer to it than the CAD) and is no
+    worse than one marker (20 trials, localization noise 0.05 mm per axis)."""
+    rot = {"single": [], "cad": [], "estimated": []}
+    misfit_cad, misfit_est = [], []
+    for _ in range(20):
+        printed = {k: v + rng.normal(0.0, 0.3e-3, 3) for k, v in CAD_LAYOUT.items()}
+        obs = []
+        for name, c in printed.items():
+            obs += observations(se3.apply(Y_PHANTOM, c), name, noise_mm=0.05, rng=rng)
+        single = calibrate([o for o in obs if o.target == "sphere_1"])
+        exact = calibrate(obs, CAD_LAYOUT)
+        est = calibrate(obs, CAD_LAYOUT, layout_sigma_mm=0.3)
+        assert exact.layout is None and est.layout is not None and est.layout_weight > 0
+        for key, res in (("single", single), ("cad", exact), ("estimated", est)):
+            rot[key].append(pose_errors(res.T_ee_us)[1])
+        misfit_cad.append(_layout_misfit_mm(CAD_LAYOUT, printed))
+        misfit_est.append(_layout_misfit_mm(est.layout, printed))
+    med = {k: float(np.median(v)) for k, v in rot.items()}
+    assert med["estimated"] <= 1.1 * med["single"], med
+    # The estimated layout is closer to the printed one than the CAD is.
+    assert np.median(misfit_est) < 0.5 * np.median(misfit_cad)
+
+
+def test_a_tight_layout_prior_is_the_exact_cad_fit(rng):
+    """σ_tol → 0 gives the paper's exact-layout loss (the prior pins every sphere)."""
+    obs = []
+    for name, c in CAD_LAYOUT.items():
+        obs += observations(se3.apply(Y_PHANTOM, c), name, noise_mm=0.05, rng=rng)
+    exact = calibrate(obs, CAD_LAYOUT)
+    tight = calibrate(obs, CAD_LAYOUT, layout_sigma_mm=1e-5)
+    assert se3.translation_distance(tight.T_ee_us, exact.T_ee_us) < 1e-8
+    assert np.degrees(se3.rotation_angle(tight.T_ee_us, exact.T_ee_us)) < 1e-5
+    for t, c in CAD_LAYOUT.items():
+        assert np.linalg.norm(tight.layout[t] - c) < 1e-8
+    with pytest.raises(ValueError, match="layout_sigma_mm"):
+        calibrate(obs, CAD_LAYOUT, layout_sigma_mm=-1.0)

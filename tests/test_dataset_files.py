@@ -47,6 +47,7 @@ def _info() -> AcquisitionInfo:
         temperature_c=21.5,
         assumed_speed_m_s=1540.0,
         stylus_tip_cad_mm=(0.0, 0.0, 120.0),
+        target_depth_mm=25.0,
     )
 
 
@@ -149,6 +150,7 @@ def test_dataset_round_trip(tmp_path, rng):
     )
     assert dataset.targets() == ["sphere_1", "sphere_2"]
     assert info.temperature_c == 21.5 and info.stylus_tip_cad_mm == (0.0, 0.0, 120.0)
+    assert info.target_depth_mm == 25.0
     assert np.array_equal(info.T_ee_us_coarse, _info().T_ee_us_coarse)
     assert np.array_equal(info.landmarks["sphere_3"], _info().landmarks["sphere_3"])
     (touch,) = dataset.touches

@@ -3,6 +3,8 @@ rendered sweep localized against ground truth; a sweep without a sphere is rejec
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -259,6 +261,57 @@ def test_a_sweep_that_disagrees_with_its_siblings_is_rejected(small_sphere_scan)
     assert "disagrees with the sphere's other sweeps" in locs[7].reason
     assert " 5." in locs[7].reason  # the distance, mm
     assert sum(r.accepted for r in locs) >= len(sweeps) - 3
+
+
+@pytest.fixture(scope="module")
+def noise_floor_scan():
+    """Gain −20 dB, target 45 mm deep in a 60 mm image: the cap sinks into the noise
+    floor, the plate under the sphere stays bright."""
+    overrides = ["imaging.gain_db=-20", "protocol.target_depth_mm=45", "imaging.depth_mm=60"]
+    return _quick_scan(overrides, 1)[:4]
+
+
+def test_a_sphere_at_the_noise_floor_is_rejected_not_replaced_by_the_plate(noise_floor_scan):
+    """The wrong-candidate case the siblings' consensus cannot catch: with the sphere at
+    the noise floor every sweep's best candidate is the same spot of the plate, so the
+    sweeps agree with each other. The plan says where the sphere is (its target depth,
+    on the centre line): searched only there, nothing is accepted more than 1 mm off."""
+    sweeps, truths, T_ee_us, scale = noise_floor_scan
+
+    def errors_mm(cfg):
+        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale)
+        err = [np.linalg.norm(r.centre - p) / MM for r, p in zip(locs, truths, strict=True)]
+        return np.array([e for e, r in zip(err, locs, strict=True) if r.accepted]), locs
+
+    whole, _ = errors_mm(LocalizerConfig())
+    assert (whole > 10).sum() >= 3  # the failure, reproduced: the plate, accepted
+    planned, locs = errors_mm(LocalizerConfig(expected_depth_mm=45.0))
+    assert len(planned) == 0 or planned.max() < 1.0
+    assert all(r.reason for r in locs if not r.accepted)
+
+
+def test_the_plan_window_bounds_the_search(small_sphere_scan):
+    """Candidates lie within ± expected_window_mm of the expected depth and the centre
+    line; a window that misses the sphere finds nothing there and says so."""
+    from calib.localize import _candidate_grid, stack_sweep
+
+    sweeps, _, T_ee_us, scale = small_sphere_scan
+    vol = stack_sweep(sweeps[0], T_ee_us, scale)
+    cfg = LocalizerConfig(expected_depth_mm=20.0, expected_window_mm=4.0)
+    start, step, count = _candidate_grid(vol, 3 * MM, 1 * MM, cfg)
+    corners = [
+        vol.position(0.0, float(start[1] + i * step[1]), float(start[2] + j * step[2]))
+        for i in (0, count[1] - 1)
+        for j in (0, count[2] - 1)
+    ]
+    for p in corners:
+        assert abs(p[0]) <= 4.0 * MM + 1e-9 and abs(p[1] - 20 * MM) <= 4.0 * MM + 1e-9
+    assert count[1] * step[1] * vol.spacing[1] > 7 * MM  # the whole window, not less
+    far = localize_sphere(
+        sweeps[:3], T_ee_us, 3 * MM, replace(cfg, expected_depth_mm=60.0), scale, consensus=False
+    )
+    assert not any(r.accepted for r in far)
+    assert all("no sphere found" in r.reason for r in far)
 
 
 def test_saturated_cap_centre_is_unbiased():

@@ -41,6 +41,15 @@ def test_default_scenario_equals_paper_defaults():
     assert load_scenario(None, check_reach=False).phantom.sphere_radius_mm == 5.0
 
 
+def test_the_localizer_searches_where_the_plan_puts_the_sphere():
+    """Unset, the localizer's expected depth follows the protocol's target depth (also
+    when a sweep overrides it); set, it stays as set."""
+    s = load_scenario(None, ["protocol.target_depth_mm=30", "imaging.depth_mm=45"], False)
+    assert s.localization.expected_depth_mm == 30.0
+    s = load_scenario(None, ["localization.expected_depth_mm=25"], check_reach=False)
+    assert s.localization.expected_depth_mm == 25.0
+
+
 def write(tmp_path, text):
     path = tmp_path / "s.yaml"
     path.write_text(text)
@@ -85,6 +94,10 @@ def write(tmp_path, text):
         ("phantom:\n  water_level_mm: 200\n", r"phantom\.water_level_mm = 200.*overflow"),
         ("phantom:\n  sphere_spacing_mm: 8\n", r"sphere_spacing_mm = 8.*overlap"),
         ("imaging:\n  depth_mm: 15\n", r"protocol\.target_depth_mm = 20.*below the imaged depth"),
+        (
+            "localization:\n  expected_window_mm: 5\n",
+            r"expected_window_mm = 5.*would not cover where the plan puts the sphere.*≥ .* = 9",
+        ),
         ("medium:\n  temperature_c: .nan\n", r"temperature_c = nan: expected a finite number"),
     ],
 )
