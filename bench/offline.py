@@ -200,12 +200,16 @@ def declared_uncertainty(
     temperature_c: float,
     assumed_speed_m_s: float,
     kinematic_residual_rms_mm: float = 0.0,
+    radius_tolerance_mm: float = 0.0,
+    axial_fwhm_mm: float = 0.0,
 ) -> UncertaintyInputs:
     """The systematic terms the pipeline knows of (:class:`calib.uncertainty.
     UncertaintyInputs`): the phantom's print specification (1 σ per axis of a sphere
-    centre), the axial scale's uncertainty — with the speed-of-sound correction, the
-    thermometer's; without, the whole difference between the medium's speed at the
-    recorded temperature and the scanner's assumed one — and the kinematic model's
+    centre, 1 σ of a sphere's radius), the axial scale's uncertainty — with the
+    speed-of-sound correction, the thermometer's; without, the whole difference
+    between the medium's speed at the recorded temperature and the scanner's assumed
+    one — the localizer's bias along the beam (uniform within ± half the probe's axial
+    resolution, as 1 σ: FWHM / (2√3)) and the kinematic model's
     residual after a DH refinement (RMS distance of the touches from the model; per axis
     it is that over √3)."""
     ratio = speed_ratio(True, medium, temperature_c, assumed_speed_m_s)
@@ -218,6 +222,8 @@ def declared_uncertainty(
         scale_sigma = abs(ratio - 1.0)
     return UncertaintyInputs(
         print_tolerance_m=print_tolerance_mm * 1e-3,
+        radius_tolerance_m=radius_tolerance_mm * 1e-3,
+        axial_bias_m=axial_fwhm_mm * 1e-3 / (2.0 * np.sqrt(3.0)),
         kinematic_sigma_m=kinematic_residual_rms_mm * 1e-3 / np.sqrt(3.0),
         axial_scale_sigma=scale_sigma,
     )
@@ -235,6 +241,8 @@ def scenario_uncertainty(
         scenario.medium.temperature_c,
         scenario.imaging.assumed_speed_m_s,
         kinematic_residual_rms_mm,
+        scenario.phantom.tolerance_radius_mm,
+        scenario.imaging.axial_fwhm_mm,
     )
 
 
@@ -243,6 +251,8 @@ def uncertainty_entry(bound: Bound95, inputs: UncertaintyInputs) -> dict[str, An
     details = bound.details()
     details["declared"] = {
         "print_tolerance_mm": inputs.print_tolerance_m * _MM,
+        "radius_tolerance_mm": inputs.radius_tolerance_m * _MM,
+        "axial_bias_mm": inputs.axial_bias_m * _MM,
         "kinematic_sigma_mm": inputs.kinematic_sigma_m * _MM,
         "axial_scale_sigma": inputs.axial_scale_sigma,
     }
@@ -455,6 +465,8 @@ def calibrate_recorded(
         info.temperature_c,
         info.assumed_speed_m_s,
         kinematic_rms_mm,
+        settings.phantom.tolerance_radius_mm,
+        settings.imaging.axial_fwhm_mm,
     )
     sweep0 = dataset.sweeps[0]
     H, W = sweep0.images.shape[1:]

@@ -101,6 +101,8 @@ def _bound_doc(cal: dict[str, Any]) -> dict[str, Any]:
             "and the mean error over the image; from a jackknife over the "
             f"{u.get('views', '?')} views (probe orientations) of the data plus the declared "
             f"systematic terms (print tolerance {declared.get('print_tolerance_mm', 0):g} mm, "
+            f"radius tolerance {declared.get('radius_tolerance_mm', 0):g} mm, "
+            f"axial bias {declared.get('axial_bias_mm', 0):.3g} mm, "
             f"kinematic residual {declared.get('kinematic_sigma_mm', 0):.3g} mm, axial scale "
             f"{declared.get('axial_scale_sigma', 0):.2g}; 1 σ per axis)."
         ),

@@ -20,7 +20,10 @@ speed-of-sound scale). The covariance here adds:
   (``dθ = −(JᵀJ)⁻¹ Jᵀ ∂r/∂e · de``): the print tolerance of the CAD sphere layout
   (multi-marker with the CAD layout taken as exact; 1 σ per axis per centre, the
   phantom's print specification — a fit that estimated the layout has it as its prior,
-  so it is in the covariance instead), the
+  so it is in the covariance instead), the printed spheres' radius tolerance (each
+  sphere's centres move along their beams alike: the localizer fits the CAD radius), a
+  bias of the localized centres along the beam common to every sweep (the cap's echo is
+  a pulse: up to half the axial resolution), the
   kinematic model's residual after a DH refinement (1 σ per axis of each view's
   reconstructed point, from the touch fit's residual), and the uncertainty of the axial
   scale (speed of sound).
@@ -71,6 +74,16 @@ class UncertaintyInputs:
     print_tolerance_m : float
         1 σ per axis of each printed sphere centre about its CAD position (the phantom's
         print specification); used with two or more markers.
+    radius_tolerance_m : float
+        1 σ of each printed sphere's radius about the CAD radius. The localizer fits the
+        cap with the CAD radius, so a sphere printed Δr larger puts every centre of it Δr
+        too close to the probe along that view's beam: an error shared by the sphere's
+        sweeps, which their scatter cannot show.
+    axial_bias_m : float
+        1 σ of a bias of every localized centre along its beam, common to all sweeps:
+        the cap's echo is a pulse, not the surface, and where in it the centre lands
+        depends on the pulse's shape (its envelope, ring-down, log compression); up to
+        half the axial resolution either way.
     kinematic_sigma_m : float
         1 σ per axis of the flange position error left by the kinematic model at each
         view (e.g. the RMS residual of a DH refinement from touches, per axis); 0 when
@@ -81,6 +94,8 @@ class UncertaintyInputs:
     """
 
     print_tolerance_m: float = 0.0
+    radius_tolerance_m: float = 0.0
+    axial_bias_m: float = 0.0
     kinematic_sigma_m: float = 0.0
     axial_scale_sigma: float = 0.0
 
@@ -357,21 +372,69 @@ def bound95(
     terms = {"first_order": _rss(cov_fo, A_rt), "jackknife": _rss(cov_jk, A_rt)}
     cov_sys = np.zeros((6, 6))
     h = 1e-6
-    layout_observed = 0.0
-    # With an estimated layout (n_layout > 0) the print tolerance is the fit's prior:
-    # its uncertainty is in the covariance above, through the prior's rows, not a term.
-    if multi and not n_layout:
-        D = np.empty((len(r0), 3 * n_s))
+
+    def layout_columns(model, r_at: Array) -> Array:
+        """∂r/∂(CAD centres) of a residual model, (n_res, 3 n_s)."""
+        D = np.empty((len(r_at), 3 * n_s))
         for j in range(3 * n_s):
             e = np.zeros(3 * n_s)
             e[j] = h
-            D[:, j] = (f(x0, e_cad=e.reshape(n_s, 3)) - r0) / h
+            D[:, j] = (
+                model(np.zeros(6 + 6 * multi + n_layout), e_cad=e.reshape(n_s, 3)) - r_at
+            ) / h
+        return D
+
+    if multi and not n_layout:
+        D = layout_columns(f, r0)
         layout_observed = _layout_mismatch(obs, targets, J, D, r0)
         sigma = max(inputs.print_tolerance_m, layout_observed)
         if sigma > 0:
             c = propagate(D, sigma)
             terms["sphere_layout"] = _rss(c, A_rt) | {"sigma_mm": sigma * _MM}
             cov_sys += c
+    elif multi:
+        # An estimated layout: the print tolerance is the fit's prior, its uncertainty in
+        # the covariance above (the prior's rows). What the data show beyond it — a
+        # sphere whose centres are off alike in every view (its printed radius, a
+        # localization bias), which the prior treats as a misprint of σ_tol at most —
+        # is a term: the per-sphere offsets the exact-CAD residuals show (method of
+        # moments), less the tolerance, propagated through the fit that estimated them.
+        f_cad, _, _, _ = _residual_model(obs, targets, cad, T_X, T_Y)
+        x_cad = np.zeros(12)
+        for _ in range(3):  # to the exact-CAD loss's own minimum (Gauss-Newton)
+            r_cad, J_cad = _jacobian(f_cad, x_cad)
+            x_cad = x_cad + np.linalg.lstsq(J_cad, -r_cad, rcond=None)[0]
+        r_cad, J_cad = _jacobian(f_cad, x_cad)
+        D_cad = np.empty((len(r_cad), 3 * n_s))
+        for j in range(3 * n_s):
+            e = np.zeros(3 * n_s)
+            e[j] = h
+            D_cad[:, j] = (f_cad(x_cad, e_cad=e.reshape(n_s, 3)) - r_cad) / h
+        observed = _layout_mismatch(obs, targets, J_cad, D_cad, r_cad)
+        excess = float(np.sqrt(max(observed**2 - inputs.print_tolerance_m**2, 0.0)))
+        if excess > 0:
+            c = propagate(layout_columns(f, r0), excess)
+            terms["sphere_layout"] = _rss(c, A_rt) | {"sigma_mm": excess * _MM}
+            cov_sys += c
+    # Each view's beam (the us frame's axial axis) in the base frame, through the estimate.
+    beams = np.array([(o.T_base_ee @ T_X)[:3, 1] for o in obs])
+    if inputs.axial_bias_m > 0:
+        # One column: every centre moved along its beam alike.
+        D = ((f(x0, e_pt=h * beams) - r0) / h)[:, None]
+        c = propagate(D, inputs.axial_bias_m)
+        terms["axial_bias"] = _rss(c, A_rt)
+        cov_sys += c
+    if inputs.radius_tolerance_m > 0:
+        # One column per sphere: its centres moved along their views' beams.
+        D = np.empty((len(r0), n_s))
+        for j, t in enumerate(targets):
+            e = np.zeros((len(obs), 3))
+            rows = np.array([o.target == t for o in obs])
+            e[rows] = h * beams[rows]
+            D[:, j] = (f(x0, e_pt=e) - r0) / h
+        c = propagate(D, inputs.radius_tolerance_m)
+        terms["sphere_radius"] = _rss(c, A_rt)
+        cov_sys += c
     if inputs.kinematic_sigma_m > 0:
         # Shared by the sweeps of one view of one sphere (a smooth function of the
         # configuration), independent between views and spheres.

@@ -272,14 +272,15 @@ def noise_floor_scan():
 
 
 def test_a_sphere_at_the_noise_floor_is_rejected_not_replaced_by_the_plate(noise_floor_scan):
-    """The wrong-candidate case the siblings' consensus cannot catch: with the sphere at
-    the noise floor every sweep's best candidate is the same spot of the plate, so the
-    sweeps agree with each other. The plan says where the sphere is (its target depth,
-    on the centre line): searched only there, nothing is accepted more than 1 mm off."""
+    """The wrong-candidate case at the noise floor: with the cap invisible, a sweep's best
+    candidate over the whole image is a spot of the plate under the sphere, often the same
+    spot from every view (so the siblings may agree on it). The plan says where the
+    sphere is (its target depth, on the centre line): searched only there, nothing is
+    accepted more than 1 mm off, even without the siblings' evidence."""
     sweeps, truths, T_ee_us, scale = noise_floor_scan
 
     def errors_mm(cfg):
-        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale)
+        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale, consensus=False)
         err = [np.linalg.norm(r.centre - p) / MM for r, p in zip(locs, truths, strict=True)]
         return np.array([e for e, r in zip(err, locs, strict=True) if r.accepted]), locs
 
@@ -288,6 +289,44 @@ def test_a_sphere_at_the_noise_floor_is_rejected_not_replaced_by_the_plate(noise
     planned, locs = errors_mm(LocalizerConfig(expected_depth_mm=45.0))
     assert len(planned) == 0 or planned.max() < 1.0
     assert all(r.reason for r in locs if not r.accepted)
+    # With the siblings' evidence too (as the pipeline localizes with a calibration).
+    with_siblings = localize_sphere(
+        sweeps, T_ee_us, 5 * MM, LocalizerConfig(expected_depth_mm=45.0), scale
+    )
+    for r, p in zip(with_siblings, truths, strict=True):
+        assert not r.accepted or np.linalg.norm(r.centre - p) < 1 * MM
+
+
+def test_centres_no_three_sweeps_agree_on_are_not_accepted(small_sphere_scan):
+    """Where a sphere is at the noise floor a few sweeps find its cap and a few a spot
+    of something else, and no three agree: none of them is confirmed, none accepted; the
+    reason says so. With three that agree, those are accepted and the odd one rejected
+    with its distance."""
+    from calib.localize import _reject_disagreeing
+
+    sweeps, _, T_ee_us, scale = small_sphere_scan
+    locs = localize_sphere(sweeps, T_ee_us, 3 * MM, LocalizerConfig(), scale)
+    assert sum(r.accepted for r in locs) >= 30
+    ok = [i for i, r in enumerate(locs) if r.accepted][:4]
+
+    def with_accepted(moved: dict[int, float]):
+        out = []
+        for i, r in enumerate(locs):
+            if i not in ok:
+                r = replace(r, accepted=False, centre=np.full(3, np.nan), reason="no sphere")
+            elif i in moved:
+                r = replace(r, centre=r.centre + np.array([0.0, moved[i], 0.0]))
+            out.append(r)
+        return _reject_disagreeing(sweeps, out, T_ee_us)
+
+    # Two right, two on "the plate" 8 and 12 mm deeper: nothing is confirmed.
+    scattered = with_accepted({ok[2]: 8 * MM, ok[3]: 12 * MM})
+    assert not any(r.accepted for r in scattered)
+    assert all("unconfirmed" in scattered[i].reason for i in ok)
+    # Three right, one off: the three are accepted, the odd one is rejected.
+    three = with_accepted({ok[3]: 8 * MM})
+    assert [three[i].accepted for i in ok] == [True, True, True, False]
+    assert "disagrees with the sphere's other sweeps" in three[ok[3]].reason
 
 
 def test_the_plan_window_bounds_the_search(small_sphere_scan):
