@@ -941,13 +941,19 @@ def profile_crossings(
 def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, float, float]:
     """(interior limit, shell inner, shell outer) from a peak-normalised radial profile:
     first rising 0.25 crossing; rising and falling 0.75 crossings around the peak. Falls
-    back to (0.8 R, 0.9 R, 1.1 R) pieces when a crossing is missing."""
+    back to (0.8 R, 0.9 R, 1.1 R) pieces when a crossing is missing, and to all three
+    when the bands are not a shell outside an interior (a profile that peaks at the
+    centre, e.g. from sweeps too sparse to resolve the cap, would otherwise turn the
+    shell inside out and lose every sweep)."""
     inner, rise, fall = profile_crossings(radii, profile)
-    return (
+    bands = (
         inner if inner is not None else 0.8 * radius,
         rise if rise is not None else 0.9 * radius,
         fall if fall is not None else 1.1 * radius,
     )
+    if not bands[0] <= bands[2] or not bands[1] < bands[2]:
+        return 0.8 * radius, 0.9 * radius, 1.1 * radius
+    return bands
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)

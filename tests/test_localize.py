@@ -372,3 +372,19 @@ def test_saturated_cap_centre_is_unbiased():
         assert len(err) >= 0.9 * len(sweeps)
         medians[gain] = float(np.median(err))
     assert medians[20] <= 1.25 * medians[0], medians
+
+
+def test_profile_bands_are_a_shell_outside_an_interior():
+    """A sphere's radial profile rises to the shell: its bands are the crossings. One
+    that peaks at the centre (sweeps too sparse to resolve the cap) would turn the shell
+    inside out and lose every sweep; it falls back to the CAD radius's bands."""
+    from calib.localize import profile_bands
+
+    R = 5 * MM
+    radii = np.arange(0.0, 8 * MM, 0.2 * MM)
+    shell = np.exp(-0.5 * ((radii - R) / (0.4 * MM)) ** 2)
+    inner, rise, fall = profile_bands(radii, 0.1 + 0.9 * shell, R)
+    assert inner < rise < R < fall and abs(rise + fall - 2 * R) < 0.2 * MM
+    centre_peak = 0.6 + 0.39 * shell
+    centre_peak[0] = 1.0
+    assert profile_bands(radii, centre_peak, R) == (0.8 * R, 0.9 * R, 1.1 * R)
