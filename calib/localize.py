@@ -1369,28 +1369,21 @@ def _reject_disagreeing(sweeps, locs, T_ee_us) -> list[SweepLocalization]:
     unconfirmed = len(locs) >= _MIN_CLUSTER and not np.isfinite(consensus).all()
     out = []
     for i, loc in enumerate(locs):
+        reason = ""
         if loc.accepted and unconfirmed:
-            loc = replace(
-                loc,
-                centre=np.full(3, np.nan),
-                accepted=False,
-                reason=(
-                    f"unconfirmed: fewer than {_MIN_CLUSTER - 1} other sweeps of the sphere "
-                    f"put its centre within {_CLUSTER_MM:g} mm of this one's ({int(found.sum())} "
-                    f"of {len(locs)} sweeps found a candidate)"
-                ),
+            reason = (
+                f"unconfirmed: fewer than {_MIN_CLUSTER - 1} other sweeps of the sphere "
+                f"put its centre within {_CLUSTER_MM:g} mm of this one's ({int(found.sum())} "
+                f"of {len(locs)} sweeps found a candidate)"
             )
         elif loc.accepted and not agree[i]:
             d = float(np.linalg.norm(base[i] - consensus) / _MM)
-            loc = replace(
-                loc,
-                centre=np.full(3, np.nan),
-                accepted=False,
-                reason=(
-                    f"disagrees with the sphere's other sweeps: {d:.2f} mm from their "
-                    f"consensus (limit {limit:.2f} mm)"
-                ),
+            reason = (
+                f"disagrees with the sphere's other sweeps: {d:.2f} mm from their "
+                f"consensus (limit {limit:.2f} mm)"
             )
+        if reason:
+            loc = replace(loc, centre=np.full(3, np.nan), accepted=False, reason=reason)
         out.append(loc)
     return out
 

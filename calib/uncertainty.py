@@ -219,14 +219,30 @@ def _resolve(obs, targets, cad, T_X, T_Y, layout=None, weight=0.0, iterations=3)
     step costs a finite-difference Jacobian, ≈ 1 ms). Returns the left increment ξ of
     ``T_ee_us`` (6,)."""
     f, _, multi, n_layout = _residual_model(obs, targets, cad, T_X, T_Y, layout, weight)
-    x = np.zeros(6 + 6 * multi + n_layout)
+    return _gauss_newton(f, np.zeros(6 + 6 * multi + n_layout), iterations)[:6]
+
+
+def _gauss_newton(f, x: Array, iterations: int) -> Array:
+    """Gauss-Newton steps on residuals ``f`` from ``x`` (finite-difference Jacobians),
+    until the step of ``T_ee_us``'s increment is negligible."""
     for _ in range(iterations):
         r, J = _jacobian(f, x)
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
         x = x + step
         if np.linalg.norm(step[:3]) < 1e-9 and np.linalg.norm(step[3:6]) < 1e-8:
             break
-    return x[:6]
+    return x
+
+
+def _layout_columns(f, x: Array, r: Array, n_s: int, h: float = 1e-6) -> Array:
+    """∂r/∂(CAD centres) of a residual model at ``x`` (residuals ``r`` there),
+    (n_res, 3 n_s)."""
+    D = np.empty((len(r), 3 * n_s))
+    for j in range(3 * n_s):
+        e = np.zeros(3 * n_s)
+        e[j] = h
+        D[:, j] = (f(x, e_cad=e.reshape(n_s, 3)) - r) / h
+    return D
 
 
 def _layout_mismatch(obs, targets, J: Array, D_cad: Array, r: Array) -> float:
@@ -373,19 +389,8 @@ def bound95(
     cov_sys = np.zeros((6, 6))
     h = 1e-6
 
-    def layout_columns(model, r_at: Array) -> Array:
-        """∂r/∂(CAD centres) of a residual model, (n_res, 3 n_s)."""
-        D = np.empty((len(r_at), 3 * n_s))
-        for j in range(3 * n_s):
-            e = np.zeros(3 * n_s)
-            e[j] = h
-            D[:, j] = (
-                model(np.zeros(6 + 6 * multi + n_layout), e_cad=e.reshape(n_s, 3)) - r_at
-            ) / h
-        return D
-
     if multi and not n_layout:
-        D = layout_columns(f, r0)
+        D = _layout_columns(f, x0, r0, n_s, h)
         layout_observed = _layout_mismatch(obs, targets, J, D, r0)
         sigma = max(inputs.print_tolerance_m, layout_observed)
         if sigma > 0:
@@ -400,20 +405,13 @@ def bound95(
         # is a term: the per-sphere offsets the exact-CAD residuals show (method of
         # moments), less the tolerance, propagated through the fit that estimated them.
         f_cad, _, _, _ = _residual_model(obs, targets, cad, T_X, T_Y)
-        x_cad = np.zeros(12)
-        for _ in range(3):  # to the exact-CAD loss's own minimum (Gauss-Newton)
-            r_cad, J_cad = _jacobian(f_cad, x_cad)
-            x_cad = x_cad + np.linalg.lstsq(J_cad, -r_cad, rcond=None)[0]
+        x_cad = _gauss_newton(f_cad, np.zeros(12), 3)  # the exact-CAD loss's own minimum
         r_cad, J_cad = _jacobian(f_cad, x_cad)
-        D_cad = np.empty((len(r_cad), 3 * n_s))
-        for j in range(3 * n_s):
-            e = np.zeros(3 * n_s)
-            e[j] = h
-            D_cad[:, j] = (f_cad(x_cad, e_cad=e.reshape(n_s, 3)) - r_cad) / h
+        D_cad = _layout_columns(f_cad, x_cad, r_cad, n_s, h)
         observed = _layout_mismatch(obs, targets, J_cad, D_cad, r_cad)
         excess = float(np.sqrt(max(observed**2 - inputs.print_tolerance_m**2, 0.0)))
         if excess > 0:
-            c = propagate(layout_columns(f, r0), excess)
+            c = propagate(_layout_columns(f, x0, r0, n_s, h), excess)
             terms["sphere_layout"] = _rss(c, A_rt) | {"sigma_mm": excess * _MM}
             cov_sys += c
     # Each view's beam (the us frame's axial axis) in the base frame, through the estimate.
