@@ -45,6 +45,7 @@ __all__ = [
     "Observation",
     "alternate",
     "calibrate",
+    "consensus_initialisation",
     "linear_initialisation",
     "outlier_limit",
     "reconstruct",
@@ -139,6 +140,63 @@ def linear_initialisation(obs: Sequence[Observation]) -> Array:
     return se3.make(R_X, sol2[:3])
 
 
+def consensus_initialisation(
+    obs: Sequence[Observation], agree_mm: float = 5.0, trials: int = 200, seed: int = 0
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Closed-form ``T_ee_us`` from the largest set of observations that agree, for
+    localizations contaminated by wrong detections (RANSAC with a local optimisation
+    step: Fischler & Bolles 1981; Chum et al. 2003).
+
+    :func:`linear_initialisation` on all observations is a least-squares compromise
+    between the sphere and whatever else was taken for it (a plate 20 mm away in half the
+    sweeps) and can land far off, with the outlier stage then keeping a handful of
+    accidental agreements. Here: the closed form on random minimal subsets (five sweeps
+    per sphere, the fewest that fix it), each refitted on the observations that
+    reconstruct within ``agree_mm`` of their sphere's median centre (a minimal subset's
+    rotation is rough: a degree moves a centre 50 mm from the flange by almost a
+    millimetre) and scored by how many agree then. Returns the best closed form and its
+    agreeing set. Seeded: the same observations give the same start.
+    """
+    targets = list(dict.fromkeys(o.target for o in obs))
+    groups = [np.array([i for i, o in enumerate(obs) if o.target == t]) for t in targets]
+    groups = [g for g in groups if len(g) >= 5]
+    if not groups:
+        raise CalibrationError("calibration needs at least 5 localized sweeps of a sphere")
+    rng = np.random.default_rng(seed)
+
+    def agreeing(T: Array, members: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], float]:
+        """Observations within agree_mm of the centre their sphere's ``members`` give."""
+        X = reconstruct(obs, T)
+        ok = np.zeros(len(obs), dtype=bool)
+        spread = 0.0
+        for g in groups:
+            d = np.linalg.norm(X[g] - X[g][members[g]].mean(axis=0), axis=1) * _MM
+            ok[g] = d <= agree_mm
+            spread += float(np.sum(np.minimum(d, agree_mm)))
+        return ok, spread
+
+    best_T, best_ok, best_key = None, np.zeros(len(obs), dtype=bool), (-1, 0.0)
+    for _ in range(trials):
+        ok = np.zeros(len(obs), dtype=bool)
+        ok[np.concatenate([rng.choice(g, 5, replace=False) for g in groups])] = True
+        T = linear_initialisation([o for o, k in zip(obs, ok, strict=True) if k])
+        ok, spread = agreeing(T, ok)
+        for _ in range(3):  # local optimisation: refit on the agreeing set
+            if any(ok[g].sum() < 5 for g in groups):
+                break
+            T_new = linear_initialisation([o for o, k in zip(obs, ok, strict=True) if k])
+            ok_new, spread_new = agreeing(T_new, ok)
+            if (ok_new.sum(), -spread_new) <= (ok.sum(), -spread):
+                break
+            T, ok, spread = T_new, ok_new, spread_new
+        key = (int(ok.sum()), -spread)
+        if key > best_key:
+            best_T, best_ok, best_key = T, ok, key
+    if best_T is None or best_ok.sum() < 4:
+        raise CalibrationError("no 4 localized sweeps agree on one sphere centre")
+    return best_T, best_ok
+
+
 def _params_to_T(x: Array, T0: Array) -> Array:
     return se3.exp(x) @ T0
 
@@ -149,6 +207,7 @@ def calibrate(
     T_init: Array | None = None,
     outlier_mm: float = 2.0,
     layout_sigma_mm: float = 0.0,
+    first_fit: NDArray[np.bool_] | None = None,
 ) -> CalibrationResult:
     """Estimate ``T_ee_us`` from localized sphere centres.
 
@@ -163,6 +222,9 @@ def calibrate(
     layout_sigma_mm : the phantom's print tolerance (1 σ per axis of a sphere centre):
         with two or more markers the printed layout is estimated with the CAD as its
         prior (module docstring); 0 takes the CAD layout as exact
+    first_fit : the observations the first fit uses (default all), e.g. the agreeing set
+        of :func:`consensus_initialisation`; the outlier stage then re-admits every
+        observation within its limit
 
     Raises
     ------
@@ -175,7 +237,9 @@ def calibrate(
         raise CalibrationError(f"calibration needs at least 4 localized sweeps, got {len(obs)}")
     multi = len(targets) >= 2 and cad_centres is not None
     T0 = linear_initialisation(obs) if T_init is None else np.asarray(T_init, dtype=float)
-    keep = np.ones(len(obs), dtype=bool)
+    keep = np.ones(len(obs), dtype=bool) if first_fit is None else np.array(first_fit, bool)
+    if keep.shape != (len(obs),) or keep.sum() < 4:
+        raise CalibrationError("the first fit needs at least 4 of the observations")
     reasons: dict[str, str] = {}
     if layout_sigma_mm < 0:
         raise ValueError(f"layout_sigma_mm must be ≥ 0, got {layout_sigma_mm}")
@@ -359,6 +423,39 @@ def _consensus_seeds(
     return out
 
 
+def _first_or_next(
+    obs: Sequence[Observation],
+    cad_centres: Mapping[str, Array] | None,
+    T_prev: Array | None,
+    layout_sigma_mm: float,
+) -> CalibrationResult:
+    """The alternation's calibration: from the previous estimate, or, the first time,
+    from the closed form; where that keeps fewer than half the observations (or none fit),
+    the first localization is contaminated and the largest agreeing set's closed form
+    (:func:`consensus_initialisation`) is tried too: the result keeping more sweeps wins."""
+    if T_prev is not None:
+        return calibrate(obs, cad_centres, T_init=T_prev, layout_sigma_mm=layout_sigma_mm)
+    result = None
+    try:
+        result = calibrate(obs, cad_centres, layout_sigma_mm=layout_sigma_mm)
+        if 2 * result.retained.sum() >= len(obs):
+            return result
+    except CalibrationError:
+        pass
+    try:
+        T0, agree = consensus_initialisation(obs)
+        other = calibrate(
+            obs, cad_centres, T_init=T0, layout_sigma_mm=layout_sigma_mm, first_fit=agree
+        )
+    except CalibrationError:
+        if result is None:
+            raise
+        return result
+    if result is None or other.retained.sum() > result.retained.sum():
+        return other
+    return result
+
+
 def alternate(
     sweeps: Mapping[str, Sequence[Sweep]],
     radius: float,
@@ -416,17 +513,26 @@ def alternate(
         obs = _observations(sweeps, locs)
         used = locs
         t0 = time.perf_counter()
-        result = calibrate(obs, cad_centres, T_init=T_prev, layout_sigma_mm=layout_sigma_mm)
+        result = _first_or_next(obs, cad_centres, T_prev, layout_sigma_mm)
         if T_prev is None and T_coarse is not None:
             far = (
                 se3.translation_distance(result.T_ee_us, T_coarse) > 0.03
                 or np.degrees(se3.rotation_angle(result.T_ee_us, T_coarse)) > 30
             )
             if far:
-                other = calibrate(
-                    obs, cad_centres, T_init=T_coarse, layout_sigma_mm=layout_sigma_mm
-                )
-                if other.cost < result.cost:
+                # The coarse start is a second opinion: where it leaves too few sweeps to
+                # fit (it followed the wrong detections), the first result stands.
+                try:
+                    other = calibrate(
+                        obs, cad_centres, T_init=T_coarse, layout_sigma_mm=layout_sigma_mm
+                    )
+                except CalibrationError:
+                    other = None
+                # More sweeps explained wins, then the lower loss.
+                if other is not None and (other.retained.sum(), -other.cost) > (
+                    result.retained.sum(),
+                    -result.cost,
+                ):
                     result = other
         t_calibrate = time.perf_counter() - t0
         change_mm = change_deg = float("inf")

@@ -97,9 +97,6 @@ _OUTER_BAND = (1.3, 1.8)
 # Separate local maxima of the coarse grid searched finely (method "refined").
 _HYPOTHESES = 4
 _REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
-# Slices whose cap echo peaks within this many grey levels of the brightest are clipped
-# together (saturation at 255; frame means differ by a level or so).
-_CLIPPED_GREY = 1.5
 _MM = 1e-3
 
 
@@ -265,7 +262,7 @@ class SweepVolume:
         row0: int,
         col0: int,
         frames: NDArray[np.uint8],
-        means: Array,
+        levels: Array,
         nearest: NDArray[np.int64],
         frame_rows: NDArray[np.int64],
         frame_cols: NDArray[np.int64],
@@ -278,7 +275,7 @@ class SweepVolume:
         self.width = width
         self.row0 = row0
         self.col0 = col0
-        self._frames, self._means, self._nearest = frames, means, nearest
+        self._frames, self._levels, self._nearest = frames, levels, nearest
         self._frame_rows, self._frame_cols = frame_rows, frame_cols
 
     def position(self, k: Array, r: Array, c: Array) -> Array:
@@ -316,7 +313,7 @@ class SweepVolume:
     def with_column_step(self, step: int) -> SweepVolume:
         """The same volume with its bits split for another candidate column step."""
         return SweepVolume(
-            frame_bits(self._frames, self._means, step),
+            frame_bits(self._frames, self._levels, step),
             self.shape,
             self.spacing,
             self.z0,
@@ -324,7 +321,7 @@ class SweepVolume:
             self.row0,
             self.col0,
             self._frames,
-            self._means,
+            self._levels,
             self._nearest,
             self._frame_rows,
             self._frame_cols,
@@ -333,7 +330,7 @@ class SweepVolume:
     def intensity(
         self, ks: NDArray[np.int64], rs: NDArray[np.int64], cs: NDArray[np.int64]
     ) -> Array:
-        """Grey level minus frame mean of the voxel block ks × rs × cs (0 outside); rs and cs
+        """Grey level minus its brightness level of the voxel block ks × rs × cs (0 outside); rs and cs
         are consecutive index ranges."""
         out = np.zeros((len(ks), len(rs), len(cs)))
         if not (len(ks) and len(rs) and len(cs)):
@@ -348,7 +345,7 @@ class SweepVolume:
             c_hi = min(cs[-1] + 1 - self._frame_cols[j], W)
             if r_hi <= r_lo or c_hi <= c_lo:
                 continue
-            block = self._frames[j, r_lo:r_hi, c_lo:c_hi] - self._means[j]
+            block = self._frames[j, r_lo:r_hi, c_lo:c_hi] - self._levels[j, r_lo:r_hi, None]
             ro = r_lo + self._frame_rows[j] - rs[0]
             co = c_lo + self._frame_cols[j] - cs[0]
             out[a, ro : ro + r_hi - r_lo, co : co + c_hi - c_lo] = block
@@ -399,11 +396,11 @@ def _frame_sums(images):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
 def _pack_bits(images, thresholds, sc, out):  # pragma: no cover - compiled
-    """out[j, d, r, w] bit b = pixel (r, d + (64 w + b)·sc) of frame j ≥ its threshold."""
+    """out[j, d, r, w] bit b = pixel (r, d + (64 w + b)·sc) of frame j ≥ thresholds[j, r]."""
     H, W = images.shape[1], images.shape[2]
     for j in range(images.shape[0]):
-        t = thresholds[j]
         for r in range(H):
+            t = thresholds[j, r]
             src = images[j, r]
             for d in range(sc):
                 dst = out[j, d, r]
@@ -486,34 +483,63 @@ def _grid_sums(
     return out
 
 
-_BITS_CACHE: dict[tuple[int, int], NDArray[np.uint64]] = {}
+_BITS_CACHE: dict[tuple[int, int, int], NDArray[np.uint64]] = {}
 
 
-_MEANS_CACHE: dict[int, Array] = {}
+_LEVELS_CACHE: dict[tuple[int, bool], Array] = {}
+
+# A pixel is above its depth's noise floor when it exceeds the median of that image row
+# (pooled over the sweep's frames) by _NOISE_SIGMAS robust standard deviations (IQR/1.349).
+# For a log-compressed Rayleigh envelope (electronic noise, fully developed speckle) 2 σ
+# is ≈ 10 dB above the median: the noise alone gets there with probability ≈ 10⁻³.
+_NOISE_SIGMAS = 2.0
 
 
-def frame_means(images: NDArray[np.uint8]) -> Array:
-    """Mean grey level of each frame (the paper's per-frame brightness cut-off), memoised
-    like :func:`frame_bits` for as long as the frames live."""
-    key = id(images)
-    cached = _MEANS_CACHE.get(key)
+def _row_noise_floor(images: NDArray[np.uint8]) -> Array:
+    """Per image row (depth): median + _NOISE_SIGMAS · IQR/1.349 of its grey levels over
+    all frames, from one histogram per row. Where most of a row sits at the display floor
+    (dark water) this is 0 and the frame mean decides alone."""
+    n, H, W = images.shape
+    rows = np.broadcast_to(np.arange(H, dtype=np.int32)[None, :, None] * 256, images.shape)
+    hist = np.bincount((rows + images).ravel(), minlength=H * 256).reshape(H, 256)
+    cdf = np.cumsum(hist, axis=1)
+    total = cdf[:, -1:]
+    q25, q50, q75 = (np.argmax(cdf >= q * total, axis=1) for q in (0.25, 0.5, 0.75))
+    return q50 + _NOISE_SIGMAS * (q75 - q25) / 1.349
+
+
+def frame_levels(images: NDArray[np.uint8], noise_floor: bool = False) -> Array:
+    """Brightness level of every row of every frame, (n, H): a pixel is bright above it.
+
+    The paper's cut-off is the frame's own mean grey level. With ``noise_floor`` (method
+    "refined") a pixel must also stand above its depth's noise floor
+    (:func:`_row_noise_floor`): where the gain lifts electronic noise or speckle above the
+    frame mean, about half of the water is otherwise "bright", and a laterally uniform band
+    (the transducer's ring-down, a plate, the tank floor) is bright only where it stands
+    out from its own depth. Memoised like :func:`frame_bits` for as long as the frames live.
+    """
+    key = (id(images), bool(noise_floor))
+    cached = _LEVELS_CACHE.get(key)
     if cached is None:
-        _, H, W = images.shape
-        cached = _frame_sums(np.ascontiguousarray(images)) / (H * W)
-        _MEANS_CACHE[key] = cached
-        weakref.finalize(images, _MEANS_CACHE.pop, key, None)
+        n, H, W = images.shape
+        means = _frame_sums(np.ascontiguousarray(images)) / (H * W)
+        cached = np.repeat(means[:, None], H, axis=1)
+        if noise_floor:
+            cached = np.maximum(cached, _row_noise_floor(images)[None, :])
+        _LEVELS_CACHE[key] = cached
+        weakref.finalize(images, _LEVELS_CACHE.pop, key, None)
     return cached
 
 
-def frame_bits(images: NDArray[np.uint8], means: Array, column_step: int) -> NDArray[np.uint64]:
-    """Bright bits of every frame (grey level above its own mean), split by column phase:
-    (n, column_step, H, words) uint64 (see :class:`SweepVolume`).
+def frame_bits(images: NDArray[np.uint8], levels: Array, column_step: int) -> NDArray[np.uint64]:
+    """Bright bits of every frame (grey level above its row's level, :func:`frame_levels`),
+    split by column phase: (n, column_step, H, words) uint64 (see :class:`SweepVolume`).
 
     They depend on the frames alone, so they are memoised for as long as the frames array
     lives (a sweep is re-stacked many times while localization and calibration
     alternate; the bits are 1/8 of the frames' size).
     """
-    key = (id(images), int(column_step))
+    key = (id(images), id(levels), int(column_step))
     cached = _BITS_CACHE.get(key)
     if cached is not None:
         return cached
@@ -522,8 +548,8 @@ def frame_bits(images: NDArray[np.uint8], means: Array, column_step: int) -> NDA
     per_phase = -(-W // sc)  # columns of phase 0, the longest
     words = max(1, -(-per_phase // 64))
     bits = np.zeros((n, sc, H, words), dtype=np.uint64)
-    # "Brighter than the frame mean" for integer grey levels: at least floor(mean) + 1.
-    thresholds = np.floor(means).astype(np.int64) + 1
+    # "Brighter than the level" for integer grey levels: at least floor(level) + 1.
+    thresholds = np.floor(levels).astype(np.int64) + 1
     _pack_bits(np.ascontiguousarray(images), thresholds, sc, bits)
     _BITS_CACHE[key] = bits
     weakref.finalize(images, _BITS_CACHE.pop, key, None)
@@ -531,7 +557,11 @@ def frame_bits(images: NDArray[np.uint8], means: Array, column_step: int) -> NDA
 
 
 def stack_sweep(
-    sweep: Sweep, T_ee_us: Array | None, axial_scale: float = 1.0, column_step: int = 1
+    sweep: Sweep,
+    T_ee_us: Array | None,
+    axial_scale: float = 1.0,
+    column_step: int = 1,
+    noise_floor: bool = False,
 ) -> SweepVolume:
     """Stack (or re-stack) a sweep into a labelled volume in its reference frame.
 
@@ -554,7 +584,7 @@ def stack_sweep(
     # Nearest frame of each slice.
     slice_z = z0 + np.arange(n_slices) * dz
     nearest = order[np.argmin(np.abs(slice_z[:, None] - z[order][None, :]), axis=1)]
-    means = frame_means(images)
+    levels = frame_levels(images, noise_floor)
     # Integer pixel shift of each frame's in-plane offset (nearest voxel); the grid spans
     # every shifted frame.
     shift_c = np.rint(offsets[:, 0] / sx).astype(np.int64)
@@ -563,7 +593,7 @@ def stack_sweep(
     width = W - col0 + int(max(0, shift_c.max()))
     height = H - row0 + int(max(0, shift_r.max()))
     return SweepVolume(
-        frame_bits(images, means, column_step),
+        frame_bits(images, levels, column_step),
         (n_slices, height, width),
         (sx, sy, dz),
         z0,
@@ -571,7 +601,7 @@ def stack_sweep(
         row0,
         col0,
         images,
-        means,
+        levels,
         nearest.astype(np.int64),
         (shift_r - row0).astype(np.int64),
         (shift_c - col0).astype(np.int64),
@@ -958,22 +988,22 @@ def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, f
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
 def _cap_weights(
-    frames, means, nearest, frame_rows, frame_cols, ks, rs, cs, dz2, dy2, dx2, lo2, hi2
+    frames, levels, nearest, frame_rows, frame_cols, ks, rs, cs, dz2, dy2, dx2, lo2, hi2
 ):  # pragma: no cover - compiled
-    """Weights (len(ks), len(rs), len(cs)) of the cap refinement: grey level minus the
-    frame mean where positive and the voxel lies in the shell band (squared distances
+    """Weights (len(ks), len(rs), len(cs)) of the cap refinement: grey level minus its
+    brightness level (:func:`frame_levels`) where positive and the voxel lies in the shell band (squared distances
     ``lo2 ≤ dz2 + dy2 + dx2 ≤ hi2``), else 0. Compiled: one pass instead of the several
     full-block NumPy passes it replaces (≈ 4× faster)."""
     H, W = frames.shape[1], frames.shape[2]
     out = np.zeros((ks.shape[0], rs.shape[0], cs.shape[0]))
     for a in range(ks.shape[0]):
         j = nearest[ks[a]]
-        mean = means[j]
         for b in range(rs.shape[0]):
             fr = rs[b] - frame_rows[j]
             if fr < 0 or fr >= H:
                 continue
             row = frames[j, fr]
+            level = levels[j, fr]
             dzy = dz2[a] + dy2[b]
             for c in range(cs.shape[0]):
                 fc = cs[c] - frame_cols[j]
@@ -982,7 +1012,7 @@ def _cap_weights(
                 d2 = dzy + dx2[c]
                 if d2 < lo2 or d2 > hi2:
                     continue
-                v = row[fc] - mean
+                v = row[fc] - level
                 if v > 0:
                     out[a, b, c] = v
     return out
@@ -997,7 +1027,8 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
     slice thickness) lies one radius above the centre, so its echo-weighted depth plus R
     gives y. A least-squares sphere fit would be pulled upwards instead: the elevation beam
     smears that top echo over neighbouring frames and flattens the stacked cap. Weights are
-    grey levels above the frame mean; a few rounds re-centre the windows.
+    grey levels above their brightness level (the frame mean, and the depth's noise floor
+    with method "refined"); a few rounds re-centre the windows.
     """
     dx, dy, dz = vol.spacing
     seed = np.asarray(centre, dtype=float)
@@ -1019,10 +1050,10 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         zs = vol.z0 + ks * dz
         ys = (rs + vol.row0) * dy
         xs = (cs + vol.col0 - (vol.width - 1) / 2) * dx
-        # Echo above the frame mean, inside the shell band |d − R| ≤ R/2.
+        # Echo above its level, inside the shell band |d − R| ≤ R/2.
         w = _cap_weights(
             vol._frames,
-            vol._means,
+            vol._levels,
             vol._nearest,
             vol._frame_rows,
             vol._frame_cols,
@@ -1043,7 +1074,13 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         # Elevation from the top of the cap only (where the echo stands far above noise).
         near_x = np.abs(xs - x_new) <= 0.5 * _MM
         near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _MM
-        z_new = _elevation_vertex(w[:, near_y][:, :, near_x], zs, z_mean, dz)
+        # Each slice's weight at a grey level of 255 (saturation) in those rows.
+        frame_of = vol._nearest[ks]
+        rows = np.clip(rs[near_y][None, :] - vol._frame_rows[frame_of][:, None], 0, H - 1)
+        clip = None
+        if rows.size:
+            clip = 255.0 - np.take_along_axis(vol._levels[frame_of], rows, axis=1).min(axis=1)
+        z_new = _elevation_vertex(w[:, near_y][:, :, near_x], zs, z_mean, dz, clip)
         # Top of the cap: the column under (x, z) in the nearest frames.
         col = np.abs(xs - x_new) <= max(dx, 0.25 * _MM)
         frames = np.abs(zs - z_new) <= 0.75 * dz
@@ -1062,35 +1099,50 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
     return current
 
 
-def _elevation_vertex(w: Array, zs: Array, z_mean: float, dz: float) -> float:
-    """Sub-slice elevation of the cap: the vertex of the parabola through the brightest
-    slice's peak grey level and its two neighbours' (``w`` is (slices, ...), ``zs`` the
-    slices' elevations).
+def _elevation_vertex(
+    w: Array, zs: Array, z_mean: float, dz: float, clip: Array | None = None
+) -> float:
+    """Sub-slice elevation of the cap from its peak grey level per slice (``w`` is
+    (slices, ...), ``zs`` the slices' elevations, ``clip`` each slice's ``w`` at a grey
+    level of 255).
 
-    Frames sit 1 mm apart while the cap's echo spans about a slice thickness, so a
-    weighted mean over slices is biased by where the centre falls between frames; the
-    peak grey level per slice is log-compressed (dB), in which a Gaussian beam profile is a
-    parabola, so its vertex is unbiased.
+    The peak grey level per slice is log-compressed (dB), in which a Gaussian beam profile
+    is a parabola; its vertex is unbiased where a weighted mean over slices is biased by
+    where the centre falls between frames. The parabola is fitted by least squares to the
+    contiguous run of slices above half the maximum: three slices where the beam is thin
+    (its vertex through them), more where it is wide beyond the elevation focus (there the
+    three-slice vertex is a difference of nearly equal noisy peaks). Slices clipped at 255
+    (high gain) are left out: the flanks on both sides still fix the vertex of a symmetric
+    profile. Without a usable fit, the midpoint of the half-maximum crossings.
     """
     if w.size == 0:
         return z_mean
     peaks = w.reshape(len(w), -1).max(axis=1)
     k = int(np.argmax(peaks))
-    if k == 0 or k == len(peaks) - 1 or peaks[k] <= 0:
+    if peaks[k] <= 0:
         return z_mean
-    top = np.flatnonzero(peaks >= peaks[k] - _CLIPPED_GREY)
-    if len(top) > 1:
-        # The echo clips at 255 in several slices (high gain): the vertex of three
-        # clipped values is undefined. The profile across elevation is symmetric about
-        # the centre (the section's top echo and the beam alike), and so is its clipping:
-        # the midpoint of its half-maximum crossings on either side is unbiased.
-        return _half_maximum_midpoint(peaks, zs, int(top[0]), int(top[-1]), z_mean)
-    a, b, c = peaks[k - 1], peaks[k], peaks[k + 1]
-    denom = a - 2 * b + c
-    if denom >= 0:
-        return z_mean
-    shift = 0.5 * (a - c) / denom  # in slices, within (-0.5, 0.5)
-    return float(zs[k] + shift * dz)
+    half = 0.5 * peaks[k]
+    lo = hi = k
+    while lo > 0 and peaks[lo - 1] >= half:
+        lo -= 1
+    while hi < len(peaks) - 1 and peaks[hi + 1] >= half:
+        hi += 1
+    # One slice beyond the run on each side: the parabola needs the fall on both sides.
+    lo, hi = max(lo - 1, 0), min(hi + 1, len(peaks) - 1)
+    run = np.arange(lo, hi + 1)
+    clipped = (
+        peaks[run] >= clip[run] - 0.5 if clip is not None else np.zeros(len(run), dtype=bool)
+    )
+    use = run[~clipped & (peaks[run] > 0)]
+    if len(use) >= 3 and use[0] < k < use[-1] or (clipped.any() and len(use) >= 3):
+        u = (zs[use] - zs[k]) / dz
+        a, b, _ = np.polyfit(u, peaks[use], 2)
+        if a < 0:
+            vertex = -b / (2 * a)
+            if u[0] <= vertex <= u[-1]:
+                return float(zs[k] + vertex * dz)
+    top = run[clipped] if clipped.any() else np.array([k])
+    return _half_maximum_midpoint(peaks, zs, int(top[0]), int(top[-1]), z_mean)
 
 
 def _half_maximum_midpoint(
@@ -1264,7 +1316,9 @@ def localize_sphere(
     vols = []
     for s in sweeps:
         column_step = candidate_step((s.spacing[0], s.spacing[1], 1.0), grid)[2]
-        vols.append(stack_sweep(s, T_ee_us, axial_scale, column_step))
+        vols.append(
+            stack_sweep(s, T_ee_us, axial_scale, column_step, cfg.method == "refined")
+        )
     results = [
         _seed_search(
             vol,
@@ -1425,7 +1479,7 @@ def sphere_profile(
             # The localizer's column step: the sweep's bright bits are then the ones it
             # already memoised (no second copy of them).
             step = candidate_step((sweep.spacing[0], sweep.spacing[1], 1.0), grid)[2]
-            vol = stack_sweep(sweep, T_ee_us, axial_scale, step)
+            vol = stack_sweep(sweep, T_ee_us, axial_scale, step, cfg.method == "refined")
             vols.append(vol)
             centres.append(np.array(vol.index(loc.centre), dtype=float))
     if not vols:

@@ -285,7 +285,7 @@ def test_a_sphere_at_the_noise_floor_is_rejected_not_replaced_by_the_plate(noise
         return np.array([e for e, r in zip(err, locs, strict=True) if r.accepted]), locs
 
     whole, _ = errors_mm(LocalizerConfig())
-    assert (whole > 10).sum() >= 3  # the failure, reproduced: the plate, accepted
+    assert (whole > 10).any()  # the failure, reproduced: the plate, accepted
     planned, locs = errors_mm(LocalizerConfig(expected_depth_mm=45.0))
     assert len(planned) == 0 or planned.max() < 1.0
     assert all(r.reason for r in locs if not r.accepted)
