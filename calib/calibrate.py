@@ -435,13 +435,13 @@ def _first_or_next(
     (:func:`consensus_initialisation`) is tried too: the result keeping more sweeps wins."""
     if T_prev is not None:
         return calibrate(obs, cad_centres, T_init=T_prev, layout_sigma_mm=layout_sigma_mm)
-    result = None
+    result, failure = None, None
     try:
         result = calibrate(obs, cad_centres, layout_sigma_mm=layout_sigma_mm)
         if 2 * result.retained.sum() >= len(obs):
             return result
-    except CalibrationError:
-        pass
+    except CalibrationError as exc:
+        failure = exc
     try:
         T0, agree = consensus_initialisation(obs)
         other = calibrate(
@@ -449,7 +449,7 @@ def _first_or_next(
         )
     except CalibrationError:
         if result is None:
-            raise
+            raise failure from None
         return result
     if result is None or other.retained.sum() > result.retained.sum():
         return other

@@ -20,10 +20,15 @@ Per sweep:
    the refinement passes.
 
 ``method="paper"`` stops there (grid-point centres). ``method="refined"`` differs in
-five ways, each for a failure of the paper's score measured on the twin (a bright plate
+six ways, each for a failure of the paper's score measured on the twin (a bright plate
 or floor taken for the sphere in ≈ 10-60 % of sweeps at low gain, a small sphere or a deep
 target; a biased centre where the cap saturates):
 
+- *Brightness above the noise floor.* A pixel must also stand above its depth's noise
+  floor (each image row's median plus two robust σ over the sweep, see
+  :func:`frame_levels`): where the gain lifts electronic noise above the frame mean, half
+  the water would otherwise be "bright" and a clearly visible cap would fail the
+  confinement test; a laterally uniform band (ring-down, a plate) stands out less.
 - *The plan's window.* With ``expected_depth_mm`` (the protocol's target depth) the
   search covers only ± ``expected_window_mm`` about it and about the centre line, where
   the plan put the sphere: where the cap sinks into the noise floor, the plate under
@@ -41,9 +46,9 @@ target; a biased centre where the cap saturates):
   cluster is searched again about it; a centre that still disagrees is rejected with the
   distance, and where no three centres agree none is confirmed (see ``_consensus``,
   ``_reject_disagreeing``).
-- *Sub-voxel centre* from the moments of the cap's echo (see ``_refine_centre``); where
-  the echo clips at 255 in several frames, its elevation from the midpoint of the
-  half-maximum crossings (``_elevation_vertex``).
+- *Sub-voxel centre* from the moments of the cap's echo (see ``_refine_centre``), its
+  elevation from a least-squares parabola through the cap's peak grey level per slice,
+  slices clipped at 255 left out (``_elevation_vertex``).
 
 Frames of one sweep share their orientation (a linear sweep); the re-stack applies each
 frame's in-plane and elevational offset and treats the frames as parallel (the residual

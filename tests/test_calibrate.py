@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.calibrate import Observation, calibrate, linear_initialisation, reconstruct
+from calib.calibrate import (
+    Observation,
+    calibrate,
+    consensus_initialisation,
+    linear_initialisation,
+    reconstruct,
+)
 from calib.errors import CalibrationError
 from calib.protocol import ProtocolConfig, plan_sweeps
 
@@ -174,3 +180,31 @@ def test_a_tight_layout_prior_is_the_exact_cad_fit(rng):
         assert np.linalg.norm(tight.layout[t] - c) < 1e-8
     with pytest.raises(ValueError, match="layout_sigma_mm"):
         calibrate(obs, CAD_LAYOUT, layout_sigma_mm=-1.0)
+
+
+def test_a_contaminated_first_localization_starts_from_the_largest_agreeing_set(rng):
+    """Uncalibrated, half the sweeps may take a plate 20 mm away for the sphere: the
+    closed form on all of them is a compromise far from the truth, and the outlier stage
+    then keeps a handful of accidental agreements. The largest agreeing set's closed form
+    (RANSAC) finds the sphere's sweeps, and the calibration from it keeps exactly them."""
+    centre = np.array([0.3, 0.0, 0.02])
+    obs = observations(centre, noise_mm=0.15, rng=rng)
+    wrong = rng.choice(len(obs), 21, replace=False)
+    for i in wrong:
+        o = obs[i]
+        direction = rng.normal(size=3)
+        spot = centre + 0.022 * direction / np.linalg.norm(direction)
+        p = se3.apply(se3.invert(o.T_base_ee @ T_EE_US_TRUE), spot)
+        obs[i] = Observation(o.target, o.pose_id, p, o.T_base_ee)
+    d_mm, d_deg = pose_errors(linear_initialisation(obs))
+    assert d_mm > 5 or d_deg > 5  # the compromise
+    T0, agree = consensus_initialisation(obs)
+    assert set(np.flatnonzero(agree)) == set(range(len(obs))) - set(wrong)
+    res = calibrate(obs, T_init=T0, first_fit=agree)
+    assert set(np.flatnonzero(res.retained)) == set(range(len(obs))) - set(wrong)
+    d_mm, d_deg = pose_errors(res.T_ee_us)
+    assert d_mm < 1.0 and d_deg < 1.0
+    # Seeded: the same observations, the same start.
+    assert np.array_equal(consensus_initialisation(obs)[0], T0)
+    with pytest.raises(CalibrationError, match="first fit"):
+        calibrate(obs, first_fit=np.zeros(len(obs), bool))
