@@ -335,8 +335,8 @@ class SweepVolume:
     def intensity(
         self, ks: NDArray[np.int64], rs: NDArray[np.int64], cs: NDArray[np.int64]
     ) -> Array:
-        """Grey level minus its brightness level of the voxel block ks × rs × cs (0 outside); rs and cs
-        are consecutive index ranges."""
+        """Grey level minus its brightness level of the voxel block ks × rs × cs (0
+        outside); rs and cs are consecutive index ranges."""
         out = np.zeros((len(ks), len(rs), len(cs)))
         if not (len(ks) and len(rs) and len(cs)):
             return out
@@ -504,7 +504,7 @@ def _row_noise_floor(images: NDArray[np.uint8]) -> Array:
     """Per image row (depth): median + _NOISE_SIGMAS · IQR/1.349 of its grey levels over
     all frames, from one histogram per row. Where most of a row sits at the display floor
     (dark water) this is 0 and the frame mean decides alone."""
-    n, H, W = images.shape
+    H = images.shape[1]
     rows = np.broadcast_to(np.arange(H, dtype=np.int32)[None, :, None] * 256, images.shape)
     hist = np.bincount((rows + images).ravel(), minlength=H * 256).reshape(H, 256)
     cdf = np.cumsum(hist, axis=1)
@@ -526,7 +526,7 @@ def frame_levels(images: NDArray[np.uint8], noise_floor: bool = False) -> Array:
     key = (id(images), bool(noise_floor))
     cached = _LEVELS_CACHE.get(key)
     if cached is None:
-        n, H, W = images.shape
+        H, W = images.shape[1:]
         means = _frame_sums(np.ascontiguousarray(images)) / (H * W)
         cached = np.repeat(means[:, None], H, axis=1)
         if noise_floor:
@@ -996,9 +996,9 @@ def _cap_weights(
     frames, levels, nearest, frame_rows, frame_cols, ks, rs, cs, dz2, dy2, dx2, lo2, hi2
 ):  # pragma: no cover - compiled
     """Weights (len(ks), len(rs), len(cs)) of the cap refinement: grey level minus its
-    brightness level (:func:`frame_levels`) where positive and the voxel lies in the shell band (squared distances
-    ``lo2 ≤ dz2 + dy2 + dx2 ≤ hi2``), else 0. Compiled: one pass instead of the several
-    full-block NumPy passes it replaces (≈ 4× faster)."""
+    brightness level (:func:`frame_levels`) where positive and the voxel lies in the shell
+    band (squared distances ``lo2 ≤ dz2 + dy2 + dx2 ≤ hi2``), else 0. Compiled: one pass
+    instead of the several full-block NumPy passes it replaces (≈ 4× faster)."""
     H, W = frames.shape[1], frames.shape[2]
     out = np.zeros((ks.shape[0], rs.shape[0], cs.shape[0]))
     for a in range(ks.shape[0]):
@@ -1135,11 +1135,10 @@ def _elevation_vertex(
     # One slice beyond the run on each side: the parabola needs the fall on both sides.
     lo, hi = max(lo - 1, 0), min(hi + 1, len(peaks) - 1)
     run = np.arange(lo, hi + 1)
-    clipped = (
-        peaks[run] >= clip[run] - 0.5 if clip is not None else np.zeros(len(run), dtype=bool)
-    )
+    clipped = peaks[run] >= clip[run] - 0.5 if clip is not None else np.zeros(len(run), dtype=bool)
     use = run[~clipped & (peaks[run] > 0)]
-    if len(use) >= 3 and use[0] < k < use[-1] or (clipped.any() and len(use) >= 3):
+    # Slices on both sides of the peak, or on both sides of a clipped top.
+    if len(use) >= 3 and (use[0] < k < use[-1] or clipped.any()):
         u = (zs[use] - zs[k]) / dz
         a, b, _ = np.polyfit(u, peaks[use], 2)
         if a < 0:
@@ -1321,9 +1320,7 @@ def localize_sphere(
     vols = []
     for s in sweeps:
         column_step = candidate_step((s.spacing[0], s.spacing[1], 1.0), grid)[2]
-        vols.append(
-            stack_sweep(s, T_ee_us, axial_scale, column_step, cfg.method == "refined")
-        )
+        vols.append(stack_sweep(s, T_ee_us, axial_scale, column_step, cfg.method == "refined"))
     results = [
         _seed_search(
             vol,
