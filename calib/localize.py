@@ -1079,13 +1079,19 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         # Elevation from the top of the cap only (where the echo stands far above noise).
         near_x = np.abs(xs - x_new) <= 0.5 * _MM
         near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _MM
-        # Each slice's weight at a grey level of 255 (saturation) in those rows.
-        frame_of = vol._nearest[ks]
+        # Elevation from the top of the cap only (where the echo stands far above noise),
+        # over every slice: beyond the elevation focus the beam is wider than a small
+        # sphere and its echo of the top follows the beam profile well past ± R.
+        ks_all = np.arange(K)
+        top = np.maximum(vol.intensity(ks_all, rs[near_y], cs[near_x]), 0.0)
+        # Each slice's value at a grey level of 255 (saturation) in those rows.
+        frame_of = vol._nearest[ks_all]
         rows = np.clip(rs[near_y][None, :] - vol._frame_rows[frame_of][:, None], 0, H - 1)
         clip = None
         if rows.size:
             clip = 255.0 - np.take_along_axis(vol._levels[frame_of], rows, axis=1).min(axis=1)
-        z_new = _elevation_vertex(w[:, near_y][:, :, near_x], zs, z_mean, dz, clip)
+        zs_all = vol.z0 + ks_all * dz
+        z_new = _elevation_vertex(top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius)
         # Top of the cap: the column under (x, z) in the nearest frames.
         col = np.abs(xs - x_new) <= max(dx, 0.25 * _MM)
         frames = np.abs(zs - z_new) <= 0.75 * dz
@@ -1105,11 +1111,16 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
 
 
 def _elevation_vertex(
-    w: Array, zs: Array, z_mean: float, dz: float, clip: Array | None = None
+    w: Array,
+    zs: Array,
+    z_mean: float,
+    dz: float,
+    clip: Array | None = None,
+    search: NDArray[np.bool_] | None = None,
 ) -> float:
     """Sub-slice elevation of the cap from its peak grey level per slice (``w`` is
     (slices, ...), ``zs`` the slices' elevations, ``clip`` each slice's ``w`` at a grey
-    level of 255).
+    level of 255, ``search`` the slices where the brightest is looked for).
 
     The peak grey level per slice is log-compressed (dB), in which a Gaussian beam profile
     is a parabola; its vertex is unbiased where a weighted mean over slices is biased by
@@ -1123,7 +1134,7 @@ def _elevation_vertex(
     if w.size == 0:
         return z_mean
     peaks = w.reshape(len(w), -1).max(axis=1)
-    k = int(np.argmax(peaks))
+    k = int(np.argmax(np.where(search, peaks, -np.inf) if search is not None else peaks))
     if peaks[k] <= 0:
         return z_mean
     half = 0.5 * peaks[k]
