@@ -916,6 +916,68 @@ def _hypothesis_search(
     return out
 
 
+# The specular arc (method "refined"): where the sphere's flanks are lost below the noise
+# floor (an attenuating gel, a deep target at low gain) only the cap about normal
+# incidence echoes, within _ARC_DEG of the beam axis (a mirror tilted by θ deflects the
+# echo by 2θ, out of the receive aperture beyond ≈ 7-13°; the echo stays visible a little
+# further). Its confinement: the tangent plane at the top, _TANGENT_BAND × R from the
+# touching point, where a sphere has no echo and a flat reflector lies.
+_ARC_DEG = 20.0
+_TANGENT_BAND = (0.6, 1.4)
+
+
+def _arc_samples(n: int, radius: float) -> Array:
+    """Shell directions within ``_ARC_DEG`` of the beam axis (towards the face), × R."""
+    d = fibonacci_hemisphere(int(np.ceil(n / (1.0 - np.cos(np.radians(_ARC_DEG))))))
+    return d[-d[:, 1] >= np.cos(np.radians(_ARC_DEG))][:n] * radius
+
+
+def _tangent_samples(n: int, radius: float) -> Array:
+    """Points of the plane touching the sphere's top, ``_TANGENT_BAND`` × R from it
+    (golden-angle spiral, uniform in area)."""
+    i = np.arange(n) + 0.5
+    lo, hi = _TANGENT_BAND
+    r = radius * np.sqrt(lo**2 + (i / n) * (hi**2 - lo**2))
+    phi = i * _GOLDEN_ANGLE
+    return np.column_stack([r * np.cos(phi), np.full(n, -radius), r * np.sin(phi)])
+
+
+def _arc_search(
+    vol: SweepVolume, radius: float, grid: float, cfg: LocalizerConfig
+) -> _Hypothesis | None:
+    """The best candidate whose specular arc stands out from the sphere's inside, from the
+    water or gel just above it and from its tangent plane, among the plan window's
+    ``_HYPOTHESES`` best separate maxima of the arc's contrast, each searched finely."""
+    start, step, count = _candidate_grid(vol, radius, grid, cfg)
+    if min(count) <= 0:
+        return None
+    arc = _arc_samples(cfg.shell_samples, radius)
+    interior = half_ball_samples(cfg.interior_samples, radius)
+    above = arc * (0.5 * sum(_OUTER_BAND))  # the outer band straight above the arc
+    tangent = _tangent_samples(cfg.shell_samples, radius)
+    score, _, _ = score_grid(vol, start, step, count, arc, interior, cfg.min_coverage)
+    best = None
+    for voxel in _local_maxima(vol, start, step, count, score, radius, _HYPOTHESES):
+        fine = _fine_candidates(vol, voxel, grid)
+        fa = _fractions(vol, fine, arc, cfg.min_coverage)
+        fi = _fractions(vol, fine, interior, cfg.min_coverage)
+        contrast = np.where(np.isnan(fa - fi), -np.inf, fa - fi)
+        j = int(np.argmax(contrast))
+        if not np.isfinite(contrast[j]):
+            continue
+        v = fine[j : j + 1]
+        outside = max(
+            float(np.nan_to_num(_fractions(vol, v, above, 0.0)[0])),
+            float(np.nan_to_num(_fractions(vol, v, tangent, 0.0)[0])),
+        )
+        h = _Hypothesis(
+            fine[j], float(fa[j] - max(fi[j], outside)), float(fa[j]), float(fi[j]), outside
+        )
+        if best is None or h.score > best.score:
+            best = h
+    return best
+
+
 def _local_window(
     centre_vox: Array, vol: SweepVolume, window: float, grid: float
 ) -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]:
@@ -1394,6 +1456,13 @@ def localize_sphere(
                 )
             else:
                 centre = _refine_centre(vol, centre, radius)
+        elif cfg.method == "refined" and i not in notes:
+            # Nothing with a sphere's whole cap: perhaps only its specular arc echoes.
+            arc = _arc_search(vol, radius, grid, cfg)
+            if arc is not None and arc.score >= cfg.min_score:
+                accepted, reason = True, ""
+                score, fs, fi, fo = arc.score, arc.f_shell, arc.f_interior, arc.f_outer
+                centre = _refine_centre(vol, vol.position(*arc.voxel.astype(float)), radius)
         out.append(
             SweepLocalization(
                 sweep.target,
