@@ -20,7 +20,7 @@ Per sweep:
    the refinement passes.
 
 ``method="paper"`` stops there (grid-point centres). ``method="refined"`` differs in
-six ways, each for a failure of the paper's score measured on the twin (a bright plate
+seven ways, each for a failure of the paper's score measured on the twin (a bright plate
 or floor taken for the sphere in ≈ 10-60 % of sweeps at low gain, a small sphere or a deep
 target; a biased centre where the cap saturates):
 
@@ -41,6 +41,11 @@ target; a biased centre where the cap saturates):
   bright share in the band ``_OUTER_BAND`` × R outside the sphere on the probe side: water
   for a sphere, more of the reflector for a plate. A detection whose cap does not stand
   out from that band by ``min_score`` is rejected with its reason.
+- *The specular arc.* Where nothing with a sphere's whole cap is found (an attenuating
+  gel, a deep target at low gain: the flanks sink below the noise and only the cap about
+  normal incidence echoes), a cone of the shell within ``_ARC_DEG`` of the beam axis is
+  searched the same way, confined by the band above it and by its tangent plane (where
+  a flat reflector lies and a sphere has no echo).
 - *The other sweeps as evidence* (with a calibration, ``consensus=True``): the centres of
   one sphere must agree in the robot base. A seed that disagrees with the densest
   cluster is searched again about it; a centre that still disagrees is rejected with the
@@ -112,10 +117,11 @@ class LocalizerConfig:
     method: Literal["paper", "refined", "fixed_threshold"] = field(
         default="refined",
         metadata={
-            "doc": "'paper': grid-point centres exactly as published; 'refined': the "
-            "grid's best separate maxima looked at finely, a sphere's echo required to "
-            "stop at the CAD radius (a flat reflector's runs on) and a sub-voxel centre "
-            "from the moments of the cap's echo; 'fixed_threshold': the "
+            "doc": "'paper': grid-point centres exactly as published; 'refined': "
+            "brightness also above each depth's noise floor, the grid's best separate "
+            "maxima looked at finely, a sphere's echo required to stop at the CAD radius "
+            "(a flat reflector's runs on), the specular arc alone where the whole cap is "
+            "not seen, and a sub-voxel centre from the cap's echo; 'fixed_threshold': the "
             "baseline the paper argues against (one absolute grey-level threshold, "
             "largest bright set, least-squares sphere; calib/baseline.py)."
         },
