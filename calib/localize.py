@@ -53,7 +53,8 @@ target; a biased centre where the cap saturates):
   ``_reject_disagreeing``).
 - *Sub-voxel centre* from the moments of the cap's echo (see ``_refine_centre``), its
   elevation from a least-squares parabola through the cap's peak grey level per slice,
-  slices clipped at 255 left out (``_elevation_vertex``).
+  slices clipped at 255 left out (``_elevation_vertex``); a centre whose elevation that
+  fit gives only to worse than ``_MAX_ELEVATION_SIGMA`` (1 σ) is rejected with it.
 
 Frames of one sweep share their orientation (a linear sweep); the re-stack applies each
 frame's in-plane and elevational offset and treats the frames as parallel (the residual
@@ -106,6 +107,9 @@ _REFINE_ROUNDS = 4
 _OUTER_BAND = (1.3, 1.8)
 # Separate local maxima of the coarse grid searched finely (method "refined").
 _HYPOTHESES = 4
+# A centre whose elevation the cap's echo gives only to worse than this (1 σ, metres) is
+# rejected: at 2 σ it could be a millimetre off.
+_MAX_ELEVATION_SIGMA = 0.5e-3
 _REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
 _MM = 1e-3
 
@@ -1091,8 +1095,9 @@ def _cap_weights(
     return out
 
 
-def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
-    """Sub-voxel centre from the moments of the cap's echo.
+def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Array, float]:
+    """Sub-voxel centre from the moments of the cap's echo, and the standard error of its
+    elevation (0 where not estimated; see :func:`_elevation_vertex`).
 
     The probe-facing cap is mirror-symmetric about the centre's lateral and elevational
     coordinates, so the echo-weighted means of x and z over the cap give them; the top of
@@ -1106,6 +1111,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
     dx, dy, dz = vol.spacing
     seed = np.asarray(centre, dtype=float)
     current = seed
+    z_sigma = 0.0
     K, H, W = vol.shape
     for _ in range(_REFINE_ROUNDS):
         x_c, y_c, z_c = current
@@ -1159,7 +1165,9 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
         if rows.size:
             clip = 255.0 - np.take_along_axis(vol._levels[frame_of], rows, axis=1).min(axis=1)
         zs_all = vol.z0 + ks_all * dz
-        z_new = _elevation_vertex(top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius)
+        z_new, z_sigma = _elevation_vertex(
+            top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius
+        )
         # Top of the cap: the column under (x, z) in the nearest frames.
         col = np.abs(xs - x_new) <= max(dx, 0.25 * _MM)
         frames = np.abs(zs - z_new) <= 0.75 * dz
@@ -1174,8 +1182,8 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> Array:
             break
     # A refinement that wanders far from the grid seed is not trusted.
     if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _MM):
-        return seed
-    return current
+        return seed, 0.0
+    return current, z_sigma
 
 
 def _elevation_vertex(
@@ -1185,8 +1193,9 @@ def _elevation_vertex(
     dz: float,
     clip: Array | None = None,
     search: NDArray[np.bool_] | None = None,
-) -> float:
-    """Sub-slice elevation of the cap from its peak grey level per slice (``w`` is
+) -> tuple[float, float]:
+    """Sub-slice elevation of the cap and its standard error (0 where not estimated) from
+    its peak grey level per slice (``w`` is
     (slices, ...), ``zs`` the slices' elevations, ``clip`` each slice's ``w`` at a grey
     level of 255, ``search`` the slices where the brightest is looked for).
 
@@ -1200,11 +1209,11 @@ def _elevation_vertex(
     profile. Without a usable fit, the midpoint of the half-maximum crossings.
     """
     if w.size == 0:
-        return z_mean
+        return z_mean, 0.0
     peaks = w.reshape(len(w), -1).max(axis=1)
     k = int(np.argmax(np.where(search, peaks, -np.inf) if search is not None else peaks))
     if peaks[k] <= 0:
-        return z_mean
+        return z_mean, 0.0
     half = 0.5 * peaks[k]
     lo = hi = k
     while lo > 0 and peaks[lo - 1] >= half:
@@ -1219,13 +1228,30 @@ def _elevation_vertex(
     # Slices on both sides of the peak, or on both sides of a clipped top.
     if len(use) >= 3 and (use[0] < k < use[-1] or clipped.any()):
         u = (zs[use] - zs[k]) / dz
-        a, b, _ = np.polyfit(u, peaks[use], 2)
-        if a < 0:
-            vertex = -b / (2 * a)
-            if u[0] <= vertex <= u[-1]:
-                return float(zs[k] + vertex * dz)
+        fit = _parabola_vertex(u, peaks[use])
+        if fit is not None and u[0] <= fit[0] <= u[-1]:
+            return float(zs[k] + fit[0] * dz), fit[1] * dz
     top = run[clipped] if clipped.any() else np.array([k])
-    return _half_maximum_midpoint(peaks, zs, int(top[0]), int(top[-1]), z_mean)
+    return _half_maximum_midpoint(peaks, zs, int(top[0]), int(top[-1]), z_mean), 0.0
+
+
+def _parabola_vertex(u: Array, y: Array) -> tuple[float, float] | None:
+    """Vertex of the least-squares parabola through (u, y) and its standard error (from
+    the fit's residuals by the delta method; 0 where fewer than 5 points leave no honest
+    estimate of them); None unless it opens downwards."""
+    A = np.column_stack([u**2, u, np.ones_like(u)])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    a, b = coef[0], coef[1]
+    if a >= 0:
+        return None
+    vertex = -b / (2 * a)
+    dof = len(u) - 3
+    if dof < 2:
+        return float(vertex), 0.0
+    s2 = float(np.sum((A @ coef - y) ** 2)) / dof
+    cov = s2 * np.linalg.inv(A.T @ A)[:2, :2]
+    g = np.array([b / (2 * a * a), -1 / (2 * a)])  # ∂vertex / ∂(a, b)
+    return float(vertex), float(np.sqrt(max(g @ cov @ g, 0.0)))
 
 
 def _half_maximum_midpoint(
@@ -1445,6 +1471,7 @@ def localize_sphere(
     for i, (sweep, vol, (cv, score, fs, fi)) in enumerate(zip(sweeps, vols, results, strict=True)):
         centre = vol.position(*np.asarray(cv, dtype=float))
         fo = float("nan")
+        z_sigma = 0.0
         accepted = bool(score >= cfg.min_score)
         reason = "" if accepted else notes.get(i, _not_found(score, cfg))
         if accepted and cfg.method == "refined":
@@ -1461,14 +1488,23 @@ def localize_sphere(
                     f"{_OUTER_BAND[0]:g}-{_OUTER_BAND[1]:g} R; a flat reflector?)"
                 )
             else:
-                centre = _refine_centre(vol, centre, radius)
+                centre, z_sigma = _refine_centre(vol, centre, radius)
         elif cfg.method == "refined" and i not in notes:
             # Nothing with a sphere's whole cap: perhaps only its specular arc echoes.
             arc = _arc_search(vol, radius, grid, cfg)
             if arc is not None and arc.score >= cfg.min_score:
                 accepted, reason = True, ""
                 score, fs, fi, fo = arc.score, arc.f_shell, arc.f_interior, arc.f_outer
-                centre = _refine_centre(vol, vol.position(*arc.voxel.astype(float)), radius)
+                seed = vol.position(*arc.voxel.astype(float))
+                centre, z_sigma = _refine_centre(vol, seed, radius)
+        if accepted and z_sigma > _MAX_ELEVATION_SIGMA:
+            # The cap's echo is about as bright in many frames (a weak echo in a beam
+            # wider than the sphere): its elevation is not measured well enough.
+            accepted = False
+            reason = (
+                f"elevation not measured: the cap's echo across the frames gives it to "
+                f"± {z_sigma / _MM:.2f} mm (1 σ; at most {_MAX_ELEVATION_SIGMA / _MM:g})"
+            )
         out.append(
             SweepLocalization(
                 sweep.target,

@@ -467,7 +467,7 @@ def test_elevation_vertex_of_thin_and_wide_beams(width_slices, clipped):
         peak = np.clip(peak, 0, 255 - 60)  # w = grey − level 60: 195 at a grey of 255
         w = np.repeat(peak[:, None], 3, axis=1)
         clip = np.full(len(zs), 195.0)
-        errors.append(_elevation_vertex(w, zs, 0.0, 1e-3, clip) - true_z)
+        errors.append(_elevation_vertex(w, zs, 0.0, 1e-3, clip)[0] - true_z)
     assert np.max(np.abs(errors)) < (0.12e-3 if width_slices > 1 else 0.06e-3), errors
 
 
@@ -517,3 +517,19 @@ def test_a_sphere_in_gel_is_found_by_its_specular_arc(gel_scan, monkeypatch):
     assert len(err) >= 0.8 * len(sweeps)
     assert err.max() < 1.0 and np.median(err) < 0.3
     assert all(r.reason for r in locs if not r.accepted)
+
+
+def test_elevation_uncertainty_rejects_a_flat_weak_cap():
+    """A weak cap in a beam wider than the sphere is about as bright in many frames: its
+    elevation is a vertex of a flat noisy profile, known to a millimetre at best, and it
+    says so; a clear profile gives its vertex to a few hundredths of a millimetre."""
+    from calib.localize import _MAX_ELEVATION_SIGMA, _elevation_vertex
+
+    rng = np.random.default_rng(11)
+    zs = np.arange(-10, 11) * 1e-3
+    sharp = 150.0 - 30.0 * ((zs - 0.3e-3) / 1e-3) ** 2
+    flat = np.where(np.abs(zs - 5.8e-3) < 3.5e-3, 60.0, 0.0) + rng.normal(0, 8, len(zs))
+    z_sharp, s_sharp = _elevation_vertex(np.clip(sharp, 0, None)[:, None], zs, 0.0, 1e-3)
+    z_flat, s_flat = _elevation_vertex(np.clip(flat, 0, None)[:, None], zs, 0.0, 1e-3)
+    assert abs(z_sharp - 0.3e-3) < 0.02e-3 and s_sharp < 0.05e-3
+    assert s_flat > _MAX_ELEVATION_SIGMA
