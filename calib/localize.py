@@ -1320,6 +1320,7 @@ def _seed_search(vol, radius, grid, shell, interior, cfg, previous, expected=Non
 _CLUSTER_MM = 2.0
 _AGREE_FLOOR_MM = 1.0
 _MIN_CLUSTER = 3  # centres that agree before any is confirmed
+_MIN_SWEEPS_SEEN = 6  # sweeps of a sphere before its share of detections is judged
 
 
 def _agreeing(base: Array, found: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], Array, float]:
@@ -1520,7 +1521,28 @@ def localize_sphere(
         )
     if use_consensus:
         out = _reject_disagreeing(sweeps, out, T_ee_us)
+    if cfg.method == "refined":
+        out = _reject_if_rarely_seen(out)
     return out
+
+
+def _reject_if_rarely_seen(locs: list[SweepLocalization]) -> list[SweepLocalization]:
+    """The plan keeps the sphere in view in every sweep: a sphere whose echo stands out
+    in fewer than half of them is at the noise floor (an attenuating gel too deep, a low
+    gain), where the few detections are the ones noise happened to shape; none of them
+    is accepted, each with that reason."""
+    n = len(locs)
+    found = sum(r.accepted for r in locs)
+    if n < _MIN_SWEEPS_SEEN or 2 * found >= n:
+        return locs
+    reason = (
+        f"sphere at the noise floor: found in only {found} of its {n} sweeps (a sphere "
+        f"in view is found in most; at least half needed to trust any)"
+    )
+    return [
+        replace(r, accepted=False, centre=np.full(3, np.nan), reason=reason) if r.accepted else r
+        for r in locs
+    ]
 
 
 def _not_found(score: float, cfg: LocalizerConfig) -> str:

@@ -530,6 +530,36 @@ def test_elevation_uncertainty_rejects_a_flat_weak_cap():
     sharp = 150.0 - 30.0 * ((zs - 0.3e-3) / 1e-3) ** 2
     flat = np.where(np.abs(zs - 5.8e-3) < 3.5e-3, 60.0, 0.0) + rng.normal(0, 8, len(zs))
     z_sharp, s_sharp = _elevation_vertex(np.clip(sharp, 0, None)[:, None], zs, 0.0, 1e-3)
-    z_flat, s_flat = _elevation_vertex(np.clip(flat, 0, None)[:, None], zs, 0.0, 1e-3)
+    _, s_flat = _elevation_vertex(np.clip(flat, 0, None)[:, None], zs, 0.0, 1e-3)
     assert abs(z_sharp - 0.3e-3) < 0.02e-3 and s_sharp < 0.05e-3
     assert s_flat > _MAX_ELEVATION_SIGMA
+
+
+def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():
+    """The plan keeps the sphere in view in every sweep; found in fewer than half, it is
+    at the noise floor and none of its few detections is accepted, each saying why. Found
+    in half or more, nothing changes."""
+    from calib.localize import SweepLocalization, _reject_if_rarely_seen
+
+    def locs(n_found, n=10):
+        return [
+            SweepLocalization(
+                "sphere_1",
+                i,
+                np.zeros(3) if i < n_found else np.full(3, np.nan),
+                0.5,
+                0.6,
+                0.1,
+                i < n_found,
+                "" if i < n_found else "no sphere found: best score 0.10 < 0.20",
+            )
+            for i in range(n)
+        ]
+
+    few = _reject_if_rarely_seen(locs(4))
+    assert not any(r.accepted for r in few)
+    assert all("found in only 4 of its 10 sweeps" in r.reason for r in few[:4])
+    assert few[7].reason.startswith("no sphere found")
+    assert all(np.isnan(r.centre).all() for r in few)
+    half = locs(5)
+    assert _reject_if_rarely_seen(half) == half
