@@ -152,9 +152,9 @@ def consensus_initialisation(
     sweeps) and can land far off, with the outlier stage then keeping a handful of
     accidental agreements. Here: the closed form on random minimal subsets (five sweeps
     per sphere, the fewest that fix it), each refitted on the observations that
-    reconstruct within ``agree_mm`` of their sphere's median centre (a minimal subset's
-    rotation is rough: a degree moves a centre 50 mm from the flange by almost a
-    millimetre) and scored by how many agree then. Returns the best closed form and its
+    reconstruct within ``agree_mm`` of the centre the subset gives their sphere (a
+    minimal subset's rotation is rough: a degree moves a centre 50 mm from the flange by
+    almost a millimetre) and scored by how many agree then. Returns the best closed form and its
     agreeing set. Seeded: the same observations give the same start.
     """
     targets = list(dict.fromkeys(o.target for o in obs))
