@@ -352,6 +352,13 @@ def bound95(
     # (An estimated layout's increments and its prior's rows cancel in the count.)
     dof = max(len(r0) - n_p - 3 * n_s + n_layout, 1)
     cov_fo = (JtJ_inv * float(r0 @ r0) / dof)[:6, :6]
+    # The localization noise is anisotropic (laterally a few hundredths of a millimetre,
+    # in elevation up to a few tenths) and differs between views: the sandwich estimator
+    # (White 1980; HC0 scaled by n / dof) reads each residual's own size instead of one
+    # pooled variance. The larger of the two in every direction.
+    meat = J.T @ (J * (r0**2)[:, None])
+    cov_hc = (JtJ_inv @ meat @ JtJ_inv * len(r0) / dof)[:6, :6]
+    cov_fo = _dominating(cov_fo, cov_hc)
 
     # ---- grouped jackknife: leave out one view (orientation group) at a time, re-solve.
     groups = orientation_groups(obs)
