@@ -6,7 +6,9 @@ that: errors that depend on the pose and so are shared by the sweeps of one view
 localization bias that depends on how the sphere is seen, the kinematic model's
 residual, which is a smooth function of the arm's configuration), and errors common to
 every sweep that the residuals cannot show (the printed sphere layout off its CAD, a
-speed-of-sound scale). The covariance here adds:
+speed-of-sound scale). The first-order covariance here is at least the sandwich
+estimator's (each residual's own size: the localization noise is anisotropic and differs
+between views), and the covariance adds:
 
 - **grouped jackknife** (statistical, from the data): the sweeps are grouped by the
   flange orientation they were taken at (the paper's protocol: 9 orientations × 5
