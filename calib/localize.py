@@ -844,19 +844,19 @@ def _best_nearby(
     candidates: NDArray[np.int64],
     shell: Array,
     interior: Array,
-    outer: Array,
+    outers: Sequence[Array],
     min_coverage: float,
 ) -> _Hypothesis:
     """The candidate the paper's contrast ``f_shell − f_interior`` prefers, with its
-    confined contrast: its cap must stand out from the inside of the sphere *and* from the
-    water just outside it on the probe side, where a sphere has no echo and a flat
-    reflector (plate, floor) does. An outer band wholly outside the image is no evidence
-    either way."""
+    confined contrast: its cap must stand out from the inside of the sphere *and* from
+    each set of ``outers`` just outside it (the water on the probe side, the tangent
+    plane), where a sphere has no echo and a flat reflector (plate, floor) does. A set
+    wholly outside the image is no evidence either way."""
     fs = _fractions(vol, candidates, shell, min_coverage)
     fi = _fractions(vol, candidates, interior, min_coverage)
     paper = np.where(np.isnan(fs - fi), -np.inf, fs - fi)
     i = int(np.argmax(paper))
-    fo = float(_fractions(vol, candidates[i : i + 1], outer, 0.0)[0])
+    fo = float(np.fmax.reduce([_fractions(vol, candidates[i : i + 1], P, 0.0)[0] for P in outers]))
     confined = fs[i] - np.fmax(fi[i], fo)
     return _Hypothesis(
         candidates[i],
@@ -915,7 +915,7 @@ def _hypothesis_search(
     found = []
     for voxel in _local_maxima(vol, start, step, count, score, radius, _HYPOTHESES):
         fine = _fine_candidates(vol, voxel, grid)
-        h = _best_nearby(vol, fine, shell, interior, outer, cfg.min_coverage)
+        h = _best_nearby(vol, fine, shell, interior, (outer,), cfg.min_coverage)
         found.append((h.score, voxel))
     # Ranked by the confined contrast found nearby; each seed stays the coarse grid
     # point (the paper's seed whenever its best maximum wins).
@@ -969,20 +969,7 @@ def _arc_search(
     best = None
     for voxel in _local_maxima(vol, start, step, count, score, radius, _HYPOTHESES):
         fine = _fine_candidates(vol, voxel, grid)
-        fa = _fractions(vol, fine, arc, cfg.min_coverage)
-        fi = _fractions(vol, fine, interior, cfg.min_coverage)
-        contrast = np.where(np.isnan(fa - fi), -np.inf, fa - fi)
-        j = int(np.argmax(contrast))
-        if not np.isfinite(contrast[j]):
-            continue
-        v = fine[j : j + 1]
-        outside = max(
-            float(np.nan_to_num(_fractions(vol, v, above, 0.0)[0])),
-            float(np.nan_to_num(_fractions(vol, v, tangent, 0.0)[0])),
-        )
-        h = _Hypothesis(
-            fine[j], float(fa[j] - max(fi[j], outside)), float(fa[j]), float(fi[j]), outside
-        )
+        h = _best_nearby(vol, fine, arc, interior, (above, tangent), cfg.min_coverage)
         if best is None or h.score > best.score:
             best = h
     return best
@@ -1239,8 +1226,7 @@ def _parabola_vertex(u: Array, y: Array) -> tuple[float, float] | None:
     """Vertex of the least-squares parabola through (u, y) and its standard error (from
     the fit's residuals by the delta method; 0 where fewer than 5 points leave no honest
     estimate of them); None unless it opens downwards."""
-    A = np.column_stack([u**2, u, np.ones_like(u)])
-    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    coef, unscaled = np.polyfit(u, y, 2, cov="unscaled")  # unscaled: (AᵀA)⁻¹
     a, b = coef[0], coef[1]
     if a >= 0:
         return None
@@ -1248,8 +1234,8 @@ def _parabola_vertex(u: Array, y: Array) -> tuple[float, float] | None:
     dof = len(u) - 3
     if dof < 2:
         return float(vertex), 0.0
-    s2 = float(np.sum((A @ coef - y) ** 2)) / dof
-    cov = s2 * np.linalg.inv(A.T @ A)[:2, :2]
+    s2 = float(np.sum((np.polyval(coef, u) - y) ** 2)) / dof
+    cov = s2 * unscaled[:2, :2]
     g = np.array([b / (2 * a * a), -1 / (2 * a)])  # ∂vertex / ∂(a, b)
     return float(vertex), float(np.sqrt(max(g @ cov @ g, 0.0)))
 
@@ -1479,7 +1465,7 @@ def localize_sphere(
             # Evidence beyond the score that picked it: the CAD sphere's cap must stand
             # out from the water just outside it as well (a flat reflector does not).
             fine = _fine_candidates(vol, np.asarray(cv, dtype=np.int64), grid)
-            h = _best_nearby(vol, fine, shell, interior, outer, 0.0)
+            h = _best_nearby(vol, fine, shell, interior, (outer,), 0.0)
             fo = h.f_outer
             if h.f_shell - h.f_outer < cfg.min_score:
                 accepted = False
