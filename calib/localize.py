@@ -343,10 +343,15 @@ class SweepVolume:
         )
 
     def intensity(
-        self, ks: NDArray[np.int64], rs: NDArray[np.int64], cs: NDArray[np.int64]
+        self,
+        ks: NDArray[np.int64],
+        rs: NDArray[np.int64],
+        cs: NDArray[np.int64],
+        level: float | None = None,
     ) -> Array:
         """Grey level minus its brightness level of the voxel block ks × rs × cs (0
-        outside); rs and cs are consecutive index ranges."""
+        outside); rs and cs are consecutive index ranges. ``level`` subtracts that one
+        level everywhere instead of each frame row's own."""
         out = np.zeros((len(ks), len(rs), len(cs)))
         if not (len(ks) and len(rs) and len(cs)):
             return out
@@ -360,7 +365,8 @@ class SweepVolume:
             c_hi = min(cs[-1] + 1 - self._frame_cols[j], W)
             if r_hi <= r_lo or c_hi <= c_lo:
                 continue
-            block = self._frames[j, r_lo:r_hi, c_lo:c_hi] - self._levels[j, r_lo:r_hi, None]
+            sub = self._levels[j, r_lo:r_hi, None] if level is None else level
+            block = self._frames[j, r_lo:r_hi, c_lo:c_hi] - sub
             ro = r_lo + self._frame_rows[j] - rs[0]
             co = c_lo + self._frame_cols[j] - cs[0]
             out[a, ro : ro + r_hi - r_lo, co : co + c_hi - c_lo] = block
@@ -1143,14 +1149,25 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         # Elevation from the top of the cap only (where the echo stands far above noise),
         # over every slice: beyond the elevation focus the beam is wider than a small
         # sphere and its echo of the top follows the beam profile well past ± R.
+        # One brightness level for every slice: the vertex of the profile must not move
+        # with the level. Each frame's level follows its own rows, and where the sphere's
+        # echoes raise the depth's noise floor about the cap, the frames' in-plane drift
+        # along the sweep (its axis a little off the image normal) slides the cap across
+        # that bump: a level varying linearly with elevation tilts the profile and moved
+        # the vertex by up to 0.15 mm at 45 mm.
         ks_all = np.arange(K)
-        top = np.maximum(vol.intensity(ks_all, rs[near_y], cs[near_x]), 0.0)
-        # Each slice's value at a grey level of 255 (saturation) in those rows.
         frame_of = vol._nearest[ks_all]
-        rows = np.clip(rs[near_y][None, :] - vol._frame_rows[frame_of][:, None], 0, H - 1)
-        clip = None
+        rows = np.clip(
+            rs[near_y][None, :] - vol._frame_rows[frame_of][:, None], 0, vol._frames.shape[1] - 1
+        )
+        level = 0.0
         if rows.size:
-            clip = 255.0 - np.take_along_axis(vol._levels[frame_of], rows, axis=1).min(axis=1)
+            level = float(
+                np.median(np.take_along_axis(vol._levels[frame_of], rows, axis=1).max(axis=1))
+            )
+        top = np.maximum(vol.intensity(ks_all, rs[near_y], cs[near_x], level), 0.0)
+        # A slice's top at a grey level of 255 is saturated.
+        clip = np.full(K, 255.0 - level)
         zs_all = vol.z0 + ks_all * dz
         z_new, z_sigma = _elevation_vertex(
             top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius

@@ -546,6 +546,44 @@ def test_elevation_uncertainty_rejects_a_flat_weak_cap():
     assert np.all(flagged[np.array(flat_err) > 1e-3])  # none a millimetre off gets through
 
 
+def test_elevation_is_not_tilted_by_the_floor_the_sphere_raises(monkeypatch):
+    """An 8 mm sphere 45 mm deep at 0 dB: its own echoes raise the depth's noise floor
+    about the cap, and the sweep's axis, a little off the image normal (the mount), slides
+    the cap a few rows across that bump from the first frame to the last. Measured against
+    each frame's own level, the cap's profile across the sweep tilts and every centre moved
+    the same way in elevation (0.16 mm, the seed's mount deciding the sign); against one
+    level for the whole profile the elevation is unbiased."""
+    from calib.localize import SweepVolume
+
+    sweeps, truths, T_ee_us, scale, _ = _quick_scan(
+        [
+            "seed=1",
+            "phantom.sphere_radius_mm=8",
+            "protocol.target_depth_mm=45",
+            "imaging.depth_mm=60",
+        ],
+        1,
+    )
+    cfg = LocalizerConfig(expected_depth_mm=45.0)
+
+    def elevation_errors_mm():
+        locs = localize_sphere(sweeps, T_ee_us, 8 * MM, cfg, scale)
+        assert sum(r.accepted for r in locs) >= 0.9 * len(sweeps)
+        return np.array(
+            [(r.centre - p)[2] / MM for r, p in zip(locs, truths, strict=True) if r.accepted]
+        )
+
+    with monkeypatch.context() as m:
+        per_frame = SweepVolume.intensity
+        m.setattr(
+            SweepVolume, "intensity", lambda self, k, r, c, level=None: per_frame(self, k, r, c)
+        )
+        tilted = elevation_errors_mm()
+    assert tilted.mean() > 0.1  # the failure: one offset shared by every sweep
+    errors = elevation_errors_mm()
+    assert abs(errors.mean()) < 0.05 and errors.std() < tilted.std()
+
+
 def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():
     """The plan keeps the sphere in view in every sweep; found in fewer than half, it is
     at the noise floor and none of its few detections is accepted, each saying why. Found
