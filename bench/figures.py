@@ -12,7 +12,8 @@ from numpy.typing import NDArray
 from calib.calibrate import AlternationResult
 from calib.evaluate import PHANTOM_TITLES
 from calib.image import sphere_section, us_to_pixel
-from calib.localize import SphereProfile, SweepLocalization, frame_offsets, sphere_profile
+from calib.localization import SweepLocalization, frame_offsets
+from calib.localize import SphereProfile, sphere_profile
 from calib.observability import information, jacobians
 from calib.records import Sweep
 

@@ -27,7 +27,8 @@ from calib.dh import DHTable
 from calib.errors import DatasetError
 from calib.evaluate import evaluate_fold, folds, training_precision
 from calib.kinematics import TouchReference, fit_reference, refine_dh, with_kinematics
-from calib.localize import LocalizerConfig, localize_sphere
+from calib.localization import LocalizerConfig
+from calib.localize import localize_sphere
 from calib.records import Dataset
 from calib.uncertainty import Bound95, UncertaintyInputs, alternation_bound, image_grid
 

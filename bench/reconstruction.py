@@ -40,7 +40,8 @@ from calib.calibrate import alternate
 from calib.dh import DHTable, forward_kinematics
 from calib.image import pixel_to_us
 from calib.kinematics import kinematic_gauge, with_kinematics
-from calib.localize import SweepLocalization, localize_sphere
+from calib.localization import SweepLocalization
+from calib.localize import localize_sphere
 from calib.protocol import (
     acquire,
     check_plan,

@@ -50,7 +50,8 @@ from rerun.chunk import RrdReader
 from calib import se3
 from calib.calibrate import AlternationResult
 from calib.image import pixel_to_us, sphere_section, us_to_pixel
-from calib.localize import LocalizerConfig, SweepLocalization, frame_offsets, sphere_profile
+from calib.localization import LocalizerConfig, SweepLocalization, frame_offsets
+from calib.localize import sphere_profile
 from calib.records import Sweep
 
 from .recording_options import RecordingOptions, sweeps_to_log

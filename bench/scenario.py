@@ -28,7 +28,7 @@ import yaml
 
 from calib import se3
 from calib.errors import ScenarioError, UnreachablePoseError
-from calib.localize import LocalizerConfig
+from calib.localization import LocalizerConfig
 from calib.protocol import ProtocolConfig, facing_pose, orientation_offsets, rotated_about_target
 from calib.settings import CalibrationConfig, EvaluationConfig, ReconstructionConfig
 from sim_us import MediumConfig, ProbeConfig

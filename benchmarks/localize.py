@@ -31,18 +31,17 @@ from bench.experiment import (  # noqa: E402
     simulate_acquisition,
 )
 from bench.scenario import load_scenario  # noqa: E402
-from calib import localize  # noqa: E402
+from calib import stacking  # noqa: E402
+from calib.localization import LocalizerConfig  # noqa: E402
 from calib.localize import (  # noqa: E402
-    LocalizerConfig,
     _candidate_grid,
-    candidate_step,
     fibonacci_hemisphere,
     half_ball_samples,
     localize_sphere,
     score_candidates_reference,
     score_grid,
-    stack_sweep,
 )
+from calib.stacking import candidate_step, stack_sweep  # noqa: E402
 
 
 def main() -> None:
@@ -114,7 +113,7 @@ def main() -> None:
         for _ in range(args.repeats):
             # A first localization of each sweep: its frames' bright bits are packed too
             # (later re-stacks of the same sweep reuse them).
-            localize._BITS_CACHE.clear()
+            stacking._BITS_CACHE.clear()
             t0 = time.perf_counter()
             localize_sphere(
                 sweeps, twin.truth.T_ee_us, radius, LocalizerConfig(method=method), scale

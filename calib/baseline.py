@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from scipy import ndimage, optimize
 
 from .image import pixel_to_us
-from .localize import LocalizerConfig, SweepLocalization, frame_offsets
+from .localization import LocalizerConfig, SweepLocalization, frame_offsets
 from .records import Sweep
 
 __all__ = ["localize_sphere_fixed_threshold"]

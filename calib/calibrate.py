@@ -35,7 +35,8 @@ from scipy.optimize import least_squares
 
 from . import se3
 from .errors import CalibrationError
-from .localize import LocalizerConfig, SweepLocalization, localize_sphere
+from .localization import LocalizerConfig, SweepLocalization
+from .localize import localize_sphere
 from .records import Sweep
 from .robust import outlier_limit, robust_inliers
 

@@ -33,7 +33,8 @@ from numpy.typing import NDArray
 from . import se3
 from .calibrate import AlternationResult, alternate, reconstruct, robust_inliers
 from .errors import CalibrationError
-from .localize import LocalizerConfig, SweepLocalization, localize_sphere
+from .localization import LocalizerConfig, SweepLocalization
+from .localize import localize_sphere
 from .records import Sweep
 
 __all__ = [

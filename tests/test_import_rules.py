@@ -97,3 +97,72 @@ def test_import_rules(pkg, path):
         )
     if pkg == "sim_us":
         assert not tops & {"twin", "bench", "hw"}, f"{rel} imports another package"
+
+
+def _module_graph(pkg: str) -> dict[str, set[str]]:
+    """Each module of ``pkg`` (dotted name) → the modules of ``pkg`` it imports, at any
+    level (a function-level import to dodge a cycle counts as one)."""
+    paths = {
+        ".".join(p.relative_to(ROOT).with_suffix("").parts): p
+        for p in sorted((ROOT / pkg).rglob("*.py"))
+    }
+    paths = {m.removesuffix(".__init__"): p for m, p in paths.items()}
+    return {
+        m: {n for n in imports_of(p) if n in paths and n != m and n != pkg}
+        for m, p in paths.items()
+    }
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (its modules in order), or None."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(m: str) -> list[str] | None:
+        state[m] = 1
+        path.append(m)
+        for n in sorted(graph[m]):
+            if state.get(n) == 1:
+                return [*path[path.index(n) :], n]
+            if n not in state and (found := visit(n)):
+                return found
+        path.pop()
+        state[m] = 2
+        return None
+
+    for m in sorted(graph):
+        if m not in state and (found := visit(m)):
+            return found
+    return None
+
+
+def test_cycle_finder_finds_a_cycle():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) is None
+
+
+@pytest.mark.parametrize("pkg", ["calib", "sim_us", "twin", "hw"])
+def test_no_import_cycles(pkg):
+    """No module imports, directly or through others, the module importing it (lazy
+    imports included): each package reads bottom-up."""
+    cycle = _cycle(_module_graph(pkg))
+    assert cycle is None, " → ".join(cycle)
+
+
+def test_the_method_is_importable_from_calib():
+    """``calib.<name>`` is the defining module's object for every public name; the shared
+    maths alone does not load the localizer (lazy exports)."""
+    import importlib
+    import subprocess
+    import sys
+
+    import calib
+
+    for name in calib.__all__:
+        module = importlib.import_module(f"calib.{calib._EXPORTS[name]}")
+        assert getattr(calib, name) is getattr(module, name)
+    with pytest.raises(AttributeError):
+        _ = calib.no_such_name
+    code = "import sys, calib.se3; print('calib.localize' in sys.modules, 'numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.stdout.split() == ["False", "False"], out.stderr

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 
 from calib import se3
+from calib.localization import LocalizerConfig
 from calib.localize import (
-    LocalizerConfig,
     fibonacci_hemisphere,
     half_ball_samples,
     localize_sphere,
     score_candidates,
     score_candidates_reference,
     score_grid,
-    stack_sweep,
 )
 from calib.records import Sweep
+from calib.stacking import stack_sweep
 
 MM = 1e-3
 
@@ -337,7 +337,8 @@ def test_centres_no_three_sweeps_agree_on_are_not_accepted(small_sphere_scan):
 def test_the_plan_window_bounds_the_search(small_sphere_scan):
     """Candidates lie within ± expected_window_mm of the expected depth and the centre
     line; a window that misses the sphere finds nothing there and says so."""
-    from calib.localize import _candidate_grid, stack_sweep
+    from calib.localize import _candidate_grid
+    from calib.stacking import stack_sweep
 
     sweeps, _, T_ee_us, scale = small_sphere_scan
     vol = stack_sweep(sweeps[0], T_ee_us, scale)
@@ -410,7 +411,7 @@ def test_a_cap_in_noise_is_found_above_the_noise_floor(noisy_deep_scan, monkeypa
     0.3 mm in elevation (the beam is 6 mm thick there). Above the depth's noise floor,
     with the elevation from a parabola over all the cap's slices, nearly every sweep is
     found within 1 mm."""
-    import calib.localize as loc_module
+    import calib.stacking as stacking
 
     sweeps, truths, T_ee_us, scale = noisy_deep_scan
     cfg = LocalizerConfig(expected_depth_mm=45.0)
@@ -421,9 +422,9 @@ def test_a_cap_in_noise_is_found_above_the_noise_floor(noisy_deep_scan, monkeypa
 
     with monkeypatch.context() as m:
         # The frame mean alone (the paper's cut-off).
-        m.setattr(loc_module, "_row_noise_floor", lambda images: np.zeros(images.shape[1]))
-        m.setattr(loc_module, "_LEVELS_CACHE", {})
-        m.setattr(loc_module, "_BITS_CACHE", {})
+        m.setattr(stacking, "_row_noise_floor", lambda images: np.zeros(images.shape[1]))
+        m.setattr(stacking, "_LEVELS_CACHE", {})
+        m.setattr(stacking, "_BITS_CACHE", {})
         mean_only = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale)
     assert sum(r.accepted for r in mean_only) < 0.5 * len(sweeps)  # the failure
     assert any("not a sphere" in r.reason for r in mean_only)
@@ -438,7 +439,7 @@ def test_frame_levels_follow_the_noise_floor_of_each_depth():
     where noise fills it: rows of uniform noise about 60 ± 20 get a level well above 60
     (only the noise's tail is bright), dark rows keep the frame mean, and a bright echo
     stands above both."""
-    from calib.localize import frame_levels
+    from calib.stacking import frame_levels
 
     rng = np.random.default_rng(3)
     images = np.zeros((5, 40, 80), np.uint8)
@@ -558,7 +559,7 @@ def test_elevation_is_not_tilted_by_the_floor_the_sphere_raises(monkeypatch):
     each frame's own level, the cap's profile across the sweep tilts and every centre moved
     the same way in elevation (0.16 mm, the seed's mount deciding the sign); against one
     level for the whole profile the elevation is unbiased."""
-    from calib.localize import SweepVolume
+    from calib.stacking import SweepVolume
 
     sweeps, truths, T_ee_us, scale, _ = _quick_scan(
         [
@@ -623,7 +624,8 @@ def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():
     """The plan keeps the sphere in view in every sweep; found in fewer than half, it is
     at the noise floor and none of its few detections is accepted, each saying why. Found
     in half or more, nothing changes."""
-    from calib.localize import SweepLocalization, _reject_if_rarely_seen
+    from calib.localization import SweepLocalization
+    from calib.localize import _reject_if_rarely_seen
 
     def locs(n_found, n=10):
         return [
