@@ -68,7 +68,7 @@ __all__ = [
 ]
 
 STAGES = ("localize", "calibrate")
-METHODS = ("paper", "refined", "fixed_threshold")
+LOCALIZER_METHODS = ("paper", "refined", "fixed_threshold")
 CSV_COLUMNS = ("seed", "method", "localization_median_error_mm", "rejected_fraction")
 
 
@@ -155,8 +155,8 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     if stages not in (["localize"], ["localize", "calibrate"]):
         raise _fail(source, "stages", "[localize] or [localize, calibrate]")
     methods = data.get("methods", ["refined", "fixed_threshold"])
-    if not (isinstance(methods, list) and methods and set(methods) <= set(METHODS)):
-        raise _fail(source, "methods", f"a non-empty list from {list(METHODS)}")
+    if not (isinstance(methods, list) and methods and set(methods) <= set(LOCALIZER_METHODS)):
+        raise _fail(source, "methods", f"a non-empty list from {list(LOCALIZER_METHODS)}")
     for key, values in grid.items():
         n = len(linked_keys(key))
         if n > 1 and not all(isinstance(v, list) and len(v) == n for v in values):

@@ -48,7 +48,6 @@ __all__ = [
     "refine_dh",
     "tip_positions",
     "with_kinematics",
-    "z_from_deltas",
 ]
 
 Array = NDArray[np.float64]
@@ -63,11 +62,6 @@ _MM = 1e3
 def deltas_from_z(z: ArrayLike) -> DHDeltas:
     """Scaled corrections z (6, 4) or (24,) — degrees and millimetres — to SI deltas."""
     return DHDeltas.from_array(np.asarray(z, dtype=float).reshape(6, 4) * _Z_TO_SI)
-
-
-def z_from_deltas(deltas: DHDeltas) -> Array:
-    """SI deltas to scaled corrections z (6, 4)."""
-    return deltas.as_array() / _Z_TO_SI
 
 
 def tip_positions(table: DHTable, q: ArrayLike, p_ee_tip: ArrayLike) -> Array:

@@ -108,7 +108,7 @@ _HYPOTHESES = 4
 # rejected: at 2 σ it could be a millimetre off.
 _MAX_ELEVATION_SIGMA = 0.5e-3
 _REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
-_MM = 1e-3
+_M_PER_MM = 1e-3
 
 
 # ----------------------------------------------------------------------------- samples
@@ -288,8 +288,8 @@ def _candidate_grid(
     lo = [0, max(int(np.ceil(radius / dy)) - vol.row0, 0), 0]
     hi = [K, H, W]  # exclusive
     if cfg is not None and cfg.method == "refined" and cfg.expected_depth_mm is not None:
-        half = cfg.expected_window_mm * _MM
-        depth = cfg.expected_depth_mm * _MM
+        half = cfg.expected_window_mm * _M_PER_MM
+        depth = cfg.expected_depth_mm * _M_PER_MM
         centre_col = (vol.width - 1) / 2 - vol.col0
         lo[1] = max(lo[1], int(np.ceil((depth - half) / dy)) - vol.row0)
         hi[1] = min(hi[1], int(np.floor((depth + half) / dy)) - vol.row0 + 1)
@@ -595,8 +595,8 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         x_new = float(w.sum(axis=(0, 1)) @ xs / total)
         z_mean = float(w.sum(axis=(1, 2)) @ zs / total)
         # Elevation from the top of the cap only (where the echo stands far above noise).
-        near_x = np.abs(xs - x_new) <= 0.5 * _MM
-        near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _MM
+        near_x = np.abs(xs - x_new) <= 0.5 * _M_PER_MM
+        near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _M_PER_MM
         # Elevation from the top of the cap only (where the echo stands far above noise),
         # over every slice: beyond the elevation focus the beam is wider than a small
         # sphere and its echo of the top follows the beam profile well past ± R.
@@ -624,7 +624,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
             top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius
         )
         # Top of the cap: the column under (x, z) in the nearest frames.
-        col = np.abs(xs - x_new) <= max(dx, 0.25 * _MM)
+        col = np.abs(xs - x_new) <= max(dx, 0.25 * _M_PER_MM)
         frames = np.abs(zs - z_new) <= 0.75 * dz
         wt = w[frames][:, :, col].sum(axis=(0, 2))
         if wt.sum() <= 0:
@@ -636,7 +636,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         if moved < _REFINE_TOL:
             break
     # A refinement that wanders far from the grid seed is not trusted.
-    if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _MM):
+    if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _M_PER_MM):
         return seed, 0.0
     return current, z_sigma
 
@@ -769,12 +769,16 @@ def _seed_search(vol, radius, grid, shell, interior, cfg, previous, expected=Non
     full_start, step, full_count = _candidate_grid(vol, radius, grid, cfg)
     if expected is not None:
         k, r, c = (int(v) for v in vol.index(np.asarray(expected, dtype=float)))
-        start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
+        start, step, count = _local_window(
+            (k, r, c), vol, cfg.relocalize_window_mm * _M_PER_MM, grid
+        )
         start = tuple(max(s0, fs) for s0, fs in zip(start, full_start, strict=True))
         return _best_on_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
     if previous is not None and previous.accepted:
         k, r, c = (int(v) for v in vol.index(previous.centre))
-        start, step, count = _local_window((k, r, c), vol, cfg.relocalize_window_mm * _MM, grid)
+        start, step, count = _local_window(
+            (k, r, c), vol, cfg.relocalize_window_mm * _M_PER_MM, grid
+        )
         start = tuple(max(s0, fs) for s0, fs in zip(start, full_start, strict=True))
         if all(n > 0 for n in count):
             best = _best_on_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
@@ -808,12 +812,12 @@ def _agreeing(base: Array, found: NDArray[np.bool_]) -> tuple[NDArray[np.bool_],
     pts = base[idx]
     if len(idx) == 0:
         return found.copy(), np.full(3, np.nan), float("inf")
-    near = np.linalg.norm(pts[:, None] - pts[None], axis=-1) < _CLUSTER_MM * _MM
+    near = np.linalg.norm(pts[:, None] - pts[None], axis=-1) < _CLUSTER_MM * _M_PER_MM
     cluster = near[int(np.argmax(near.sum(axis=1)))]
     if cluster.sum() < _MIN_CLUSTER:
         return found.copy(), np.full(3, np.nan), float("inf")
     consensus = pts[cluster].mean(axis=0)
-    d = np.linalg.norm(base - consensus, axis=1) / _MM
+    d = np.linalg.norm(base - consensus, axis=1) / _M_PER_MM
     limit = outlier_limit(d[idx][cluster], _AGREE_FLOOR_MM)
     return found & (d <= limit), consensus, limit
 
@@ -844,7 +848,7 @@ def _consensus(sweeps, vols, results, T_ee_us, radius, grid, shell, interior, cf
         expected = se3.apply(se3.invert(T_ref[i]), consensus)
         out[i] = _seed_search(vols[i], radius, grid, shell, interior, cfg, None, expected)
         if found[i]:
-            d = float(np.linalg.norm(base[i] - consensus) / _MM)
+            d = float(np.linalg.norm(base[i] - consensus) / _M_PER_MM)
             notes[i] = (
                 f"disagrees with the sphere's other sweeps: its best candidate lay {d:.2f} mm "
                 f"from their consensus (limit {limit:.2f} mm), and nothing near the "
@@ -978,7 +982,8 @@ def localize_sphere(
             accepted = False
             reason = (
                 f"elevation not measured: the cap's echo across the frames gives it to "
-                f"± {z_sigma / _MM:.2f} mm (1 σ; at most {_MAX_ELEVATION_SIGMA / _MM:g})"
+                f"± {z_sigma / _M_PER_MM:.2f} mm "
+                f"(1 σ; at most {_MAX_ELEVATION_SIGMA / _M_PER_MM:g})"
             )
         out.append(
             SweepLocalization(
@@ -1051,7 +1056,7 @@ def _reject_disagreeing(sweeps, locs, T_ee_us) -> list[SweepLocalization]:
                 f"of {len(locs)} sweeps found a candidate)"
             )
         elif loc.accepted and not agree[i]:
-            d = float(np.linalg.norm(base[i] - consensus) / _MM)
+            d = float(np.linalg.norm(base[i] - consensus) / _M_PER_MM)
             reason = (
                 f"disagrees with the sphere's other sweeps: {d:.2f} mm from their "
                 f"consensus (limit {limit:.2f} mm)"
