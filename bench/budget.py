@@ -38,6 +38,7 @@ from calib.errors import UscalError
 
 from . import progress as progress_report
 from .error_sources import ERROR_SOURCES, ErrorSource, value_at
+from .output import make_directory
 from .report import report_html
 from .scenario import Scenario, load_scenario
 from .sweep import as_completed, code_version, executor, write_atomic
@@ -247,7 +248,7 @@ def run_budget(
     ``budget.md``, ``budget.html`` and the tornado charts."""
     t0 = time.perf_counter()
     out = Path(out)
-    (out / "points").mkdir(parents=True, exist_ok=True)
+    make_directory(out / "points")
     runs = spec.runs()
     keys = [spec.run_key(r) for r in runs]
     done: dict[str, dict[str, Any]] = {}

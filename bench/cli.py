@@ -510,7 +510,7 @@ def _cmd_image(args: argparse.Namespace, console: Console) -> int:
 def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     import json
 
-    from .output import atomic_output_dir
+    from .output import atomic_output_dir, make_directory
     from .recording_options import RecordingOptions
     from .report import write_report
     from .run import run
@@ -524,6 +524,8 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
         rrd_target = Path(args.rrd) if args.rrd else Path(out) / "recording.rrd"
     if args.rrd and Path(args.rrd).is_dir():
         raise UscalError(f"--rrd {args.rrd}: is a directory; give a file name (e.g. run.rrd)")
+    if args.rrd:
+        make_directory(Path(args.rrd).parent)  # fail now, not after the run
     # Fail early (before minutes of simulation) if the output would be refused.
     with atomic_output_dir(out, force=args.force) as tmp:
         recording = None
@@ -546,7 +548,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
         written += write_report(tmp, scenario, result)
     if args.rrd and recording is not None:
         target = Path(args.rrd)
-        target.parent.mkdir(parents=True, exist_ok=True)
+        make_directory(target.parent)
         # The finished file leaves the (now final) output directory in one rename.
         os.replace(Path(out) / "recording.rrd", target)
         written.append(str(target.resolve()))
@@ -626,7 +628,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     import json
 
     from .offline import calibrate_recorded, record_recorded
-    from .output import atomic_output_dir
+    from .output import atomic_output_dir, make_directory
     from .recording_options import RecordingOptions
     from .report import write_report
 
@@ -635,6 +637,8 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     out = Path(args.out) if args.out else dataset_dir.with_name(dataset_dir.name + "-calibration")
     if args.rrd and Path(args.rrd).is_dir():
         raise UscalError(f"--rrd {args.rrd}: is a directory; give a file name (e.g. run.rrd)")
+    if args.rrd and not args.no_rrd:
+        make_directory(Path(args.rrd).parent)  # fail now, not after the calibration
     markers = (int(args.markers),) if args.markers else (1, 3)
     with atomic_output_dir(out, force=args.force) as tmp:
         with _progress_bars(console) as bars, reporting(bars.update):
@@ -649,7 +653,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
         written += write_report(tmp, settings, result.as_run_result(settings))
     if args.rrd and not args.no_rrd:
         target = Path(args.rrd)
-        target.parent.mkdir(parents=True, exist_ok=True)
+        make_directory(target.parent)
         os.replace(out / "recording.rrd", target)
         written.append(str(target.resolve()))
     _print_recorded(result.metrics, console)

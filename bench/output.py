@@ -12,11 +12,30 @@ from pathlib import Path
 
 from calib.errors import UscalError
 
-__all__ = ["OutputExistsError", "atomic_output_dir"]
+__all__ = ["OutputExistsError", "OutputPlaceError", "atomic_output_dir", "make_directory"]
 
 
 class OutputExistsError(UscalError):
     """The output directory exists and would be overwritten."""
+
+
+class OutputPlaceError(UscalError):
+    """An output cannot be written where it was asked for (no such place, read-only,
+    not a directory, no permission, no space)."""
+
+
+def make_directory(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a directory, created with its parents if need be; one clear error
+    (:class:`OutputPlaceError`) where it cannot be."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputPlaceError(
+            f"{path}: cannot create a directory there ({e.strerror or e}); "
+            "choose an output directory you can write to"
+        ) from None
+    return path
 
 
 @contextlib.contextmanager
@@ -34,8 +53,14 @@ def atomic_output_dir(target: str | os.PathLike[str], force: bool = False) -> It
         raise OutputExistsError(
             f"{target}: directory exists and is not empty (use --force to replace it)"
         )
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    make_directory(target.parent)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    except OSError as e:
+        raise OutputPlaceError(
+            f"{target}: cannot write in {target.parent} ({e.strerror or e}); "
+            "choose an output directory you can write to"
+        ) from None
     try:
         yield tmp
     except BaseException:

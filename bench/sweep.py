@@ -53,6 +53,7 @@ from .experiment import (
     simulate_acquisition,
     true_centre_in_sweep,
 )
+from .output import make_directory
 from .scenario import load_scenario
 
 __all__ = [
@@ -357,7 +358,7 @@ def run_sweep(
     goes on."""
     t0 = time.perf_counter()
     out = Path(out)
-    (out / "points").mkdir(parents=True, exist_ok=True)
+    make_directory(out / "points")
     todo, done = [], {}
     points = spec.points()
     for overrides, seed in points:

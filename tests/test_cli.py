@@ -143,3 +143,25 @@ def test_run_shows_progress_with_counts(quick_run):
     stdout = (out.parent / "stdout.txt").read_text(encoding="utf-8")
     assert "acquire sweeps" in stdout and "45/45" in stdout  # one sphere, 45 sweeps
     assert "calibrations" in stdout
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("run", QUICK, "--out", "/proc/uscal-out"),
+        ("run", QUICK, "--out", "{tmp}/run", "--rrd", "/proc/uscal-out/run.rrd"),
+        ("sweep", str(ROOT / "scenarios" / "robustness.yaml"), "--out", "/proc/uscal-out"),
+        ("image", QUICK, "--out", "/proc/uscal-out/gallery"),
+    ],
+    ids=["run", "rrd", "sweep", "image"],
+)
+def test_an_output_place_that_cannot_hold_a_directory_is_one_line(capsys, tmp_path, args):
+    """An output under a place that cannot hold a directory fails before any work, in one
+    line naming it, and writes nothing anywhere."""
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    r = uscal_here(capsys, *args)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "/proc/uscal-out" in lines[0], r.stderr
+    assert "cannot" in lines[0] and "Traceback" not in r.stderr
+    assert list(tmp_path.iterdir()) == []
