@@ -405,6 +405,55 @@ def _check_consistency(s: Scenario) -> None:
             value=s.protocol.target_depth_mm,
             allowed=f"< imaging.depth_mm = {s.imaging.depth_mm:g}",
         )
+    _check_memory(s)
+
+
+#: Sweeps per target in the paper's plan (9 orientations × 5 in-plane positions).
+_SWEEPS_PER_TARGET = 45
+#: Working memory of the simulator per pixel of the sweep it renders (its float32
+#: intensities, complex64 echo and speckle buffers and their temporaries; measured with
+#: tracemalloc at 15–60 bytes, the more for small frames).
+_SIMULATION_BYTES_PER_PIXEL = 64
+
+
+def frames_memory_bytes(s: Scenario) -> int:
+    """Estimated peak memory (bytes) of the frames a run holds: every dataset's frames
+    (uint8) in the worker processes that acquire them side by side, and one sweep being
+    simulated in each. For the paper scenario ≈ 1.6 GB (measured peak of the whole run:
+    1.5–1.7 GB, ``benchmarks/paper.py``)."""
+    rows, cols = s.imaging.image_shape
+    sweep = s.protocol.frames_per_sweep * rows * cols
+    targets = len(s.protocol.spheres) if s.phantom.kind == "spheres" else 1
+    datasets = max(1, len(s.evaluation.datasets))
+    side_by_side = min(datasets, os.cpu_count() or 1)
+    per_worker = _SWEEPS_PER_TARGET * targets * sweep + _SIMULATION_BYTES_PER_PIXEL * sweep
+    return side_by_side * per_worker
+
+
+def _physical_memory_bytes() -> int | None:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _check_memory(s: Scenario) -> None:
+    """A scenario whose frames cannot fit in this machine's memory is refused here, not
+    by a MemoryError minutes into the simulation."""
+    have = _physical_memory_bytes()
+    need = frames_memory_bytes(s)
+    if have is None or need <= have:
+        return
+    rows, cols = s.imaging.image_shape
+    raise ScenarioError(
+        f"the frames would not fit in memory: {s.protocol.frames_per_sweep} frames of "
+        f"{rows} × {cols} pixels per sweep need ≈ {need / 1e9:,.0f} GB, this machine has "
+        f"{have / 1e9:.0f} GB",
+        source=s.source,
+        key="imaging.pixel_spacing_mm, imaging.depth_mm, imaging.width_mm, "
+        "protocol.frames_per_sweep",
+        allowed="coarser pixels, a shallower or narrower image, or fewer frames per sweep",
+    )
 
 
 def _targets(s: Scenario) -> dict[str, np.ndarray]:

@@ -167,3 +167,30 @@ def test_docs_are_generated_from_the_schema_and_current():
         for f in dataclasses.fields(cls):
             assert f"| `{f.name}` |" in text
             assert f.metadata.get("doc"), f"{section}.{f.name} has no documentation"
+
+
+def test_a_scenario_that_cannot_fit_in_memory_is_refused_at_validation(monkeypatch):
+    """Frames of 6 µm pixels, 300 mm deep, 401 per sweep would need terabytes: refused
+    when the scenario is read, naming the keys, not by a MemoryError minutes in. The
+    estimate is the frames a run holds; for the paper scenario it is close to the run's
+    measured peak (1.5–1.7 GB), and a machine with less memory refuses it too."""
+    import bench.scenario as scenario_module
+    from bench.scenario import frames_memory_bytes, load_scenario
+
+    overrides = [
+        "imaging.pixel_spacing_mm=[0.006, 0.006]",
+        "imaging.depth_mm=300",
+        "protocol.frames_per_sweep=401",
+    ]
+    with pytest.raises(ScenarioError) as e:
+        load_scenario("scenarios/quick.yaml", overrides, check_reach=False)
+    msg = str(e.value)
+    assert "would not fit in memory" in msg and "\n" not in msg
+    for key in ("imaging.pixel_spacing_mm", "imaging.depth_mm", "protocol.frames_per_sweep"):
+        assert key in msg
+    paper = load_scenario("scenarios/paper.yaml", check_reach=False)
+    assert 1.0e9 < frames_memory_bytes(paper) < 2.5e9
+    monkeypatch.setattr(scenario_module, "_physical_memory_bytes", lambda: 1_000_000_000)
+    with pytest.raises(ScenarioError, match="would not fit in memory"):
+        load_scenario("scenarios/paper.yaml", check_reach=False)
+    load_scenario("scenarios/quick.yaml", check_reach=False)  # 0.1 GB: fits
