@@ -906,7 +906,20 @@ def _print_run(m: dict, console: Console) -> None:
 def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
     from .sweep import load_sweep, run_sweep
 
-    spec = load_sweep(args.sweep_file)
+    with console.status(f"validating {args.sweep_file}"):
+        spec = load_sweep(args.sweep_file)
+    workers = args.workers or os.cpu_count() or 1
+    hours = spec.estimated_seconds() / 3600
+    console.print(
+        f"{spec.count() // len(spec.seeds):,} grid points × {len(spec.seeds)} seed(s) = "
+        f"{spec.count():,} acquisitions; "
+        + (
+            f"≈ {hours / workers:.1f} h on {workers} local worker(s)"
+            if not args.scheduler
+            else f"≈ {hours:.1f} worker-hours on the cluster"
+        )
+        + " (cached points are not recomputed)"
+    )
     out = Path(args.out or Path("out") / Path(args.sweep_file).stem)
     with _progress_bars(console) as bars, reporting(bars.update):
         result = run_sweep(spec, out, args.scheduler, args.workers or None)

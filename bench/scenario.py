@@ -43,10 +43,12 @@ __all__ = [
     "Scenario",
     "apply_overrides",
     "check_geometry",
+    "frames_memory_bytes",
     "layout_sigma_mm",
     "load_scenario",
     "scenario_from_mapping",
     "scenarios_markdown",
+    "validate_overrides",
 ]
 
 
@@ -344,6 +346,24 @@ def load_scenario(
     if check_reach:
         check_geometry(scenario)
     return scenario
+
+
+def validate_overrides(
+    path: str | os.PathLike[str], override_sets: typing.Iterable[typing.Sequence[str]]
+) -> int:
+    """Validate the scenario at ``path`` with each set of overrides in turn (every key and
+    value, the cross-key checks; not reach and collisions, which :func:`check_geometry`
+    decides for a whole scenario): the file is read once, ≈ 1 ms a set. Returns how many
+    sets were checked; raises the first :class:`ScenarioError`."""
+    source = os.fspath(path)
+    data = _read_yaml(source)
+    if data is not None and not isinstance(data, dict):
+        raise ScenarioError("a scenario must be a mapping of sections", source=source)
+    n = 0
+    for overrides in override_sets:
+        scenario_from_mapping(apply_overrides(data, overrides, source), source + " (with --set)")
+        n += 1
+    return n
 
 
 # --------------------------------------------------------------------------- geometry

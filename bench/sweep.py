@@ -54,7 +54,7 @@ from .experiment import (
     true_centre_in_sweep,
 )
 from .output import make_directory
-from .scenario import load_scenario
+from .scenario import load_scenario, validate_overrides
 
 __all__ = [
     "SweepError",
@@ -69,6 +69,10 @@ __all__ = [
 ]
 
 STAGES = ("localize", "calibrate")
+#: Frame pixels one worker simulates and localizes (both methods) per second, for the
+#: time a sweep announces; the ``calibrate`` stage adds half. On this 2-core machine:
+#: robustness.yaml 6.7 M/s a worker, robustness_wide.yaml 11 M/s (× 1.5).
+PIXELS_PER_SECOND = 7e6
 LOCALIZER_METHODS = ("paper", "refined", "fixed_threshold")
 CSV_COLUMNS = ("seed", "method", "localization_median_error_mm", "rejected_fraction")
 
@@ -106,6 +110,24 @@ class SweepSpec:
             for values in combos
             for seed in self.seeds
         ]
+
+    def count(self) -> int:
+        """Points (grid product × seeds), without building them."""
+        n = len(self.seeds)
+        for values in self.grid.values():
+            n *= len(values)
+        return n
+
+    def estimated_seconds(self) -> float:
+        """Rough time of the whole sweep on one worker: each point simulates and
+        localizes the base scenario's sweeps (grid keys that change the image size
+        change it too) at ≈ :data:`PIXELS_PER_SECOND`."""
+        base = load_scenario(self.base, check_reach=False)
+        rows, cols = base.imaging.image_shape
+        targets = len(base.protocol.spheres) if base.phantom.kind == "spheres" else 1
+        pixels = 45 * targets * base.protocol.frames_per_sweep * rows * cols
+        stages = 1.0 if self.stages == ("localize",) else 1.5
+        return self.count() * stages * pixels / PIXELS_PER_SECOND
 
     def override_keys(self) -> list[str]:
         """Every key path the grid sets, linked entries' keys one by one."""
@@ -162,17 +184,19 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
         n = len(linked_keys(key))
         if n > 1 and not all(isinstance(v, list) and len(v) == n for v in values):
             raise _fail(source, f"grid: {key}", f"linked keys: each value a list of {n} values")
-    # Fail now on a bad base or value (load_scenario names the key and what is allowed).
+    # Fail now on a bad base or value (the scenario's validation names the key and what is
+    # allowed): the base whole, each grid value by its keys and values (the file read
+    # once, ≈ 1 ms a value). Reach and collisions depend on the whole point: a point that
+    # cannot be reached fails alone in the sweep, with its reason.
     load_scenario(base)
-    for key, values in grid.items():
-        for v in values:
-            load_scenario(
-                base,
-                [
-                    _override(k, x)
-                    for k, x in zip(linked_keys(key), _linked_values(key, v), strict=True)
-                ],
-            )
+    validate_overrides(
+        base,
+        (
+            [_override(k, x) for k, x in zip(linked_keys(key), _linked_values(key, v), strict=True)]
+            for key, values in grid.items()
+            for v in values
+        ),
+    )
     return SweepSpec(
         source, base, base.read_text(encoding="utf-8"), {k: list(v) for k, v in grid.items()},
         tuple(seeds), tuple(stages), tuple(methods),
