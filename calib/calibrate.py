@@ -231,6 +231,30 @@ def calibrate(
     ------
     CalibrationError
         Too few observations, or a degenerate problem.
+
+    Examples
+    --------
+    One sphere seen from twelve flange poses, its centres localized to 10 µm (1 σ): the
+    single-marker fit recovers the mount to a few hundredths of a degree and of a
+    millimetre.
+
+    >>> from calib import se3
+    >>> rng = np.random.default_rng(0)
+    >>> T_ee_us = se3.make(se3.matrix_from_rotvec([0.0, 0.0, np.pi / 2]), [0.0, 0.01, 0.1])
+    >>> centre = np.array([0.3, 0.0, 0.05])
+    >>> obs = []
+    >>> for i in range(12):
+    ...     T_base_ee = se3.make(
+    ...         se3.matrix_from_rotvec(rng.normal(0, 0.2, 3)),
+    ...         centre + [0.0, 0.0, 0.15] + rng.normal(0, 0.005, 3),
+    ...     )
+    ...     p_us = se3.apply(se3.invert(T_base_ee @ T_ee_us), centre)
+    ...     obs.append(Observation("sphere_1", i, p_us + rng.normal(0, 1e-5, 3), T_base_ee))
+    >>> result = calibrate(obs)
+    >>> round(float(np.degrees(se3.rotation_angle(result.T_ee_us, T_ee_us))), 2)
+    0.03
+    >>> round(float(se3.translation_distance(result.T_ee_us, T_ee_us)) * 1e3, 2)
+    0.08
     """
     obs = list(obs)
     targets = list(dict.fromkeys(o.target for o in obs))

@@ -891,6 +891,27 @@ def localize_sphere(
         are searched again about it, centres that still disagree are rejected. For a
         trusted calibration; the alternation turns it off (its estimate may still be far
         off, and the calibration's own outlier stage does the same about its consensus).
+
+    Examples
+    --------
+    A synthetic sweep: 21 frames 0.5 mm apart, 0.2 mm pixels, the probe-facing half of a
+    5 mm sphere's surface drawn bright (0.6 mm thick) about (1, 15, 0.3) mm:
+
+    >>> from calib import se3
+    >>> from calib.records import Sweep
+    >>> z = np.linspace(-5e-3, 5e-3, 21)
+    >>> rows, cols = np.mgrid[0:151, 0:151]
+    >>> x, y = (cols - 75) * 0.2e-3, rows * 0.2e-3  # the us frame (calib.image)
+    >>> centre = np.array([1e-3, 15e-3, 0.3e-3])
+    >>> def frame(zk):
+    ...     d = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (zk - centre[2]) ** 2)
+    ...     return np.where((abs(d - 5e-3) < 0.3e-3) & (y < centre[1]), 200, 0)
+    >>> images = np.array([frame(zk) for zk in z], np.uint8)
+    >>> poses = np.array([se3.make(np.eye(3), [0.0, 0.0, zk]) for zk in z])
+    >>> sweep = Sweep("sphere_1", 0, images, (0.2e-3, 0.2e-3), np.zeros((21, 6)), poses)
+    >>> (found,) = localize_sphere([sweep], np.eye(4), 5e-3, LocalizerConfig())
+    >>> found.accepted, bool(np.linalg.norm(found.centre - centre) < 0.2e-3)
+    (True, True)
     """
     if cfg.method == "fixed_threshold":
         return localize_sphere_fixed_threshold(sweeps, T_ee_us, radius, cfg, axial_scale)
