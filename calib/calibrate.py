@@ -260,6 +260,9 @@ def calibrate(
     targets = list(dict.fromkeys(o.target for o in obs))
     if len(obs) < 4:
         raise CalibrationError(f"calibration needs at least 4 localized sweeps, got {len(obs)}")
+    se3.check([o.T_base_ee for o in obs], "the observations' flange poses T_base_ee", batch=True)
+    if T_init is not None:
+        se3.check(T_init, "T_init")
     multi = len(targets) >= 2 and cad_centres is not None
     T0 = linear_initialisation(obs) if T_init is None else np.asarray(T_init, dtype=float)
     keep = np.ones(len(obs), dtype=bool) if first_fit is None else np.array(first_fit, bool)

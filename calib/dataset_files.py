@@ -42,7 +42,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import DatasetError
+from . import se3
+from .errors import DatasetError, TransformError
 from .records import Dataset, Sweep, Touch
 
 __all__ = [
@@ -211,14 +212,7 @@ def _flange_pose(path: Path, key: str, text: str | None) -> Array:
     T = _numbers(path, key, text, 16).reshape(4, 4)
     assert text is not None  # checked by _numbers
     T[:3, 3] = [_metres(v) for v in np.array(text.split()).reshape(4, 4)[:3, 3]]
-    R = T[:3, :3]
-    if not (
-        np.allclose(T[3], [0, 0, 0, 1])
-        and np.allclose(R.T @ R, np.eye(3), atol=_ROTATION_TOL)
-        and np.linalg.det(R) > 0
-    ):
-        raise DatasetError(f"{path}: {key} is not a rigid transform")
-    return T
+    return _rigid(path, key, T)
 
 
 def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
@@ -554,10 +548,15 @@ def _matrix(path: Path, key: str, value: Any) -> Array:
         T = np.zeros(0)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise DatasetError(f"{path}: {key} must be a 4 × 4 matrix of numbers")
-    R = T[:3, :3]
-    if not (np.allclose(T[3], [0, 0, 0, 1]) and np.allclose(R.T @ R, np.eye(3), atol=1e-5)):
-        raise DatasetError(f"{path}: {key} is not a rigid transform")
-    return T
+    return _rigid(path, key, T)
+
+
+def _rigid(path: Path, key: str, T: Array) -> Array:
+    """``T`` if it is a rigid transform, else one line naming the file and the field."""
+    try:
+        return se3.check(T, key, tol=_ROTATION_TOL)
+    except TransformError as e:
+        raise DatasetError(f"{path}: {e}") from None
 
 
 def _vector(path: Path, key: str, value: Any, n: int, raw: bool = False) -> Any:

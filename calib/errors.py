@@ -15,6 +15,7 @@ __all__ = [
     "RobotConnectionError",
     "RobotStoppedError",
     "ScenarioError",
+    "TransformError",
     "UnreachablePoseError",
     "UscalError",
 ]
@@ -77,6 +78,11 @@ class CalibrationError(UscalError):
 
 class DatasetError(UscalError):
     """A dataset on disk is missing, malformed or inconsistent."""
+
+
+class TransformError(UscalError):
+    """A matrix that must be a rigid transform is not one (shape, non-finite entries,
+    last row, a rotation block that is not a proper rotation)."""
 
 
 class RobotConnectionError(UscalError):

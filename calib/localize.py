@@ -913,6 +913,10 @@ def localize_sphere(
     >>> found.accepted, bool(np.linalg.norm(found.centre - centre) < 0.2e-3)
     (True, True)
     """
+    if T_ee_us is not None:
+        se3.check(T_ee_us, "T_ee_us")
+    for sweep in sweeps:
+        se3.check(sweep.T_base_ee, f"{sweep.target} sweep {sweep.pose_id}: T_base_ee", batch=True)
     if cfg.method == "fixed_threshold":
         return localize_sphere_fixed_threshold(sweeps, T_ee_us, radius, cfg, axial_scale)
     grid = cfg.grid_mm * 1e-3

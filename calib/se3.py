@@ -16,8 +16,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from .errors import TransformError
+
 __all__ = [
     "apply",
+    "check",
     "euler_from_matrix",
     "exp",
     "identity",
@@ -39,6 +42,47 @@ Array = NDArray[np.float64]
 # Below this rotation angle (rad) the series expansions of exp/log are used: the closed
 # forms divide by theta**2 and lose precision there.
 _SMALL_ANGLE = 1e-6
+
+
+def check(T: ArrayLike, name: str, batch: bool = False, tol: float = 1e-5) -> Array:
+    """``T`` as a float64 array if it is a rigid transform, (4, 4), or with ``batch`` a
+    stack of them, (n, 4, 4); else :class:`~calib.errors.TransformError` naming ``name``
+    and what is wrong. For the method's entry points and the file and hardware boundaries:
+    a wrong matrix is refused where it enters, not found by the error it causes later.
+
+    ``tol`` bounds the last row's and ``RᵀR``'s deviation from exact (files hold a few
+    decimals); the rotation must be proper (det +1, not a reflection).
+
+    Examples
+    --------
+    >>> check(np.eye(4), "T_ee_us").shape
+    (4, 4)
+    >>> check(np.diag([1.0, 1.0, -1.0, 1.0]), "T_ee_us")
+    Traceback (most recent call last):
+    ...
+    calib.errors.TransformError: T_ee_us: not a rigid transform: a reflection (det −1)
+    """
+    try:
+        A = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        raise TransformError(f"{name}: not a matrix of numbers") from None
+    want = "(n, 4, 4)" if batch else "(4, 4)"
+    if A.shape[-2:] != (4, 4) or A.ndim != (3 if batch else 2):
+        raise TransformError(f"{name}: shape {A.shape}, a rigid transform is {want}")
+    if not np.all(np.isfinite(A)):
+        raise TransformError(f"{name}: not a rigid transform: it holds NaN or infinite entries")
+    if np.abs(A[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(initial=0.0) > tol:
+        raise TransformError(f"{name}: not a rigid transform: its last row is not (0, 0, 0, 1)")
+    R = A[..., :3, :3]
+    gram = np.swapaxes(R, -1, -2) @ R
+    if np.abs(gram - np.eye(3)).max(initial=0.0) > tol:
+        raise TransformError(
+            f"{name}: not a rigid transform: its 3 × 3 block is not a rotation "
+            "(scaled or sheared; RᵀR ≠ I)"
+        )
+    if np.any(np.linalg.det(R) < 0):
+        raise TransformError(f"{name}: not a rigid transform: a reflection (det −1)")
+    return A
 
 
 def identity(n: int | None = None) -> Array:

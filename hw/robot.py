@@ -145,7 +145,8 @@ class URRobot:
         pose = self._call("receive", "getActualTCPPose", what="reading the pose")
         if len(q) != 6 or len(pose) != 6:
             raise RobotConnectionError(f"robot controller {self.cfg.host}: no state received")
-        return RobotReading(np.asarray(q, dtype=float), se3.matrix_from_pose6(pose))
+        T = se3.check(se3.matrix_from_pose6(pose), f"robot controller {self.cfg.host}: flange pose")
+        return RobotReading(np.asarray(q, dtype=float), T)
 
     def close(self) -> None:
         """Stop the control script and disconnect (safe to call twice)."""

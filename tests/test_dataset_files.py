@@ -124,7 +124,7 @@ def test_a_non_rigid_flange_pose_is_refused(tmp_path, rng):
     write_sequence(
         path, Sweep("sphere_1", 0, sweep.images, sweep.spacing, sweep.q, bad), np.zeros(5)
     )
-    with pytest.raises(DatasetError, match="Frame0001_EEToBaseTransform is not a rigid"):
+    with pytest.raises(DatasetError, match="Frame0001_EEToBaseTransform: not a rigid transform"):
         read_sequence(path)
 
 

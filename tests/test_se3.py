@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -76,3 +78,52 @@ def test_distances(rng):
     T3 = se3.make(T[:3, :3], T[:3, 3] + [0.003, 0.004, 0.0])
     assert se3.translation_distance(T, T3) == pytest.approx(0.005, abs=1e-15)
     assert se3.rotation_angle(T, T3) == pytest.approx(0.0, abs=1e-7)
+
+
+@pytest.mark.parametrize(
+    ("T", "message"),
+    [
+        (np.eye(3), "shape (3, 3), a rigid transform is (4, 4)"),
+        (np.full((4, 4), np.nan), "NaN or infinite"),
+        (np.vstack([np.eye(4)[:3], [0.0, 0.0, 0.1, 1.0]]), "last row"),
+        (np.diag([1.0, 1.001, 1.0, 1.0]), "not a rotation"),
+        (np.diag([-1.0, 1.0, 1.0, 1.0]), "reflection"),
+        ("not a matrix", "not a matrix of numbers"),
+    ],
+)
+def test_check_refuses_what_is_not_a_rigid_transform(T, message):
+    from calib.errors import TransformError, UscalError
+
+    with pytest.raises(TransformError, match="T_ee_us: .*" + re.escape(message)):
+        se3.check(T, "T_ee_us")
+    assert issubclass(TransformError, UscalError)  # one line from the CLI
+
+
+def test_check_passes_rigid_transforms_and_batches():
+    T = se3.exp(np.array([[0.01, 0.02, 0.03, 0.1, -0.2, 0.3], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]))
+    assert se3.check(T, "poses", batch=True) is not None
+    with pytest.raises(Exception, match=r"poses: shape \(2, 4, 4\)"):
+        se3.check(T, "poses")
+    # A file's few decimals are within the tolerance.
+    np.testing.assert_array_equal(se3.check(T[0].round(6), "T"), T[0].round(6))
+
+
+def test_the_method_refuses_a_wrong_matrix_where_it_enters():
+    """A scaled mount or a reflected flange pose is refused by name at the localizer's and
+    the calibration's entry, not found by the error it causes later."""
+    from calib.calibrate import Observation, calibrate
+    from calib.errors import TransformError
+    from calib.localization import LocalizerConfig
+    from calib.localize import localize_sphere
+    from calib.records import Sweep
+
+    poses = np.array([se3.make(np.eye(3), [0.0, 0.0, z]) for z in (-1e-3, 0.0, 1e-3)])
+    sweep = Sweep(
+        "sphere_1", 7, np.zeros((3, 20, 20), np.uint8), (2e-4, 2e-4), np.zeros((3, 6)), poses
+    )
+    with pytest.raises(TransformError, match="T_ee_us: not a rigid transform"):
+        localize_sphere([sweep], np.diag([1e-3, 1e-3, 1e-3, 1.0]), 5e-3, LocalizerConfig())
+    obs = [Observation("sphere_1", i, np.zeros(3), np.eye(4)) for i in range(4)]
+    obs[2] = Observation("sphere_1", 2, np.zeros(3), np.diag([1.0, -1.0, 1.0, 1.0]))
+    with pytest.raises(TransformError, match="flange poses T_base_ee: not a rigid transform"):
+        calibrate(obs)
