@@ -65,8 +65,6 @@ from .experiment import (
     SimulatedAcquisition,
     axial_scale,
     coarse_estimate,
-    dataset_rngs,
-    dataset_scenario,
     drop_frame_pages,
     image_error_mm,
     image_points,
@@ -74,10 +72,8 @@ from .experiment import (
     make_twin,
     one_blas_thread,
     release_memory,
-    scan_scenario,
     simulate_acquisition,
     simulate_touches,
-    stage_rngs,
     true_centre_in_sweep,
     with_frames,
     without_frames,
@@ -99,6 +95,7 @@ from .reconstruction import (
 )
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
+from .sessions import dataset_rngs, dataset_scenario, scan_scenario, stage_rngs
 
 __all__ = ["DatasetOutcome", "EvaluationResult", "run_evaluation"]
 

@@ -38,83 +38,21 @@ from twin.world import Twin, build_twin
 
 from .progress import report
 from .scenario import Scenario
+from .sessions import stage_rngs
 
 __all__ = [
-    "DATASET_STREAMS",
-    "RNG_STREAMS",
     "SimulatedAcquisition",
     "axial_scale",
     "coarse_estimate",
-    "dataset_rngs",
-    "dataset_scenario",
     "frames_to_file",
     "image_error_mm",
     "image_points",
     "make_imager",
     "make_twin",
     "one_blas_thread",
-    "scan_scenario",
     "simulate_acquisition",
     "simulate_touches",
-    "stage_rngs",
 ]
-
-#: One generator per stage, spawned from the scenario seed in this order. Appending a
-#: stream keeps every earlier stream (and so every earlier result) unchanged.
-RNG_STREAMS = ("dh", "phantom", "joints", "imaging", "protocol", "calibration")
-
-
-def stage_rngs(scenario: Scenario) -> dict[str, np.random.Generator]:
-    """The scenario's per-stage generators by name (DESIGN.md §3)."""
-    return dict(zip(RNG_STREAMS, scenario.rngs(len(RNG_STREAMS)), strict=True))
-
-
-#: Streams of each dataset of the evaluation (new session: new joint, imaging, teaching
-#: and touch noise, new phantom placement; same robot, phantom print and probe mount).
-DATASET_STREAMS = ("joints", "imaging", "protocol", "touch_joints", "touch_contact", "placement")
-
-
-def dataset_rngs(scenario: Scenario, index: int) -> dict[str, np.random.Generator]:
-    """Per-dataset generators of the evaluation's ``index``-th dataset (independent of the
-    scenario's stage streams and of each other)."""
-    seq = np.random.SeedSequence(scenario.seed, spawn_key=(100 + index,))
-    return dict(zip(DATASET_STREAMS, np.random.default_rng(seq).spawn(6), strict=True))
-
-
-def dataset_scenario(scenario: Scenario, index: int) -> Scenario:
-    """The scenario of the evaluation's ``index``-th dataset: the first keeps the
-    phantom placement, later ones put it back up to ± ``placement_shift_mm`` off in x and
-    y and turned up to ± ``placement_rotation_deg`` about the vertical."""
-    if index == 0:
-        return scenario
-    ev = scenario.evaluation
-    rng = dataset_rngs(scenario, index)["placement"]
-    dx, dy = rng.uniform(-1, 1, 2) * ev.placement_shift_mm
-    dz_rot = rng.uniform(-1, 1) * ev.placement_rotation_deg
-    ph = scenario.phantom
-    x, y, z = ph.position_mm
-    rx, ry, rz = ph.rotation_deg
-    phantom = replace(ph, position_mm=(x + dx, y + dy, z), rotation_deg=(rx, ry, rz + dz_rot))
-    return replace(scenario, phantom=phantom)
-
-
-#: Spawn key of the phantom's displacement between a dataset's touches and its sweeps
-#: (one stream per dataset: ``(SESSION_SHIFT_KEY, index)``).
-SESSION_SHIFT_KEY = 430
-
-
-def scan_scenario(scenario: Scenario, index: int) -> Scenario:
-    """The scenario of the ``index``-th dataset's sweeps: its touch-time placement
-    (:func:`dataset_scenario`) moved by ``evaluation.session_shift_mm`` (1 σ per
-    horizontal axis, its own stream), or unchanged when that is 0."""
-    sc = dataset_scenario(scenario, index)
-    sigma = scenario.evaluation.session_shift_mm
-    if sigma == 0.0:
-        return sc
-    seq = np.random.SeedSequence(scenario.seed, spawn_key=(SESSION_SHIFT_KEY, index))
-    dx, dy = np.random.default_rng(seq).normal(0.0, sigma, 2)
-    x, y, z = sc.phantom.position_mm
-    return replace(sc, phantom=replace(sc.phantom, position_mm=(x + dx, y + dy, z)))
 
 
 def make_twin(scenario: Scenario, joints_rng: np.random.Generator | None = None) -> Twin:

@@ -33,8 +33,9 @@ from hw.config import GrabberConfig, URRobotConfig
 from twin.phantoms import PhantomConfig, build_phantom
 from twin.touch import SimTouchGuide
 
-from .experiment import coarse_estimate, make_twin, stage_rngs
+from .experiment import coarse_estimate, make_twin
 from .scenario import Scenario, _build_section, _read_yaml, apply_overrides
+from .sessions import TOUCH_GUIDE_KEY, stage_rngs, stream
 
 __all__ = ["HwConfig", "RigConfig", "emulated_operator", "load_hw_config", "loopback_hw_config"]
 
@@ -258,7 +259,7 @@ def emulated_operator(scenario: Scenario, twin) -> Callable[[list[str]], str]:
         (t.vertex, t.index): t.R_base_ee
         for t in touch_plan(sorted(vertices), scenario.protocol, lean)
     }
-    rng = np.random.default_rng(np.random.SeedSequence(scenario.seed, spawn_key=(300,)))
+    rng = stream(scenario.seed, TOUCH_GUIDE_KEY)
     guide = SimTouchGuide(
         twin.robot, vertices, twin.truth.p_ee_tip, scenario.tools.contact_noise_mm, rng
     )

@@ -22,8 +22,9 @@ from calib.observability import (
 )
 from calib.protocol import check_plan, facing_pose, plan_sweeps
 
-from .experiment import coarse_estimate, make_twin, stage_rngs
+from .experiment import coarse_estimate, make_twin
 from .scenario import Scenario
+from .sessions import stage_rngs
 
 __all__ = ["PlanReport", "plan_report"]
 

@@ -57,7 +57,6 @@ from twin.phantoms import build_phantom
 from .experiment import (
     axial_scale,
     coarse_estimate,
-    dataset_rngs,
     frames_to_file,
     image_error_mm,
     image_points,
@@ -65,13 +64,13 @@ from .experiment import (
     make_twin,
     release_memory,
     simulate_acquisition,
-    stage_rngs,
     with_frames,
     without_frames,
 )
 from .progress import report
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
+from .sessions import REMOUNT_KEY, SESSIONS, dataset_rngs, stage_rngs, stream
 
 __all__ = [
     "METHODS",
@@ -95,18 +94,11 @@ _MM = 1e3
 #: Calibration methods of Table III: (name, spheres used).
 METHODS = {"single": ("sphere_1",), "three": ("sphere_1", "sphere_2", "sphere_3")}
 
-#: Session indices of the reconstruction's own random streams (``dataset_rngs``), past
-#: any evaluation dataset's: one per phantom, and the re-calibration scan's sphere N has
-#: ``recalibration + N``.
-_SESSION = {"cone": 51, "prism": 52, "recalibration": 60}
-#: Spawn key of the remount's own stream.
-_REMOUNT_KEY = 150
-
 
 def _remounted(scenario: Scenario) -> Scenario:
     """The probe taken off and put back: its true mount moves by the configured amounts."""
     rc = scenario.reconstruction
-    rng = np.random.default_rng(np.random.SeedSequence(scenario.seed, spawn_key=(_REMOUNT_KEY,)))
+    rng = stream(scenario.seed, REMOUNT_KEY)
     t = scenario.tools
     pos = np.add(t.probe_mount_position_mm, rng.normal(0.0, rc.remount_position_mm, 3))
     rot = np.add(t.probe_mount_rotation_deg, rng.normal(0.0, rc.remount_rotation_deg, 3))
@@ -133,7 +125,7 @@ def scan_scenario(scenario: Scenario, kind: str) -> Scenario:
     vertical; the scenario's placement is the nominal one ICP starts from."""
     sc = _remounted(scenario)
     rc = scenario.reconstruction
-    rng = dataset_rngs(scenario, _SESSION[kind])["placement"]
+    rng = dataset_rngs(scenario, SESSIONS[kind])["placement"]
     dx, dy = rng.uniform(-1, 1, 2) * rc.placement_error_mm
     dz = rng.uniform(-1, 1) * rc.placement_error_deg
     ph = sc.phantom
@@ -183,7 +175,7 @@ def run_remount_scan(scenario: Scenario, index: int, scratch: Path) -> RemountSc
     t0 = time.perf_counter()
     sc = recalibration_scenario(scenario)
     sc = replace(sc, protocol=replace(sc.protocol, spheres=(index,)))
-    rngs = dataset_rngs(scenario, _SESSION["recalibration"] + index)
+    rngs = dataset_rngs(scenario, SESSIONS["recalibration"] + index)
     twin = make_twin(sc, rngs["joints"])
     imager = make_imager(sc, twin, rngs["imaging"])
     target = f"sphere_{index}"
@@ -364,7 +356,7 @@ def run_scan(
     of the run's recording (session ``kind``)."""
     t0 = time.perf_counter()
     sc = scan_scenario(scenario, kind)
-    rngs = dataset_rngs(scenario, _SESSION[kind])
+    rngs = dataset_rngs(scenario, SESSIONS[kind])
     twin = make_twin(sc, rngs["joints"])
     imager = make_imager(sc, twin, rngs["imaging"])
     taught, plan = _plan(sc, twin, kind, rngs["protocol"])

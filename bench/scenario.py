@@ -38,6 +38,7 @@ from twin.phantoms import build_phantom, build_tank
 from twin.scene import Scene, SceneModel
 
 __all__ = [
+    "MAX_DATASETS",
     "SECTIONS",
     "OutputConfig",
     "Scenario",
@@ -425,9 +426,21 @@ def _check_consistency(s: Scenario) -> None:
             value=s.protocol.target_depth_mm,
             allowed=f"< imaging.depth_mm = {s.imaging.depth_mm:g}",
         )
+    if len(s.evaluation.datasets) > MAX_DATASETS:
+        raise ScenarioError(
+            "too many datasets: each has its own random streams, and there are keys for "
+            f"{MAX_DATASETS}",
+            source=src,
+            key="evaluation.datasets",
+            value=len(s.evaluation.datasets),
+            allowed=f"at most {MAX_DATASETS} names",
+        )
     _check_memory(s)
 
 
+#: Evaluation datasets a scenario may have (each has its own random streams,
+#: :mod:`bench.sessions`).
+MAX_DATASETS = 50
 #: Sweeps per target in the paper's plan (9 orientations × 5 in-plane positions).
 _SWEEPS_PER_TARGET = 45
 #: Working memory of the simulator per pixel of the sweep it renders (its float32

@@ -24,12 +24,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench.experiment import (  # noqa: E402
-    axial_scale,
-    make_imager,
-    make_twin,
-    simulate_acquisition,
-)
+from bench.experiment import axial_scale, make_imager, make_twin, simulate_acquisition  # noqa: E402
 from bench.scenario import load_scenario  # noqa: E402
 from calib import stacking  # noqa: E402
 from calib.localization import LocalizerConfig  # noqa: E402

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from bench.error_sources import ERROR_SOURCES
-from bench.experiment import dataset_rngs, dataset_scenario, make_twin, simulate_touches
+from bench.experiment import make_twin, simulate_touches
 from bench.scenario import load_scenario
+from bench.sessions import dataset_rngs, dataset_scenario
 from calib import se3
 from calib.dh import NOMINAL_TABLES, forward_kinematics
 from calib.kinematics import (

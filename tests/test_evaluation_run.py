@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from bench.experiment import dataset_scenario, scan_scenario
 from bench.scenario import load_scenario
+from bench.sessions import dataset_scenario, scan_scenario
 from calib.dataset_files import read_dataset
 
 from .rrd import Recording
