@@ -21,10 +21,13 @@ from rich.progress import (
 from rich.progress import Progress as RichProgress
 from rich.table import Table
 
+from calib.evaluate import PaperTable, table_iii, tables_i_ii
+
 from .scenario import Scenario
 
 __all__ = [
     "Bars",
+    "paper_table",
     "print_evaluation",
     "print_reconstruction",
     "print_recorded",
@@ -167,30 +170,20 @@ def spawn_viewer(path: Path, console: Console) -> None:
     console.print(f"opened {path} in the rerun viewer")
 
 
+def paper_table(t: PaperTable) -> Table:
+    """One of the paper's tables (:class:`calib.evaluate.PaperTable`) for the console."""
+    table = Table(title=t.title)
+    for i, col in enumerate(t.columns):
+        table.add_column(col, justify="left" if i < 2 else "right")
+    for row in t.rows:
+        table.add_row(*row)
+    return table
+
+
 def print_evaluation(m: dict, console: Console) -> None:
     names = m["evaluation"]["datasets"]
-    titles = {
-        "single": "Table I. Single-marker calibration errors (mm)",
-        "three": "Table II. Three-marker calibration errors (mm)",
-    }
-    labels = {
-        "tool_precision_mm": "Tool prec.",
-        "sphere_precision_mm": "Sphere prec.",
-        "sphere_accuracy_mm": "Sphere acc.",
-    }
-    for kind in ("single", "three"):
-        table = Table(title=titles[kind])
-        for col in ("Metric", "Statistic", *names, "Overall"):
-            table.add_column(col, justify="left" if col in ("Metric", "Statistic") else "right")
-        for key, by_set in m["evaluation"][kind].items():
-            cols = [*names, "overall"]
-            table.add_row(
-                labels[key],
-                "MAE ± SD",
-                *[f"{by_set[c]['mae']:.2f} ± {by_set[c]['sd']:.2f}" for c in cols],
-            )
-            table.add_row("", "RMSE", *[f"{by_set[c]['rmse']:.2f}" for c in cols])
-        console.print(table)
+    for t in tables_i_ii(m["evaluation"]):
+        console.print(paper_table(t))
     kin = m["kinematics"]
     table = Table(title="against ground truth (beyond the paper)")
     for col in (
@@ -245,19 +238,10 @@ def print_reconstruction(m: dict, console: Console) -> None:
     names = m["evaluation"]["datasets"]
     rec = m["reconstruction"]
     kinds = [k for k in ("cone", "prism") if k in rec]
-    table = Table(title="Table III. Point-to-surface errors after ICP (mm)")
-    for col in ("", "set", "1: MAE±SD", "RMSE", "max", "3: MAE±SD", "RMSE", "max"):
-        table.add_column(col, justify="left" if col in ("", "set") else "right")
-    for kind in kinds:
-        for s in [*names, "overall"]:
-            cells = []
-            for method in ("single", "three"):
-                v = rec[kind][method][s]
-                cells += [f"{v['mae']:.2f}±{v['sd']:.2f}", f"{v['rmse']:.2f}", f"{v['max']:.2f}"]
-            table.add_row(kind, "Overall" if s == "overall" else s, *cells)
-    console.print(table)
+    after_icp = table_iii({k: rec[k] for k in kinds}, names)[0]
+    console.print(paper_table(after_icp))
     console.print(
-        "1: single-marker (sphere 1), 3: three-marker (spheres 1–3), re-calibrated after the "
+        "single-marker: sphere 1, three-marker: spheres 1–3, re-calibrated after the "
         "remount with each set's DH model. Without ICP, through the true phantom placement "
         "(beyond the paper), overall MAE: "
         + "; ".join(

@@ -40,6 +40,7 @@ from .records import Sweep
 __all__ = [
     "Fold",
     "FoldResult",
+    "PaperTable",
     "Summary",
     "base_centres",
     "evaluate_fold",
@@ -51,6 +52,8 @@ __all__ = [
     "localize_test_sphere",
     "sphere_metrics",
     "summarize",
+    "table_iii",
+    "tables_i_ii",
 ]
 
 Array = NDArray[np.float64]
@@ -274,31 +277,69 @@ TABLE_TITLES = {
 }
 
 
-def format_tables_markdown(
-    tables: Mapping[str, Mapping[str, Mapping[str, Summary]]],
+@dataclass(frozen=True)
+class PaperTable:
+    """One of the paper's tables as data, rendered alike to ``tables.md`` (and from it
+    the HTML report), the console and the report: its title, column names and rows of
+    formatted cells. :func:`tables_i_ii` and :func:`table_iii` build them from the
+    figures as ``metrics.json`` holds them; ``tables.csv`` writes the same figures
+    unrounded (:func:`format_tables_csv`)."""
+
+    title: str
+    columns: tuple[str, ...]
+    rows: tuple[tuple[str, ...], ...]
+
+    def markdown(self) -> str:
+        lines = [f"**{self.title}**", "", "| " + " | ".join(self.columns) + " |"]
+        lines.append("|" + "---|" * len(self.columns))
+        lines += ["| " + " | ".join(row) + " |" for row in self.rows]
+        return "\n".join([*lines, ""])
+
+
+def _figure(v: Any, key: str) -> float:
+    """A summary's figure, from a :class:`Summary` or its ``metrics.json`` mapping."""
+    return float(v[key] if isinstance(v, Mapping) else getattr(v, key))
+
+
+def tables_i_ii(
+    tables: Mapping[str, Mapping[str, Mapping[str, Any]]],
     fmt: Callable[[float], str] = lambda v: f"{v:.2f}",
-) -> str:
+) -> list[PaperTable]:
     """Tables I and II in the paper's layout: per metric a MAE ± SD row and a RMSE row,
-    columns the sets and Overall. ``tables[kind][metric][set]``."""
-    lines = []
+    columns the sets and Overall. ``tables[kind][metric][set]`` (a :class:`Summary` or
+    its ``metrics.json`` mapping); kinds other than single and three are ignored."""
+    out = []
     for kind in ("single", "three"):
         if kind not in tables:
             continue
         sets = list(next(iter(tables[kind].values())).keys())
-        header = ["Metric", "Statistic", *[s if s != "overall" else "Overall" for s in sets]]
-        lines += [f"**{TABLE_TITLES[kind]}**", ""]
-        lines.append("| " + " | ".join(header) + " |")
-        lines.append("|" + "---|" * len(header))
+        columns = ("Metric", "Statistic", *[s if s != "overall" else "Overall" for s in sets])
+        rows = []
         for key, label in TABLE_ROWS[kind]:
             row = tables[kind].get(key)
             if row is None:
                 continue
-            mae = [f"{fmt(row[s].mae)} ± {fmt(row[s].sd)}" for s in sets]
-            rmse = [fmt(row[s].rmse) for s in sets]
-            lines.append(f"| {label} | MAE ± SD | " + " | ".join(mae) + " |")
-            lines.append("|  | RMSE | " + " | ".join(rmse) + " |")
-        lines.append("")
-    return "\n".join(lines)
+            rows.append(
+                (
+                    label,
+                    "MAE ± SD",
+                    *[
+                        f"{fmt(_figure(row[s], 'mae'))} ± {fmt(_figure(row[s], 'sd'))}"
+                        for s in sets
+                    ],
+                )
+            )
+            rows.append(("", "RMSE", *[fmt(_figure(row[s], "rmse")) for s in sets]))
+        out.append(PaperTable(TABLE_TITLES[kind], columns, tuple(rows)))
+    return out
+
+
+def format_tables_markdown(
+    tables: Mapping[str, Mapping[str, Mapping[str, Any]]],
+    fmt: Callable[[float], str] = lambda v: f"{v:.2f}",
+) -> str:
+    """Tables I and II (:func:`tables_i_ii`) as Markdown."""
+    return "\n".join(t.markdown() for t in tables_i_ii(tables, fmt))
 
 
 def format_tables_csv(tables: Mapping[str, Mapping[str, Mapping[str, Summary]]]) -> str:
@@ -310,7 +351,9 @@ def format_tables_csv(tables: Mapping[str, Mapping[str, Mapping[str, Summary]]])
     for kind, metrics in tables.items():
         for key, by_set in metrics.items():
             for s, v in by_set.items():
-                w.writerow([kind, key, s, f"{v.mae:.6f}", f"{v.sd:.6f}", f"{v.rmse:.6f}", v.n, ""])
+                mae, sd, rmse = (_figure(v, k) for k in ("mae", "sd", "rmse"))
+                n = int(_figure(v, "n"))
+                w.writerow([kind, key, s, f"{mae:.6f}", f"{sd:.6f}", f"{rmse:.6f}", n, ""])
     return buf.getvalue()
 
 
@@ -322,29 +365,40 @@ def _stats_cells(v: Mapping[str, float], fmt: Callable[[float], str]) -> list[st
     return [f"{fmt(v['mae'])} ± {fmt(v['sd'])}", fmt(v["rmse"]), fmt(v["max"])]
 
 
-def format_table_iii_markdown(
+#: Table III's two tables: (title, which figures of a cell: after ICP, or the same
+#: distances through the true placement).
+TABLE_III_TITLES = (
+    ("Table III. Single- and three-marker point-to-surface errors after ICP (mm).", None),
+    (
+        "Table III (twin only). The same without ICP, through the true phantom placement "
+        "(calibration and kinematic error included) (mm).",
+        "without_icp",
+    ),
+)
+
+
+def table_iii(
     stats: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Any]]]],
     sets: Sequence[str],
     fmt: Callable[[float], str] = lambda v: f"{v:.2f}",
-) -> str:
+) -> list[PaperTable]:
     """Table III in the paper's layout: per phantom and set (and Overall, pooled), the
     single- and three-marker point-to-surface errors after ICP — MAE ± SD, RMSE, Max.
     ``stats[phantom][method][set]``; a ``without_icp`` entry per cell (the same
     distances through the true placement) gives a second table."""
-    header = (
-        "| Phantom | Set | Single MAE ± SD | Single RMSE | Single Max "
-        "| Three MAE ± SD | Three RMSE | Three Max |"
+    columns = (
+        "Phantom",
+        "Set",
+        "Single MAE ± SD",
+        "Single RMSE",
+        "Single Max",
+        "Three MAE ± SD",
+        "Three RMSE",
+        "Three Max",
     )
     out = []
-    for title, pick in (
-        ("Table III. Single- and three-marker point-to-surface errors after ICP (mm).", None),
-        (
-            "Table III (twin only). The same without ICP, through the true phantom placement "
-            "(calibration and kinematic error included) (mm).",
-            "without_icp",
-        ),
-    ):
-        out += [f"**{title}**", "", header, "|" + "---|" * 8]
+    for title, pick in TABLE_III_TITLES:
+        rows = []
         for kind, by_method in stats.items():
             for s in [*sets, "overall"]:
                 cells = []
@@ -352,11 +406,18 @@ def format_table_iii_markdown(
                     v = by_method[method][s]
                     cells += _stats_cells(v[pick] if pick else v, fmt)
                 label = "Overall" if s == "overall" else s
-                out.append(
-                    f"| {PHANTOM_TITLES.get(kind, kind)} | {label} | " + " | ".join(cells) + " |"
-                )
-        out.append("")
-    return "\n".join(out)
+                rows.append((PHANTOM_TITLES.get(kind, kind), label, *cells))
+        out.append(PaperTable(title, columns, tuple(rows)))
+    return out
+
+
+def format_table_iii_markdown(
+    stats: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Any]]]],
+    sets: Sequence[str],
+    fmt: Callable[[float], str] = lambda v: f"{v:.2f}",
+) -> str:
+    """Table III (:func:`table_iii`) as Markdown."""
+    return "\n".join(t.markdown() for t in table_iii(stats, sets, fmt))
 
 
 def format_table_iii_csv(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 
 import numpy as np
 import pytest
@@ -102,3 +103,85 @@ def test_robust_inliers_drop_false_detections(rng):
     keep = robust_inliers(P)
     assert not keep[3] and not keep[17]
     assert keep.sum() == 43
+
+
+def test_tables_i_to_iii_carry_the_same_figures_in_every_rendering():
+    """One model of the paper's tables (``calib.evaluate.PaperTable``) rendered to
+    Markdown (``tables.md``), HTML (the report), the console and CSV (``tables.csv``):
+    every rendering carries the figures as ``metrics.json`` holds them, in the paper's
+    order (rounded to 0.01 mm where shown, exact in the CSV)."""
+    from rich.console import Console
+
+    from bench.console import paper_table
+    from bench.report import report_html
+    from calib.evaluate import (
+        TABLE_ROWS,
+        format_table_iii_csv,
+        format_table_iii_markdown,
+        table_iii,
+        tables_i_ii,
+    )
+
+    rng = np.random.default_rng(4)
+    sets = ["A", "B", "C"]
+    cols = [*sets, "overall"]
+
+    def figures(*keys):
+        return {k: float(rng.uniform(0.05, 3.0)) for k in keys} | {"n": 8}
+
+    evaluation = {
+        kind: {key: {s: figures("mae", "sd", "rmse") for s in cols} for key, _ in rows}
+        for kind, rows in TABLE_ROWS.items()
+    }
+    recon = {
+        phantom: {
+            m: {
+                s: figures("mae", "sd", "rmse", "max")
+                | {"without_icp": figures("mae", "sd", "rmse", "max")}
+                for s in cols
+            }
+            for m in ("single", "three")
+        }
+        for phantom in ("cone", "prism")
+    }
+    expected = []  # the figures in reading order
+    for kind, rows in TABLE_ROWS.items():
+        for key, _ in rows:
+            by_set = evaluation[kind][key]
+            expected += [by_set[s][k] for s in cols for k in ("mae", "sd")]
+            expected += [by_set[s]["rmse"] for s in cols]
+    for pick in (None, "without_icp"):
+        for phantom in recon:
+            for s in cols:
+                for m in ("single", "three"):
+                    v = recon[phantom][m][s]
+                    v = v[pick] if pick else v
+                    expected += [v[k] for k in ("mae", "sd", "rmse", "max")]
+
+    def shown(text: str) -> list[float]:
+        return [float(x) for x in re.findall(r"\d+\.\d\d\b", text)]
+
+    markdown = format_tables_markdown(evaluation) + "\n" + format_table_iii_markdown(recon, sets)
+    console = Console(record=True, width=250)
+    for t in [*tables_i_ii(evaluation), *table_iii(recon, sets)]:
+        console.print(paper_table(t))
+    html = report_html(markdown)
+    html_tables = "".join(re.findall(r"<table>.*?</table>", html, flags=re.S))  # not the CSS
+    for rendering in (markdown, html_tables, console.export_text()):
+        assert shown(rendering) == pytest.approx(expected, abs=0.005 + 1e-9)
+    rows = list(
+        csv.DictReader(
+            io.StringIO(format_tables_csv(evaluation) + format_table_iii_csv(recon, sets))
+        )
+    )
+    for r in rows:
+        if r["table"] == "reconstruction":
+            phantom, method = r["metric"].split("_")[:2]
+            v = recon[phantom][method][r["set"]]
+            v = v["without_icp"] if r["metric"].endswith("_without_icp") else v
+            assert float(r["max_mm"]) == pytest.approx(v["max"], abs=1e-6)
+        else:
+            v = evaluation[r["table"]][r["metric"]][r["set"]]
+        for k in ("mae", "sd", "rmse"):
+            assert float(r[f"{k}_mm"]) == pytest.approx(v[k], abs=1e-6)
+    assert len(rows) == 5 * 4 + 2 * 2 * 2 * 4
