@@ -170,11 +170,12 @@ def spawn_viewer(path: Path, console: Console) -> None:
     console.print(f"opened {path} in the rerun viewer")
 
 
-def paper_table(t: PaperTable) -> Table:
-    """One of the paper's tables (:class:`calib.evaluate.PaperTable`) for the console."""
+def paper_table(t: PaperTable, columns: Sequence[str] | None = None) -> Table:
+    """One of the paper's tables (:class:`calib.evaluate.PaperTable`) for the console;
+    ``columns`` replaces its column names (shorter ones for a narrow terminal)."""
     table = Table(title=t.title)
-    for i, col in enumerate(t.columns):
-        table.add_column(col, justify="left" if i < 2 else "right")
+    for i, col in enumerate(columns or t.columns):
+        table.add_column(col, justify="left" if i < 2 else "right", no_wrap=i < 2)
     for row in t.rows:
         table.add_row(*row)
     return table
@@ -239,9 +240,10 @@ def print_reconstruction(m: dict, console: Console) -> None:
     rec = m["reconstruction"]
     kinds = [k for k in ("cone", "prism") if k in rec]
     after_icp = table_iii({k: rec[k] for k in kinds}, names)[0]
-    console.print(paper_table(after_icp))
+    short = ("", "set", "1: MAE±SD", "RMSE", "max", "3: MAE±SD", "RMSE", "max")
+    console.print(paper_table(after_icp, short))
     console.print(
-        "single-marker: sphere 1, three-marker: spheres 1–3, re-calibrated after the "
+        "1: single-marker (sphere 1), 3: three-marker (spheres 1–3), re-calibrated after the "
         "remount with each set's DH model. Without ICP, through the true phantom placement "
         "(beyond the paper), overall MAE: "
         + "; ".join(
