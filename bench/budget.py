@@ -38,10 +38,10 @@ from calib.errors import UscalError
 
 from . import progress as progress_report
 from .error_sources import ERROR_SOURCES, ErrorSource, value_at
-from .output import make_directory
+from .output import make_directory, write_text_atomic
 from .report import report_html
 from .scenario import Scenario, load_scenario
-from .sweep import as_completed, code_version, executor, write_atomic
+from .sweep import as_completed, code_version, executor
 
 __all__ = [
     "FIGURES",
@@ -277,16 +277,16 @@ def run_budget(
                 run = todo[key]
                 doc = {"overrides": [[k, v] for k, v in run.overrides], "seed": run.seed}
                 doc.update(future.result())
-                write_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
+                write_text_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
                 done[key] = doc
                 progress_report.report("budget runs", len(done), total)
         finally:
             close()
     ordered = [(r, done[k]) for r, k in zip(runs, keys, strict=True)]
-    write_atomic(out / "budget.csv", budget_csv(ordered))
+    write_text_atomic(out / "budget.csv", budget_csv(ordered))
     md = budget_markdown(spec, ordered, out)
-    write_atomic(out / "budget.md", md)
-    write_atomic(out / "budget.html", report_html(md, "uscal error budget"))
+    write_text_atomic(out / "budget.md", md)
+    write_text_atomic(out / "budget.html", report_html(md, "uscal error budget"))
     failed = sum("error" in d for d in done.values())
     return BudgetResult(spec, ordered, len(todo), n_cached, failed, time.perf_counter() - t0)
 

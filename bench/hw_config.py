@@ -34,6 +34,7 @@ from twin.phantoms import PhantomConfig, build_phantom
 from twin.touch import SimTouchGuide
 
 from .experiment import coarse_estimate, make_twin
+from .output import write_text_atomic
 from .scenario import Scenario, _build_section, _read_yaml, apply_overrides
 from .sessions import TOUCH_GUIDE_KEY, stage_rngs, stream
 
@@ -235,15 +236,11 @@ def loopback_hw_config(
         "phantom": {k: _plain(v) for k, v in dataclasses.asdict(scenario.phantom).items()},
         "protocol": {k: _plain(v) for k, v in dataclasses.asdict(scenario.protocol).items()},
     }
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
     header = (
         f"# hw config of the loopback rig: the twin of {scenario.source} served on {host}\n"
         "# (uscal twin serve). Validate with `uscal acquire --dry-run`.\n"
     )
-    tmp.write_text(header + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, header + yaml.safe_dump(doc, sort_keys=False))
 
 
 def emulated_operator(scenario: Scenario, twin) -> Callable[[list[str]], str]:

@@ -12,7 +12,13 @@ from pathlib import Path
 
 from calib.errors import UscalError
 
-__all__ = ["OutputExistsError", "OutputPlaceError", "atomic_output_dir", "make_directory"]
+__all__ = [
+    "OutputExistsError",
+    "OutputPlaceError",
+    "atomic_output_dir",
+    "make_directory",
+    "write_text_atomic",
+]
 
 
 class OutputExistsError(UscalError):
@@ -73,3 +79,16 @@ def atomic_output_dir(target: str | os.PathLike[str], force: bool = False) -> It
     tmp.rename(target)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` through a temporary sibling renamed into place:
+    a reader (or a resumed sweep) sees the old file or the new one, never half of one."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path

@@ -53,7 +53,7 @@ from .experiment import (
     simulate_acquisition,
     true_centre_in_sweep,
 )
-from .output import make_directory
+from .output import make_directory, write_text_atomic
 from .scenario import load_scenario, validate_overrides
 
 __all__ = [
@@ -65,7 +65,6 @@ __all__ = [
     "load_sweep",
     "run_point",
     "run_sweep",
-    "write_atomic",
 ]
 
 STAGES = ("localize", "calibrate")
@@ -343,12 +342,6 @@ class SweepResult:
     seconds: float
 
 
-def write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-
-
 def executor(scheduler: str | None, workers: int | None):
     """(submit, wait-for-any, close) on a local process pool or a Dask cluster."""
     if scheduler is None:
@@ -409,16 +402,16 @@ def run_sweep(
                 key, overrides, seed = futures[future]
                 doc = {"overrides": [[k, v] for k, v in overrides], "seed": seed}
                 doc.update(future.result())
-                write_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
+                write_text_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
                 done[key] = doc
                 progress_report.report("sweep points", len(done), len(points))
         finally:
             close()
     ordered = [done[point_key(spec, o, s)] for o, s in points]
-    write_atomic(out / "results.csv", results_csv(spec, ordered))
+    write_text_atomic(out / "results.csv", results_csv(spec, ordered))
     from .sweep_report import sweep_html
 
-    write_atomic(out / "sweep.html", sweep_html(spec, ordered, out))
+    write_text_atomic(out / "sweep.html", sweep_html(spec, ordered, out))
     failed = sum("error" in d for d in ordered)
     return SweepResult(spec, ordered, len(todo), n_cached, failed, time.perf_counter() - t0)
 

@@ -27,3 +27,22 @@ def test_failure_leaves_nothing_and_keeps_old(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
     with pytest.raises(OutputExistsError, match="not empty"), atomic_output_dir(target):
         pass
+
+
+def test_write_text_atomic_replaces_whole_and_leaves_no_temporary(tmp_path, monkeypatch):
+    import os
+
+    from bench.output import write_text_atomic
+
+    target = tmp_path / "results.csv"
+    write_text_atomic(target, "old\n")
+    assert write_text_atomic(target, "new\n").read_text() == "new\n"
+
+    def fail(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", fail)
+    with pytest.raises(OSError):
+        write_text_atomic(target, "half")
+    assert target.read_text() == "new\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["results.csv"]
