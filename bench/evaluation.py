@@ -66,7 +66,6 @@ from .experiment import (
     axial_scale,
     coarse_estimate,
     drop_frame_pages,
-    image_error_mm,
     image_points,
     make_imager,
     make_twin,
@@ -96,6 +95,7 @@ from .reconstruction import (
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
 from .sessions import dataset_rngs, dataset_scenario, scan_scenario, stage_rngs
+from .truth import mount_error, transform_difference
 
 __all__ = ["DatasetOutcome", "EvaluationResult", "run_evaluation"]
 
@@ -295,9 +295,7 @@ def _run_dataset(task: _DatasetTask, scan: _DatasetScan | None = None) -> Datase
         fold_truth.append(
             {
                 "fold": r.fold.name,
-                "rotation_deg": float(np.degrees(se3.rotation_angle(X, X_equiv))),
-                "translation_mm": float(se3.translation_distance(X, X_equiv)) * _MM,
-                "image_mm": image_error_mm(scenario, X, X_equiv),
+                **mount_error(scenario, X, X_equiv),
                 "accuracy_true_mm": float(
                     np.mean(
                         [
@@ -891,7 +889,4 @@ def _coarse_error(scenario: Scenario, truth) -> dict[str, float]:
     coarse = coarse_estimate(
         truth.T_ee_us, scenario.calibration, stage_rngs(scenario)["calibration"]
     )
-    return {
-        "rotation_deg": float(np.degrees(se3.rotation_angle(coarse, truth.T_ee_us))),
-        "translation_mm": float(se3.translation_distance(coarse, truth.T_ee_us)) * _MM,
-    }
+    return transform_difference(coarse, truth.T_ee_us)

@@ -45,7 +45,6 @@ __all__ = [
     "axial_scale",
     "coarse_estimate",
     "frames_to_file",
-    "image_error_mm",
     "image_points",
     "make_imager",
     "make_twin",
@@ -310,13 +309,3 @@ def image_points(scenario: Scenario, n: int = 21) -> NDArray[np.float64]:
     spacing = (probe.width_mm * 1e-3 / (n - 1), probe.depth_mm * 1e-3 / (n - 1))
     P = pixel_to_us(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), n, spacing)
     return P.reshape(-1, 3)
-
-
-def image_error_mm(
-    scenario: Scenario, T_est: NDArray[np.float64], T_true: NDArray[np.float64]
-) -> float:
-    """Mean distance (mm) over a grid covering the image between each image point mapped
-    with the true and with the estimated ``T_ee_us``: the error a user sees."""
-    P = image_points(scenario)
-    d = np.linalg.norm(se3.apply(T_est, P) - se3.apply(T_true, P), axis=1)
-    return float(np.mean(d)) * 1e3

@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calib import se3
 from calib.calibrate import AlternationResult, alternate
 from calib.dataset_files import AcquisitionInfo, DatasetWriter, read_dataset
 from calib.dh import DHTable
@@ -36,6 +35,7 @@ from .experiment import SimulatedAcquisition, speed_ratio
 from .figures import dataset_snapshot
 from .progress import report
 from .scenario import Scenario, layout_sigma_mm
+from .truth import transform_difference
 
 __all__ = [
     "THERMOMETER_UNCERTAINTY_C",
@@ -488,10 +488,7 @@ def calibrate_recorded(
     n_rejected = sum(not loc.accepted for v in final.values() for loc in v)
     if cals.single is not None and cals.three is not None:
         a, b = cals.single.result.T_ee_us, cals.three.result.T_ee_us
-        calibration["single_vs_three"] = {
-            "rotation_deg": float(np.degrees(se3.rotation_angle(a, b))),
-            "translation_mm": float(se3.translation_distance(a, b)) * _MM,
-        }
+        calibration["single_vs_three"] = transform_difference(a, b)
     if evaluation is not None and len(targets) >= 2:
         evaluation.update(
             _folds(dataset, reference, radius, settings, scale, cad, info.T_ee_us_coarse)

@@ -58,7 +58,6 @@ from .experiment import (
     axial_scale,
     coarse_estimate,
     frames_to_file,
-    image_error_mm,
     image_points,
     make_imager,
     make_twin,
@@ -71,6 +70,7 @@ from .progress import report
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
 from .sessions import REMOUNT_KEY, SESSIONS, dataset_rngs, stage_rngs, stream
+from .truth import mount_error
 
 __all__ = [
     "METHODS",
@@ -293,11 +293,7 @@ def run_recalibration(
         X = alt.result.T_ee_us
         T_ee_us[(name, method)] = X
         n_retained[(name, method)] = int(alt.result.retained.sum())
-        errors[(name, method)] = {
-            "rotation_deg": float(np.degrees(se3.rotation_angle(X, X_equiv))),
-            "translation_mm": float(se3.translation_distance(X, X_equiv)) * _MM,
-            "image_mm": image_error_mm(sc, X, X_equiv),
-        }
+        errors[(name, method)] = mount_error(sc, X, X_equiv)
         report(label, len(errors), len(tables))
     return Recalibration(T_ee_us, n_retained, errors, {"calibrate": time.perf_counter() - t0})
 

@@ -23,7 +23,6 @@ from .evaluation import EvaluationResult, run_evaluation
 from .experiment import (
     SimulatedAcquisition,
     axial_scale,
-    image_error_mm,
     image_points,
     make_imager,
     make_twin,
@@ -35,6 +34,7 @@ from .offline import calibrate_markers, calibration_entry, scenario_uncertainty
 from .offline import save_dataset as save_dataset_files
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
+from .truth import mount_error, transform_difference
 
 __all__ = ["RunResult", "run"]
 
@@ -92,11 +92,7 @@ def snapshot_of(
 
 
 def _true_errors(scenario, T_est, T_true) -> dict[str, float]:
-    return {
-        "rotation_deg": float(np.degrees(se3.rotation_angle(T_est, T_true))),
-        "translation_mm": 1e3 * float(se3.translation_distance(T_est, T_true)),
-        "image_mm": image_error_mm(scenario, T_est, T_true),
-    }
+    return mount_error(scenario, T_est, T_true)
 
 
 def equivalent_mount(scenario: Scenario, acq: SimulatedAcquisition, truth) -> Array | None:
@@ -268,13 +264,7 @@ def run(
             },
         },
         "calibration": {
-            "coarse_error": {
-                "rotation_deg": float(
-                    np.degrees(se3.rotation_angle(acq.T_ee_us_coarse, truth.T_ee_us))
-                ),
-                "translation_mm": 1e3
-                * float(se3.translation_distance(acq.T_ee_us_coarse, truth.T_ee_us)),
-            },
+            "coarse_error": transform_difference(acq.T_ee_us_coarse, truth.T_ee_us),
             "single": _calibration_metrics(
                 scenario,
                 acq,

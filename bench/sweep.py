@@ -45,7 +45,6 @@ from calib.localize import localize_sphere
 from . import progress as progress_report
 from .experiment import (
     axial_scale,
-    image_error_mm,
     make_imager,
     make_twin,
     one_blas_thread,
@@ -55,6 +54,7 @@ from .experiment import (
 )
 from .output import make_directory, write_text_atomic
 from .scenario import load_scenario, validate_overrides
+from .truth import image_error_mm
 
 __all__ = [
     "SweepError",

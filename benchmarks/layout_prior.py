@@ -36,7 +36,6 @@ METHODS = ("single", "three, CAD exact", "three, layout estimated")
 def one(seed: int, tolerance_mm: float) -> dict:
     from bench.experiment import (
         axial_scale,
-        image_error_mm,
         make_imager,
         make_twin,
         one_blas_thread,
@@ -44,6 +43,7 @@ def one(seed: int, tolerance_mm: float) -> dict:
     )
     from bench.offline import calibrate_markers
     from bench.scenario import load_scenario
+    from bench.truth import image_error_mm
     from calib import se3
 
     sc = load_scenario(

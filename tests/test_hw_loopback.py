@@ -113,8 +113,9 @@ def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(control
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     T = np.array(json.loads((out / "metrics.json").read_text())["calibration"]["single"]["T_ee_us"])
-    from bench.experiment import image_error_mm, make_twin
+    from bench.experiment import make_twin
     from bench.scenario import load_scenario
+    from bench.truth import image_error_mm
 
     scenario = load_scenario(QUICK)
     T_true = make_twin(scenario).truth.T_ee_us  # the served twin's truth (same seed)

@@ -230,8 +230,8 @@ def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deep_weak_
     """Without a calibration the first localization takes the plate in some sweeps; the
     alternation searches those again about the other sweeps' consensus instead of over
     their whole grid, so they come back instead of being dropped."""
-    from bench.experiment import image_error_mm
     from bench.scenario import load_scenario
+    from bench.truth import image_error_mm
     from calib.calibrate import alternate
 
     sweeps, _, T_true, scale, T_coarse = deep_weak_scan
