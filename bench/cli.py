@@ -582,6 +582,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     from .output import atomic_output_dir, make_directory
     from .recording_options import RecordingOptions
     from .report import write_report
+    from .run import recorded_run_result
 
     settings = load_scenario(args.settings, args.overrides)
     dataset_dir = Path(args.dataset)
@@ -601,7 +602,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
             record_recorded(recording, settings, result)
             if args.rrd is None:
                 written.append("recording.rrd")
-        written += write_report(tmp, settings, result.as_run_result(settings))
+        written += write_report(tmp, settings, recorded_run_result(result, settings))
     if args.rrd and not args.no_rrd:
         target = Path(args.rrd)
         make_directory(target.parent)

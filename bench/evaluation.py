@@ -77,7 +77,7 @@ from .experiment import (
     with_frames,
     without_frames,
 )
-from .figures import LocalizationSnapshot
+from .figures import LocalizationSnapshot, snapshot_of
 from .offline import layout_entry, scenario_uncertainty, uncertainty_entry
 from .reconstruction import (
     METHODS,
@@ -334,8 +334,6 @@ def _run_dataset(task: _DatasetTask, scan: _DatasetScan | None = None) -> Datase
     }
     snapshot = None
     if task.index == 0:
-        from .run import snapshot_of
-
         first_single = next(r for r in results if r.fold.kind == "single")
         snapshot = snapshot_of(scenario, acq, first_single.alternation, truth)
     part, t_rec = None, 0.0

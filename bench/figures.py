@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from calib import se3
 from calib.calibrate import AlternationResult
 from calib.evaluate import PHANTOM_TITLES
 from calib.image import sphere_section, us_to_pixel
@@ -17,7 +18,9 @@ from calib.localize import SphereProfile, sphere_profile
 from calib.observability import information, jacobians
 from calib.records import Sweep
 
+from .experiment import SimulatedAcquisition, axial_scale
 from .reconstruction import METHODS, PhantomReconstruction
+from .scenario import Scenario
 
 __all__ = [
     "LocalizationSnapshot",
@@ -28,6 +31,7 @@ __all__ = [
     "overlay_figure",
     "profile_figure",
     "reconstruction_heatmaps",
+    "snapshot_of",
 ]
 
 Array = NDArray[np.float64]
@@ -297,3 +301,29 @@ def reconstruction_heatmaps(
             fig.colorbar(scatter, ax=row.tolist(), shrink=0.9, label="point-to-surface (mm)")
     fig.savefig(path, dpi=110)
     return path
+
+
+def snapshot_of(
+    scenario: Scenario,
+    acq: SimulatedAcquisition,
+    alt: AlternationResult,
+    truth=None,
+) -> LocalizationSnapshot | None:
+    """The report's look at the first sphere: its first accepted sweep's frames with the
+    sections found by ``alt`` (and the true ones when ``truth`` is the twin's), and the
+    sphere's radial profile over its sweeps."""
+    true_centres = None
+    if truth is not None:
+
+        def true_centres(target: str, sweep) -> Array:
+            T_true = acq.T_base_ee_true[(target, sweep.pose_id)] @ truth.T_ee_us
+            return se3.apply(se3.invert(T_true), truth.landmarks_base[target])
+
+    return dataset_snapshot(
+        acq.dataset,
+        alt,
+        scenario.phantom.sphere_radius_mm * 1e-3,
+        scenario.localization,
+        axial_scale(scenario),
+        true_centres,
+    )

@@ -32,7 +32,6 @@ from calib.records import Dataset
 from calib.uncertainty import Bound95, UncertaintyInputs, alternation_bound, image_grid
 
 from .experiment import SimulatedAcquisition, speed_ratio
-from .figures import dataset_snapshot
 from .progress import report
 from .scenario import Scenario, layout_sigma_mm
 from .truth import transform_difference
@@ -311,23 +310,6 @@ class RecordedCalibration:
     @property
     def axial_scale(self) -> float:
         return axial_scale_of(self.info)
-
-    def as_run_result(self, settings: Scenario):
-        """The same result as :class:`bench.run.RunResult` (what the report draws)."""
-        from .run import RunResult
-
-        cals = self.calibrations
-        first = cals.single or cals.three
-        snapshot = None
-        if first is not None:
-            snapshot = dataset_snapshot(
-                self.dataset,
-                first,
-                self.info.sphere_radius_mm * 1e-3,
-                settings.localization,
-                self.axial_scale,
-            )
-        return RunResult(self.metrics, None, cals.single, cals.three, snapshot=snapshot)
 
 
 def record_recorded(options, settings: Scenario, result: RecordedCalibration) -> int:

@@ -29,14 +29,19 @@ from .experiment import (
     simulate_acquisition,
     true_centre_in_sweep,
 )
-from .figures import LocalizationSnapshot, dataset_snapshot
-from .offline import calibrate_markers, calibration_entry, scenario_uncertainty
+from .figures import LocalizationSnapshot, dataset_snapshot, snapshot_of
+from .offline import (
+    RecordedCalibration,
+    calibrate_markers,
+    calibration_entry,
+    scenario_uncertainty,
+)
 from .offline import save_dataset as save_dataset_files
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
 from .truth import mount_error, transform_difference
 
-__all__ = ["RunResult", "run"]
+__all__ = ["RunResult", "recorded_run_result", "run"]
 
 Array = NDArray[np.float64]
 
@@ -65,30 +70,20 @@ class RunResult:
         return {k: a for k, a in pairs if a is not None}
 
 
-def snapshot_of(
-    scenario: Scenario,
-    acq: SimulatedAcquisition,
-    alt: AlternationResult,
-    truth=None,
-) -> LocalizationSnapshot | None:
-    """The report's look at the first sphere: its first accepted sweep's frames with the
-    sections found by ``alt`` (and the true ones when ``truth`` is the twin's), and the
-    sphere's radial profile over its sweeps."""
-    true_centres = None
-    if truth is not None:
-
-        def true_centres(target: str, sweep) -> Array:
-            T_true = acq.T_base_ee_true[(target, sweep.pose_id)] @ truth.T_ee_us
-            return se3.apply(se3.invert(T_true), truth.landmarks_base[target])
-
-    return dataset_snapshot(
-        acq.dataset,
-        alt,
-        scenario.phantom.sphere_radius_mm * 1e-3,
-        scenario.localization,
-        axial_scale(scenario),
-        true_centres,
-    )
+def recorded_run_result(recorded: RecordedCalibration, settings: Scenario) -> RunResult:
+    """A recorded dataset's calibration (``uscal calibrate``) as the report draws a run."""
+    cals = recorded.calibrations
+    first = cals.single or cals.three
+    snapshot = None
+    if first is not None:
+        snapshot = dataset_snapshot(
+            recorded.dataset,
+            first,
+            recorded.info.sphere_radius_mm * 1e-3,
+            settings.localization,
+            recorded.axial_scale,
+        )
+    return RunResult(recorded.metrics, None, cals.single, cals.three, snapshot=snapshot)
 
 
 def _true_errors(scenario, T_est, T_true) -> dict[str, float]:

@@ -141,7 +141,7 @@ def test_cycle_finder_finds_a_cycle():
     assert _cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) is None
 
 
-@pytest.mark.parametrize("pkg", ["calib", "sim_us", "twin", "hw"])
+@pytest.mark.parametrize("pkg", ["calib", "sim_us", "twin", "hw", "bench"])
 def test_no_import_cycles(pkg):
     """No module imports, directly or through others, the module importing it (lazy
     imports included): each package reads bottom-up."""
