@@ -232,11 +232,11 @@ def test_linked_keys_are_set_together_and_reported(tmp_path):
 
 
 def test_a_large_grid_is_validated_value_by_value_and_announced(tmp_path):
-    """A 10 001-value grid is validated from the base read once (its last value, out of
-    range, named in one line), and the sweep says how many acquisitions it is and
-    roughly how long: robustness.yaml's estimate is within a factor 2 of its measured
-    10 min on 2 workers."""
-    values = [round(-20 + 40 * i / 10_000, 4) for i in range(10_001)]
+    """A 1 001-value grid is validated from the base read once, ≈ 1 ms a value (its last
+    value, out of range, named in one line), and the sweep says how many acquisitions it
+    is and roughly how long: robustness.yaml's estimate is within a factor 2 of its
+    measured 10 min on 2 workers."""
+    values = [round(-20 + 40 * i / 1_000, 4) for i in range(1_001)]
     path = _write(
         tmp_path / "big.yaml",
         f"base: {QUICK}\ngrid:\n  imaging.gain_db: {[*values[:-1], 400]}\nseeds: [0, 1]\n",
@@ -245,6 +245,6 @@ def test_a_large_grid_is_validated_value_by_value_and_announced(tmp_path):
         load_sweep(path)
     path.write_text(path.read_text().replace("400]", f"{values[-1]}]"))
     spec = load_sweep(path)
-    assert spec.count() == 20_002 == len(spec.points())
+    assert spec.count() == 2_002 == len(spec.points())
     robustness = load_sweep(ROOT / "scenarios" / "robustness.yaml")
     assert 600 < robustness.estimated_seconds() < 2400  # measured: 1200 worker-seconds
