@@ -77,7 +77,7 @@ from .experiment import (
     with_frames,
     without_frames,
 )
-from .figures import LocalizationSnapshot, snapshot_of
+from .figures import LocalizationSnapshot
 from .offline import layout_entry, scenario_uncertainty, uncertainty_entry
 from .reconstruction import (
     METHODS,
@@ -95,7 +95,7 @@ from .reconstruction import (
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
 from .sessions import dataset_rngs, dataset_scenario, scan_scenario, stage_rngs
-from .truth import mount_error, transform_difference
+from .truth import mount_error, snapshot_of, transform_difference
 
 __all__ = ["DatasetOutcome", "EvaluationResult", "run_evaluation"]
 

@@ -5,22 +5,22 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from calib import se3
 from calib.calibrate import AlternationResult
-from calib.evaluate import PHANTOM_TITLES
+from calib.evaluate import PHANTOM_TITLES, TABLE_III_METHODS
 from calib.image import sphere_section, us_to_pixel
 from calib.localization import SweepLocalization, frame_offsets
 from calib.localize import SphereProfile, sphere_profile
 from calib.observability import information, jacobians
 from calib.records import Sweep
 
-from .experiment import SimulatedAcquisition, axial_scale
-from .reconstruction import METHODS, PhantomReconstruction
-from .scenario import Scenario
+if TYPE_CHECKING:  # the type only: drawing does not load the twin (MuJoCo)
+    from .reconstruction import PhantomReconstruction
+
 
 __all__ = [
     "LocalizationSnapshot",
@@ -31,7 +31,6 @@ __all__ = [
     "overlay_figure",
     "profile_figure",
     "reconstruction_heatmaps",
-    "snapshot_of",
 ]
 
 Array = NDArray[np.float64]
@@ -266,7 +265,7 @@ def reconstruction_heatmaps(
     the row's 99th percentile (the few larger errors saturate). At most ``max_points``
     points per panel are drawn (a random subset)."""
     path = Path(path)
-    columns = [(m, s) for m in METHODS for s in sets]
+    columns = [(m, s) for m in TABLE_III_METHODS for s in sets]
     fig = _figure(figsize=(2.6 * len(columns) + 1.0, 2.8 * len(parts)), layout="constrained")
     axes = fig.subplots(len(parts), len(columns), squeeze=False)
     for row, part in zip(axes, parts, strict=True):
@@ -301,29 +300,3 @@ def reconstruction_heatmaps(
             fig.colorbar(scatter, ax=row.tolist(), shrink=0.9, label="point-to-surface (mm)")
     fig.savefig(path, dpi=110)
     return path
-
-
-def snapshot_of(
-    scenario: Scenario,
-    acq: SimulatedAcquisition,
-    alt: AlternationResult,
-    truth=None,
-) -> LocalizationSnapshot | None:
-    """The report's look at the first sphere: its first accepted sweep's frames with the
-    sections found by ``alt`` (and the true ones when ``truth`` is the twin's), and the
-    sphere's radial profile over its sweeps."""
-    true_centres = None
-    if truth is not None:
-
-        def true_centres(target: str, sweep) -> Array:
-            T_true = acq.T_base_ee_true[(target, sweep.pose_id)] @ truth.T_ee_us
-            return se3.apply(se3.invert(T_true), truth.landmarks_base[target])
-
-    return dataset_snapshot(
-        acq.dataset,
-        alt,
-        scenario.phantom.sphere_radius_mm * 1e-3,
-        scenario.localization,
-        axial_scale(scenario),
-        true_centres,
-    )

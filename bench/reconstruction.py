@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.calibrate import alternate
 from calib.dh import DHTable, forward_kinematics
+from calib.evaluate import TABLE_III_METHODS
 from calib.image import pixel_to_us
 from calib.kinematics import kinematic_gauge, with_kinematics
 from calib.localization import SweepLocalization
@@ -92,7 +93,7 @@ Array = NDArray[np.float64]
 _MM = 1e3
 
 #: Calibration methods of Table III: (name, spheres used).
-METHODS = {"single": ("sphere_1",), "three": ("sphere_1", "sphere_2", "sphere_3")}
+METHODS = TABLE_III_METHODS
 
 
 def _remounted(scenario: Scenario) -> Scenario:

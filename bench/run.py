@@ -29,7 +29,7 @@ from .experiment import (
     simulate_acquisition,
     true_centre_in_sweep,
 )
-from .figures import LocalizationSnapshot, dataset_snapshot, snapshot_of
+from .figures import LocalizationSnapshot, dataset_snapshot
 from .offline import (
     RecordedCalibration,
     calibrate_markers,
@@ -39,7 +39,7 @@ from .offline import (
 from .offline import save_dataset as save_dataset_files
 from .recording_options import RecordingOptions
 from .scenario import Scenario, layout_sigma_mm
-from .truth import mount_error, transform_difference
+from .truth import mount_error, snapshot_of, transform_difference
 
 __all__ = ["RunResult", "recorded_run_result", "run"]
 

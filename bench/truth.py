@@ -1,7 +1,8 @@
 """Comparisons with the twin's ground truth, in one place: how far an estimated
 ``T_ee_us`` (or any transform) is from the true one, in the three measures every report
-uses (DESIGN.md §3: ground truth is kept apart from what the pipeline sees; these are
-only ever computed after the pipeline has answered)."""
+uses, and the true sphere sections the report draws beside those found (DESIGN.md §3:
+ground truth is kept apart from what the pipeline sees; these are only ever computed
+after the pipeline has answered)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
+from calib.calibrate import AlternationResult
 
-from .experiment import image_points
+from .experiment import SimulatedAcquisition, axial_scale, image_points
+from .figures import LocalizationSnapshot, dataset_snapshot
 from .scenario import Scenario
 
-__all__ = ["image_error_mm", "mount_error", "transform_difference"]
+__all__ = ["image_error_mm", "mount_error", "snapshot_of", "transform_difference"]
 
 Array = NDArray[np.float64]
 
@@ -40,3 +43,29 @@ def mount_error(scenario: Scenario, T_est: Array, T_true: Array) -> dict[str, fl
     return transform_difference(T_est, T_true) | {
         "image_mm": image_error_mm(scenario, T_est, T_true)
     }
+
+
+def snapshot_of(
+    scenario: Scenario,
+    acq: SimulatedAcquisition,
+    alt: AlternationResult,
+    truth=None,
+) -> LocalizationSnapshot | None:
+    """The report's look at the first sphere: its first accepted sweep's frames with the
+    sections found by ``alt`` (and the true ones when ``truth`` is the twin's), and the
+    sphere's radial profile over its sweeps."""
+    true_centres = None
+    if truth is not None:
+
+        def true_centres(target: str, sweep) -> Array:
+            T_true = acq.T_base_ee_true[(target, sweep.pose_id)] @ truth.T_ee_us
+            return se3.apply(se3.invert(T_true), truth.landmarks_base[target])
+
+    return dataset_snapshot(
+        acq.dataset,
+        alt,
+        scenario.phantom.sphere_radius_mm * 1e-3,
+        scenario.localization,
+        axial_scale(scenario),
+        true_centres,
+    )

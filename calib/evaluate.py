@@ -365,6 +365,10 @@ def _stats_cells(v: Mapping[str, float], fmt: Callable[[float], str]) -> list[st
     return [f"{fmt(v['mae'])} ± {fmt(v['sd'])}", fmt(v["rmse"]), fmt(v["max"])]
 
 
+#: Table III's calibration methods: (name, spheres used).
+TABLE_III_METHODS = {"single": ("sphere_1",), "three": ("sphere_1", "sphere_2", "sphere_3")}
+
+
 #: Table III's two tables: (title, which figures of a cell: after ICP, or the same
 #: distances through the true placement).
 TABLE_III_TITLES = (

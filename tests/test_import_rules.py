@@ -30,11 +30,25 @@ CALIB_SHARED = {
 }
 
 
+def _type_checking_only(tree: ast.AST) -> set[int]:
+    """ids of the nodes inside ``if TYPE_CHECKING:`` blocks (imports for annotations
+    alone, never executed)."""
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            for child in node.body:
+                skip.update(id(n) for n in ast.walk(child))
+    return skip
+
+
 def imports_of(path: Path) -> set[str]:
     tree = ast.parse(path.read_text(encoding="utf-8"))
     names: set[str] = set()
     package = path.parent.name
+    skip = _type_checking_only(tree)
     for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             names.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -166,3 +180,17 @@ def test_the_method_is_importable_from_calib():
     code = "import sys, calib.se3; print('calib.localize' in sys.modules, 'numba' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.stdout.split() == ["False", "False"], out.stderr
+
+
+def test_drawing_a_figure_does_not_load_the_twin():
+    """``bench.figures`` draws from results: importing it loads neither MuJoCo nor the
+    twin (the reconstruction's type is imported for annotations only)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, bench.figures; "
+        "print(any(m in sys.modules for m in ('mujoco', 'twin', 'bench.reconstruction')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.stdout.strip() == "False", out.stderr
