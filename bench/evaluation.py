@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.dh import DHTable
 from calib.evaluate import (
+    TABLE_III_METHODS,
     FoldResult,
     Summary,
     evaluate_fold,
@@ -80,7 +81,6 @@ from .experiment import (
 from .figures import LocalizationSnapshot
 from .offline import layout_entry, scenario_uncertainty, uncertainty_entry
 from .reconstruction import (
-    METHODS,
     PhantomReconstruction,
     PhantomScan,
     Recalibration,
@@ -600,7 +600,8 @@ def _run_evaluation(
         if phantoms:
             remount = [run_remount_scan(scenario, k, scratch) for k in spheres]
             recal = Recalibration.merge(
-                [run_recalibration(scenario, m, tables, remount) for m in METHODS], remount
+                [run_recalibration(scenario, m, tables, remount) for m in TABLE_III_METHODS],
+                remount,
             )
             for kind in phantoms:
                 scan = run_scan(scenario, kind, recording)
@@ -627,10 +628,10 @@ def _run_evaluation(
             for f in remount_futures:
                 remount.append(result(f))
                 scanned = {s.target for s in remount}
-                for method, used in METHODS.items():
+                for method, used in TABLE_III_METHODS.items():
                     if method not in recal_futures and set(used) <= scanned:
                         # The last calibrations run mostly alone: two threads.
-                        threads = 2 if len(recal_futures) == len(METHODS) - 1 else 1
+                        threads = 2 if len(recal_futures) == len(TABLE_III_METHODS) - 1 else 1
                         recal_futures[method] = submit(
                             run_recalibration, scenario, method, tables,
                             list(remount), threads,

@@ -74,7 +74,6 @@ from .sessions import REMOUNT_KEY, SESSIONS, dataset_rngs, stage_rngs, stream
 from .truth import mount_error
 
 __all__ = [
-    "METHODS",
     "PhantomReconstruction",
     "PhantomScan",
     "Recalibration",
@@ -91,9 +90,6 @@ __all__ = [
 
 Array = NDArray[np.float64]
 _MM = 1e3
-
-#: Calibration methods of Table III: (name, spheres used).
-METHODS = TABLE_III_METHODS
 
 
 def _remounted(scenario: Scenario) -> Scenario:
@@ -115,7 +111,7 @@ def recalibration_scenario(scenario: Scenario) -> Scenario:
     """The separate four-sphere scan after the remount, of the spheres Table III's
     methods use (sphere 4 is used by neither, so it is not scanned)."""
     sc = _remounted(scenario)
-    used = sorted({t for spheres in METHODS.values() for t in spheres})
+    used = sorted({t for spheres in TABLE_III_METHODS.values() for t in spheres})
     spheres = tuple(int(t.split("_")[1]) for t in used)
     return replace(sc, protocol=replace(sc.protocol, spheres=spheres))
 
@@ -250,14 +246,14 @@ def run_recalibration(
     scans: list[RemountScan],
     threads: int = 1,
 ) -> Recalibration:
-    """Calibrate with ``method`` (of :data:`METHODS`) from the re-calibration scan of its
+    """Calibrate with ``method`` (of :data:`TABLE_III_METHODS`) from the re-calibration scan of its
     spheres, with each DH model of ``tables`` (a process-pool task, mapping the scans'
     frames). ``threads`` > 1 localizes the spheres side by side (the localizer's kernels
     release the GIL): the three-marker task is the last of the run, mostly alone."""
     t0 = time.perf_counter()
     sc = recalibration_scenario(scenario)
     by_target = {s.target: s for s in scans}
-    spheres = METHODS[method]
+    spheres = TABLE_III_METHODS[method]
     missing = [t for t in spheres if t not in by_target]
     assert not missing, f"re-calibration scan lacks {missing}"
     frames = {t: by_target[t].sweeps_with_frames() for t in spheres}
@@ -495,7 +491,7 @@ def reconstruct_phantom(
     }
     metrics: dict[str, Any] = {}
     points: dict[tuple[str, str], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
-    for method in METHODS:
+    for method in TABLE_III_METHODS:
         pooled, pooled_true = [], []
         metrics[method] = {}
         for name, table in tables.items():
@@ -503,7 +499,7 @@ def reconstruct_phantom(
             T = flange[name] @ X
             R, t = T[scan.frame, :3, :3], T[scan.frame, :3, 3]
             P = np.einsum("nij,nj->ni", R, scan.p_us) + t
-            report(f"{kind}: ICP", len(points), len(METHODS) * len(tables))
+            report(f"{kind}: ICP", len(points), len(TABLE_III_METHODS) * len(tables))
             reg = register_icp(
                 P,
                 mesh,
@@ -525,7 +521,7 @@ def reconstruct_phantom(
                 se3.apply(reg.T, P).astype(np.float32),
                 reg.distances_mm.astype(np.float32),
             )
-        report(f"{kind}: ICP", len(points), len(METHODS) * len(tables))
+        report(f"{kind}: ICP", len(points), len(TABLE_III_METHODS) * len(tables))
         metrics[method]["overall"] = {
             **distance_stats(np.concatenate(pooled)),
             "n": int(sum(len(d) for d in pooled)),

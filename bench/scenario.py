@@ -42,6 +42,7 @@ __all__ = [
     "SECTIONS",
     "OutputConfig",
     "Scenario",
+    "acquisition_pixels",
     "apply_overrides",
     "check_geometry",
     "frames_memory_bytes",
@@ -449,17 +450,26 @@ _SWEEPS_PER_TARGET = 45
 _SIMULATION_BYTES_PER_PIXEL = 64
 
 
+def sweep_pixels(s: Scenario) -> int:
+    """Frame pixels of one sweep."""
+    rows, cols = s.imaging.image_shape
+    return s.protocol.frames_per_sweep * rows * cols
+
+
+def acquisition_pixels(s: Scenario) -> int:
+    """Frame pixels of one acquisition: the plan's sweeps of every target."""
+    targets = len(s.protocol.spheres) if s.phantom.kind == "spheres" else 1
+    return _SWEEPS_PER_TARGET * targets * sweep_pixels(s)
+
+
 def frames_memory_bytes(s: Scenario) -> int:
     """Estimated peak memory (bytes) of the frames a run holds: every dataset's frames
     (uint8) in the worker processes that acquire them side by side, and one sweep being
     simulated in each. For the paper scenario ≈ 1.6 GB (measured peak of the whole run:
     1.5–1.7 GB, ``benchmarks/paper.py``)."""
-    rows, cols = s.imaging.image_shape
-    sweep = s.protocol.frames_per_sweep * rows * cols
-    targets = len(s.protocol.spheres) if s.phantom.kind == "spheres" else 1
     datasets = max(1, len(s.evaluation.datasets))
     side_by_side = min(datasets, os.cpu_count() or 1)
-    per_worker = _SWEEPS_PER_TARGET * targets * sweep + _SIMULATION_BYTES_PER_PIXEL * sweep
+    per_worker = acquisition_pixels(s) + _SIMULATION_BYTES_PER_PIXEL * sweep_pixels(s)
     return side_by_side * per_worker
 
 

@@ -63,8 +63,9 @@ STREAM_KEYS = {
     "datasets": range(DATASET_KEY, DATASET_KEY + MAX_DATASETS),
     "cone": DATASET_KEY + SESSIONS["cone"],
     "prism": DATASET_KEY + SESSIONS["prism"],
+    # the re-calibration scans of spheres 1–4
     "recalibration": range(
-        DATASET_KEY + SESSIONS["recalibration"], DATASET_KEY + SESSIONS["recalibration"] + 5
+        DATASET_KEY + SESSIONS["recalibration"] + 1, DATASET_KEY + SESSIONS["recalibration"] + 5
     ),
     "remount": REMOUNT_KEY,
     "touch_guide": TOUCH_GUIDE_KEY,

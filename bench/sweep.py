@@ -53,7 +53,7 @@ from .experiment import (
     true_centre_in_sweep,
 )
 from .output import make_directory, write_text_atomic
-from .scenario import load_scenario, validate_overrides
+from .scenario import acquisition_pixels, load_scenario, validate_overrides
 from .truth import image_error_mm
 
 __all__ = [
@@ -121,10 +121,7 @@ class SweepSpec:
         """Rough time of the whole sweep on one worker: each point simulates and
         localizes the base scenario's sweeps (grid keys that change the image size
         change it too) at ≈ :data:`PIXELS_PER_SECOND`."""
-        base = load_scenario(self.base, check_reach=False)
-        rows, cols = base.imaging.image_shape
-        targets = len(base.protocol.spheres) if base.phantom.kind == "spheres" else 1
-        pixels = 45 * targets * base.protocol.frames_per_sweep * rows * cols
+        pixels = acquisition_pixels(load_scenario(self.base, check_reach=False))
         stages = 1.0 if self.stages == ("localize",) else 1.5
         return self.count() * stages * pixels / PIXELS_PER_SECOND
 

@@ -544,13 +544,15 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
     elevation (0 where not estimated; see :func:`_elevation_vertex`).
 
     The probe-facing cap is mirror-symmetric about the centre's lateral and elevational
-    coordinates, so the echo-weighted means of x and z over the cap give them; the top of
-    the cap (normal incidence, the strongest echo, seen in every nearby frame through the
-    slice thickness) lies one radius above the centre, so its echo-weighted depth plus R
-    gives y. A least-squares sphere fit would be pulled upwards instead: the elevation beam
-    smears that top echo over neighbouring frames and flattens the stacked cap. Weights are
-    grey levels above their brightness level (the frame mean, and the depth's noise floor
-    with method "refined"); a few rounds re-centre the windows.
+    coordinates, so the echo-weighted mean of x over the cap gives it, and z is the
+    vertex of the top's peak grey level across the slices (:func:`_elevation_vertex`); the
+    top of the cap (normal incidence, the strongest echo, seen in every nearby frame
+    through the slice thickness) lies one radius above the centre, so the depth of its
+    echo's peak (:func:`_axial_peak`) plus R gives y. A least-squares sphere fit would be
+    pulled upwards instead: the elevation beam smears that top echo over neighbouring
+    frames and flattens the stacked cap. Weights are grey levels above their brightness
+    level (the frame mean, and the depth's noise floor with method "refined"); a few
+    rounds re-centre the windows.
     """
     dx, dy, dz = vol.spacing
     seed = np.asarray(centre, dtype=float)
@@ -594,7 +596,6 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
             break
         x_new = float(w.sum(axis=(0, 1)) @ xs / total)
         z_mean = float(w.sum(axis=(1, 2)) @ zs / total)
-        # Elevation from the top of the cap only (where the echo stands far above noise).
         near_x = np.abs(xs - x_new) <= 0.5 * _M_PER_MM
         near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _M_PER_MM
         # Elevation from the top of the cap only (where the echo stands far above noise),

@@ -100,9 +100,11 @@ def test_check_refuses_what_is_not_a_rigid_transform(T, message):
 
 
 def test_check_passes_rigid_transforms_and_batches():
+    from calib.errors import TransformError
+
     T = se3.exp(np.array([[0.01, 0.02, 0.03, 0.1, -0.2, 0.3], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]))
     assert se3.check(T, "poses", batch=True) is not None
-    with pytest.raises(Exception, match=r"poses: shape \(2, 4, 4\)"):
+    with pytest.raises(TransformError, match=r"poses: shape \(2, 4, 4\)"):
         se3.check(T, "poses")
     # A file's few decimals are within the tolerance.
     np.testing.assert_array_equal(se3.check(T[0].round(6), "T"), T[0].round(6))
