@@ -21,18 +21,24 @@ from rich.progress import (
 from rich.progress import Progress as RichProgress
 from rich.table import Table
 
+from calib import se3
 from calib.evaluate import PaperTable, table_iii, tables_i_ii
 
-from .scenario import Scenario
+from .config.scenario import Scenario
 
 __all__ = [
     "Bars",
     "paper_table",
+    "print_cached_run",
     "print_evaluation",
+    "print_plan",
     "print_reconstruction",
     "print_recorded",
     "print_run",
     "print_scenario_summary",
+    "print_truth",
+    "print_workload",
+    "print_written",
     "progress_bars",
     "spawn_viewer",
 ]
@@ -308,3 +314,87 @@ def print_run(m: dict, console: Console) -> None:
         f"time: simulate {t['simulate']:.1f} s, localize {t['localize']:.1f} s, "
         f"calibrate {t['calibrate']:.1f} s{summed}, total {t['total']:.1f} s"
     )
+
+
+# ---------------------------------------------------------------- the other commands
+
+
+def print_plan(scenario: Scenario, reports: Sequence, noise_mm: float, console: Console) -> None:
+    """``uscal plan``: the plan checked, and the observability of ``T_ee_us`` per sphere
+    (sphere vs wire target)."""
+    p = scenario.protocol
+    console.print(
+        f"plan: {len(reports)} sphere(s) × {reports[0].n_sweeps} sweeps "
+        f"(±{p.rotation_deg:g}° corners, ±{p.translation_mm:g} mm in-plane), "
+        f"{sum(r.n_poses for r in reports)} frame poses: all reachable and collision-free"
+    )
+    table = Table(title=f"observability of T_ee_us (localization noise {noise_mm:g} mm)")
+    for col in ("sphere", "target", "λ min", "cond.", "σ min", "NAI", "rot° 1σ", "mm 1σ"):
+        table.add_column(col, justify="left" if col in ("sphere", "target") else "right")
+    for r in reports:
+        for label, o in (("sphere", r.point), ("wire", r.wire)):
+            table.add_row(
+                r.sphere.removeprefix("sphere_") if label == "sphere" else "",
+                label,
+                f"{o.eigenvalues[-1]:.3g}",
+                f"{o.condition_number:.2g}",
+                f"{o.min_singular_value:.3g}",
+                f"{o.noise_amplification:.2g}",
+                f"{o.std_rotation_deg.max():.3f}",
+                f"{o.std_translation_mm.max():.3f}",
+            )
+    console.print(table)
+    console.print(
+        "θ = (rotation vector in rad, translation in mm), points in mm; λ: eigenvalues of the "
+        "information matrix; NAI: noise amplification index λmin/√λmax; 1σ: largest "
+        "predicted standard deviation over the three axes. The wire runs perpendicular to "
+        "the nominal image plane; it slides along itself, so it never informs more than "
+        "the sphere."
+    )
+
+
+def print_truth(landmarks_mm: dict[str, list[float]], T_ee_us, console: Console) -> None:
+    """``uscal twin export``: the true landmarks and mount."""
+    table = Table(title="true landmarks (base frame, mm)")
+    for col in ("landmark", "x", "y", "z"):
+        table.add_column(col, justify="right" if col != "landmark" else "left")
+    for name, (x, y, z) in landmarks_mm.items():
+        table.add_row(name, f"{x:.3f}", f"{y:.3f}", f"{z:.3f}")
+    console.print(table)
+    rot = np.degrees(se3.euler_from_matrix(T_ee_us[:3, :3]))
+    console.print(
+        f"true T_ee_us: position {np.round(1e3 * T_ee_us[:3, 3], 3).tolist()} mm, "
+        f"rotation (xyz) {np.round(rot, 3).tolist()}°"
+    )
+
+
+def print_written(out: Path, written: Sequence[str], console: Console) -> None:
+    """The files a run or calibration wrote (figures counted, not listed)."""
+    figures = [f for f in written if f.startswith("figures/")]
+    files = [f for f in written if not f.startswith("figures/")]
+    console.print(
+        f"wrote {', '.join(str(out / f) for f in files)} and {len(figures)} figures in "
+        f"{out / 'figures'} (open {out / 'report.html'})"
+    )
+
+
+def print_workload(count: int, seeds: int, hours: float, workers: int, cluster: bool, console):
+    """What a sweep is about to run, before it runs."""
+    where = (
+        f"≈ {hours:.1f} worker-hours on the cluster"
+        if cluster
+        else f"≈ {hours / workers:.1f} h on {workers} local worker(s)"
+    )
+    console.print(
+        f"{count // seeds:,} grid points × {seeds} seed(s) = {count:,} acquisitions; "
+        f"{where} (cached points are not recomputed)"
+    )
+
+
+def print_cached_run(what: str, n: int, result, files: Sequence[Path], console) -> None:
+    """How a sweep's or budget's points went, and its files."""
+    console.print(
+        f"{n} {what}: {result.computed} computed, {result.cached} from the cache, "
+        f"{result.failed} failed, in {result.seconds:.0f} s"
+    )
+    console.print(f"wrote {', '.join(str(f) for f in files[:-1])} and {files[-1]}")

@@ -25,7 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .scenario import MAX_DATASETS, Scenario
+from .config.scenario import MAX_DATASETS, Scenario
 
 __all__ = [
     "DATASET_KEY",

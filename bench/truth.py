@@ -6,17 +6,29 @@ after the pipeline has answered)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibrate import AlternationResult
+from calib.localization import SweepLocalization
+from calib.records import Sweep
 
-from .experiment import SimulatedAcquisition, axial_scale, image_points
-from .figures import LocalizationSnapshot, dataset_snapshot
-from .scenario import Scenario
+from .acquire_sim import SimulatedAcquisition
+from .config.scenario import Scenario
+from .pipeline import axial_scale, image_points
+from .snapshot import LocalizationSnapshot, dataset_snapshot
 
-__all__ = ["image_error_mm", "mount_error", "snapshot_of", "transform_difference"]
+__all__ = [
+    "image_error_mm",
+    "localization_errors",
+    "mount_error",
+    "snapshot_of",
+    "transform_difference",
+    "true_centre_in_sweep",
+]
 
 Array = NDArray[np.float64]
 
@@ -69,3 +81,33 @@ def snapshot_of(
         axial_scale(scenario),
         true_centres,
     )
+
+
+def true_centre_in_sweep(
+    acq: SimulatedAcquisition, truth, target: str, sweep: Sweep
+) -> NDArray[np.float64]:
+    """Truth: a sphere's centre (3,) in the sweep's true reference frame (the true
+    flange pose of its reference frame and the true mount), where a localization of it
+    should land."""
+    T = acq.T_base_ee_true[(target, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
+    return se3.apply(se3.invert(T), truth.landmarks_base[target])
+
+
+def localization_errors(
+    acq: SimulatedAcquisition,
+    truth,
+    localizations: Mapping[str, Sequence[SweepLocalization]],
+) -> tuple[Array, int, int]:
+    """Truth: the distance (mm) of each accepted localization from the true centre in its
+    sweep's true reference frame (:func:`true_centre_in_sweep`), with how many sweeps
+    there were and how many the localizer rejected."""
+    errors, n, rejected = [], 0, 0
+    for target, locs in localizations.items():
+        for sweep, loc in zip(acq.dataset.of(target), locs, strict=True):
+            n += 1
+            if not loc.accepted:
+                rejected += 1
+                continue
+            p_true = true_centre_in_sweep(acq, truth, target, sweep)
+            errors.append(float(np.linalg.norm(loc.centre - p_true)) * 1e3)
+    return np.array(errors), n, rejected

@@ -34,15 +34,10 @@ METHODS = ("single", "three, CAD exact", "three, layout estimated")
 
 
 def one(seed: int, tolerance_mm: float) -> dict:
-    from bench.experiment import (
-        axial_scale,
-        make_imager,
-        make_twin,
-        one_blas_thread,
-        simulate_acquisition,
-    )
-    from bench.offline import calibrate_markers
-    from bench.scenario import load_scenario
+    from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
+    from bench.config.scenario import load_scenario
+    from bench.parallel import one_blas_thread
+    from bench.pipeline import axial_scale, calibrate_markers
     from bench.truth import image_error_mm
     from calib import se3
 

@@ -24,8 +24,9 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench.experiment import axial_scale, make_imager, make_twin, simulate_acquisition  # noqa: E402
-from bench.scenario import load_scenario  # noqa: E402
+from bench.acquire_sim import make_imager, make_twin, simulate_acquisition  # noqa: E402
+from bench.config.scenario import load_scenario  # noqa: E402
+from bench.pipeline import axial_scale  # noqa: E402
 from calib import stacking  # noqa: E402
 from calib.localization import LocalizerConfig  # noqa: E402
 from calib.localize import (  # noqa: E402

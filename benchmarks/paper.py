@@ -28,9 +28,9 @@ import threading  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from bench.recording_options import RecordingOptions  # noqa: E402
-from bench.run import run  # noqa: E402
-from bench.scenario import load_scenario  # noqa: E402
+from bench.config.scenario import load_scenario  # noqa: E402
+from bench.jobs.single import run  # noqa: E402
+from bench.recording.options import RecordingOptions  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

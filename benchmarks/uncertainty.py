@@ -2,7 +2,7 @@
 ``scenarios/quick.yaml`` over a grid of conditions (seeds, gain, depth, sphere radius,
 water temperature with and without the speed-of-sound correction, initial error, print
 tolerance, a small residual kinematic error), single- and three-marker, each run through
-:func:`bench.run.run` on a local pool of processes. Prints, per method and overall, the
+:func:`bench.jobs.single.run` on a local pool of processes. Prints, per method and overall, the
 fraction of calibrations whose true error lies within ``bound95`` for each measure
 (rotation, translation, image; a calibration covers when all three do), and the median
 bound over the median true error. Last line: ``coverage=<fraction>`` (overall).
@@ -118,11 +118,11 @@ def runs() -> list[tuple[str, dict[str, Any], int]]:
 
 
 def point(label: str, overrides: dict[str, Any], seed: int, dump: str | None) -> dict[str, Any]:
-    """One held-out run through ``bench.run.run``: per method, true errors and bounds."""
+    """One held-out run through ``bench.jobs.single.run``: per method, true errors and bounds."""
     from bench import progress
-    from bench.experiment import image_points
-    from bench.run import run
-    from bench.scenario import load_scenario
+    from bench.config.scenario import load_scenario
+    from bench.jobs.single import run
+    from bench.pipeline import image_points
 
     sets = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
     scenario = load_scenario(BASE, [*sets, f"seed={seed}", "evaluation.datasets=[]"])
@@ -162,7 +162,7 @@ def point(label: str, overrides: dict[str, Any], seed: int, dump: str | None) ->
 
 
 def _truth(scenario):
-    from bench.experiment import make_twin
+    from bench.acquire_sim import make_twin
 
     return make_twin(scenario).truth.T_ee_us
 

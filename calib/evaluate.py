@@ -38,6 +38,7 @@ from .localize import localize_sphere
 from .records import Sweep
 
 __all__ = [
+    "METHOD_TITLES",
     "Fold",
     "FoldResult",
     "PaperTable",
@@ -359,6 +360,8 @@ def format_tables_csv(tables: Mapping[str, Mapping[str, Mapping[str, Summary]]])
 
 #: Table III's phantoms, in the paper's order and wording.
 PHANTOM_TITLES = {"cone": "Cone", "prism": "Triangular prism"}
+#: The calibration methods as reports name them.
+METHOD_TITLES = {"single": "single-marker (sphere 1)", "three": "three-marker (spheres 1–3)"}
 
 
 def _stats_cells(v: Mapping[str, float], fmt: Callable[[float], str]) -> list[str]:

@@ -1,5 +1,5 @@
 """Settings of the real rig: the UR controller connection and motion limits, the frame
-grabber. Validated from a hw config file by :mod:`bench.hw_config`, like scenarios."""
+grabber. Validated from a hw config file by :mod:`bench.config.hw`, like scenarios."""
 
 from __future__ import annotations
 

@@ -9,8 +9,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bench.experiment import make_twin
-from bench.scenario import load_scenario
+from bench.acquire_sim import make_twin
+from bench.config.scenario import load_scenario
 from calib import se3
 from calib.dh import forward_kinematics
 from calib.protocol import acquire, facing_pose, plan_sweeps

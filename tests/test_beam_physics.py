@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bench.scenario import scenario_from_mapping
+from bench.config.scenario import scenario_from_mapping
 from calib.errors import ScenarioError
 from sim_us import MediumConfig
 from sim_us.beam import SIDE_LOBE_OFFSET_PER_FWHM

@@ -13,9 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from bench.budget import MODES, plan_budget, run_budget
-from bench.error_sources import ERROR_SOURCES, value_at
-from bench.scenario import load_scenario
+from bench.config.error_sources import ERROR_SOURCES, value_at
+from bench.config.scenario import load_scenario
+from bench.jobs.budget import MODES, plan_budget
+from bench.jobs.budget import run_budget as _run_budget
+from bench.outputs.budget_report import write_budget
 
 from .test_cli import uscal_here
 
@@ -46,6 +48,13 @@ def test_every_source_switches_off_through_the_schema():
         for key, value in s.off:
             value_at(paper, key)  # the key exists
             assert value_at(off, key) == (tuple(value) if isinstance(value, list) else value)
+
+
+def run_budget(spec, out, **kwargs):
+    """Run a budget and write its files, as ``uscal budget`` does."""
+    result = _run_budget(spec, out, **kwargs)
+    write_budget(out, result)
+    return result
 
 
 @pytest.mark.slow

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from bench.error_sources import ERROR_SOURCES
-from bench.experiment import make_twin, simulate_touches
-from bench.scenario import load_scenario
+from bench.acquire_sim import make_twin, simulate_touches
+from bench.config.error_sources import ERROR_SOURCES
+from bench.config.scenario import load_scenario
 from bench.sessions import dataset_rngs, dataset_scenario
 from calib import se3
 from calib.dh import NOMINAL_TABLES, forward_kinematics

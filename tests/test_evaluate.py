@@ -113,7 +113,7 @@ def test_tables_i_to_iii_carry_the_same_figures_in_every_rendering():
     from rich.console import Console
 
     from bench.console import paper_table
-    from bench.report import report_html
+    from bench.outputs.report import report_html
     from calib.evaluate import (
         TABLE_ROWS,
         format_table_iii_csv,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from bench.scenario import load_scenario
+from bench.config.scenario import load_scenario
 from bench.sessions import dataset_scenario, scan_scenario
 from calib.dataset_files import read_dataset
 

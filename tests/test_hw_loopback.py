@@ -113,8 +113,8 @@ def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(control
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     T = np.array(json.loads((out / "metrics.json").read_text())["calibration"]["single"]["T_ee_us"])
-    from bench.experiment import make_twin
-    from bench.scenario import load_scenario
+    from bench.acquire_sim import make_twin
+    from bench.config.scenario import load_scenario
     from bench.truth import image_error_mm
 
     scenario = load_scenario(QUICK)

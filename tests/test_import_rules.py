@@ -10,7 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("calib", "sim_us", "twin", "hw", "bench")
 THIRD_PARTY_ONLY_IN = {
-    "rerun": {"bench/recording.py"},
+    "rerun": {"bench/recording"},
     "ur_rtde": {"hw"},
     "rtde_control": {"hw"},
     "rtde_receive": {"hw"},
@@ -41,11 +41,32 @@ def _type_checking_only(tree: ast.AST) -> set[int]:
     return skip
 
 
-def imports_of(path: Path) -> set[str]:
+def _package(path: Path) -> list[str]:
+    """The dotted package a module file belongs to, as parts."""
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return parts if parts[-1] == "__init__" and parts.pop() else parts[:-1]
+
+
+def _lazy_nodes(tree: ast.AST) -> set[int]:
+    """ids of the import nodes inside a function or method (run at call time)."""
+    lazy: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for child in ast.walk(node):
+                if isinstance(child, (ast.Import, ast.ImportFrom)):
+                    lazy.add(id(child))
+    return lazy
+
+
+def imports_of(path: Path, lazy: bool = True) -> set[str]:
+    """The modules (and imported names, as ``module.name``) a file imports; without
+    ``lazy``, only those imported when the module itself is imported."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     names: set[str] = set()
-    package = path.parent.name
+    package = _package(path)
     skip = _type_checking_only(tree)
+    if not lazy:
+        skip |= _lazy_nodes(tree)
     for node in ast.walk(tree):
         if id(node) in skip:
             continue
@@ -53,14 +74,12 @@ def imports_of(path: Path) -> set[str]:
             names.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
             if node.level:  # relative: resolve inside the package
-                base = package if node.level == 1 else ""
+                base = ".".join(package[: len(package) - node.level + 1])
                 mod = f"{base}.{node.module}" if node.module else base
-                names.add(mod)
-                if not node.module:
-                    names.update(f"{base}.{a.name}" for a in node.names)
             else:
-                names.add(node.module or "")
-                names.update(f"{node.module}.{a.name}" for a in node.names)
+                mod = node.module or ""
+            names.add(mod)
+            names.update(f"{mod}.{a.name}" for a in node.names)
     return names
 
 
@@ -163,6 +182,61 @@ def test_no_import_cycles(pkg):
     assert cycle is None, " → ".join(cycle)
 
 
+#: bench's layers, top first (DESIGN.md §5): a module imports only from its own layer
+#: or below. The command line; what it prints and writes; the jobs; the pipeline, the
+#: acquisitions, the truth, the recording and parallel execution; the settings, random
+#: streams, typed results, progress and file writing.
+BENCH_LAYERS = (
+    ("bench.cli", "bench.cli_parser"),
+    ("bench.console", "bench.outputs"),
+    ("bench.jobs",),
+    (
+        "bench.pipeline",
+        "bench.truth",
+        "bench.acquire_sim",
+        "bench.acquire_rig",
+        "bench.parallel",
+        "bench.recording",
+        "bench.snapshot",
+    ),
+    ("bench.sessions", "bench.config", "bench.results", "bench.progress", "bench.files"),
+)
+
+
+def _layer(module: str) -> int:
+    for k, prefixes in enumerate(BENCH_LAYERS):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return k
+    raise AssertionError(f"{module} is in no layer of BENCH_LAYERS")
+
+
+def _bench_modules() -> dict[str, Path]:
+    paths = {
+        ".".join(p.relative_to(ROOT).with_suffix("").parts): p
+        for p in sorted((ROOT / "bench").rglob("*.py"))
+    }
+    return {m.removesuffix(".__init__"): p for m, p in paths.items() if m != "bench.__init__"}
+
+
+@pytest.mark.parametrize("module", sorted(_bench_modules()))
+def test_bench_imports_only_downwards_and_at_the_top(module):
+    """Each bench module is in one layer and imports bench modules of its own layer or
+    below, at module level only (no import inside a function to dodge an order)."""
+    modules = _bench_modules()
+    path = modules[module]
+    mine = _layer(module)
+    eager = {n for n in imports_of(path, lazy=False) if n in modules}
+    every = {n for n in imports_of(path) if n in modules}
+    assert every <= eager, f"{module} imports {sorted(every - eager)} inside a function"
+    upward = sorted(n for n in eager if _layer(n) < mine)
+    assert not upward, f"{module} (layer {mine}) imports {upward} from a layer above"
+
+
+def test_layer_check_catches_an_upward_import(tmp_path):
+    assert _layer("bench.jobs.paper") == 2 and _layer("bench.config.scenario") == 4
+    assert _layer("bench.outputs.report") < _layer("bench.jobs.single")
+
+
 def test_the_method_is_importable_from_calib():
     """``calib.<name>`` is the defining module's object for every public name; the shared
     maths alone does not load the localizer (lazy exports)."""
@@ -183,14 +257,14 @@ def test_the_method_is_importable_from_calib():
 
 
 def test_drawing_a_figure_does_not_load_the_twin():
-    """``bench.figures`` draws from results: importing it loads neither MuJoCo nor the
+    """``bench.outputs.figures`` draws from results: importing it loads neither MuJoCo nor the
     twin (the reconstruction's type is imported for annotations only)."""
     import subprocess
     import sys
 
     code = (
-        "import sys, bench.figures; "
-        "print(any(m in sys.modules for m in ('mujoco', 'twin', 'bench.reconstruction')))"
+        "import sys, bench.outputs.figures; "
+        "print(any(m in sys.modules for m in ('mujoco', 'twin', 'bench.jobs.table3')))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.stdout.strip() == "False", out.stderr

@@ -91,8 +91,8 @@ def test_grid_score_equals_candidate_score(rng, column_step):
 @pytest.fixture(scope="module")
 def rendered_sweeps():
     """Three sweeps of sphere 1 rendered by the twin (no kinematic error), with truth."""
-    from bench.experiment import make_imager, make_twin
-    from bench.scenario import load_scenario
+    from bench.acquire_sim import make_imager, make_twin
+    from bench.config.scenario import load_scenario
     from calib.protocol import facing_pose
 
     s = load_scenario(
@@ -152,14 +152,10 @@ def test_sweep_without_a_sphere_is_rejected(rendered_sweeps):
 def _quick_scan(overrides: list[str], sphere: int):
     """quick.yaml's scan of one sphere (45 sweeps) with ``overrides``: the sweeps, each
     one's true centre, the true mount, the axial scale and the coarse mount."""
-    from bench.experiment import (
-        axial_scale,
-        make_imager,
-        make_twin,
-        simulate_acquisition,
-        true_centre_in_sweep,
-    )
-    from bench.scenario import load_scenario
+    from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
+    from bench.config.scenario import load_scenario
+    from bench.pipeline import axial_scale
+    from bench.truth import true_centre_in_sweep
 
     s = load_scenario(
         "scenarios/quick.yaml", [*overrides, f"protocol.spheres=[{sphere}]"], check_reach=False
@@ -230,7 +226,7 @@ def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deep_weak_
     """Without a calibration the first localization takes the plate in some sweeps; the
     alternation searches those again about the other sweeps' consensus instead of over
     their whole grid, so they come back instead of being dropped."""
-    from bench.scenario import load_scenario
+    from bench.config.scenario import load_scenario
     from bench.truth import image_error_mm
     from calib.calibrate import alternate
 

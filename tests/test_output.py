@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench.output import OutputExistsError, atomic_output_dir
+from bench.files import OutputExistsError, atomic_output_dir
 
 
 def test_success_renames_into_place(tmp_path):
@@ -32,7 +32,7 @@ def test_failure_leaves_nothing_and_keeps_old(tmp_path):
 def test_write_text_atomic_replaces_whole_and_leaves_no_temporary(tmp_path, monkeypatch):
     import os
 
-    from bench.output import write_text_atomic
+    from bench.files import write_text_atomic
 
     target = tmp_path / "results.csv"
     write_text_atomic(target, "old\n")

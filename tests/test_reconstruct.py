@@ -155,8 +155,8 @@ def test_distance_statistics():
 def test_boundaries_of_a_rendered_cone_lie_on_its_surface():
     """A frame the twin renders over the cone's apex: the extracted samples, mapped with
     the true kinematics and probe mount, lie on the true (printed) cone surface."""
-    from bench.experiment import make_imager, make_twin
-    from bench.scenario import load_scenario
+    from bench.acquire_sim import make_imager, make_twin
+    from bench.config.scenario import load_scenario
     from calib.protocol import facing_pose
 
     s = load_scenario(None, ["robot.dh_error_scale=0", "phantom.kind=cone"], check_reach=False)
@@ -171,7 +171,7 @@ def test_boundaries_of_a_rendered_cone_lie_on_its_surface():
     T_base_us = twin.robot.truth.T_base_ee @ truth.T_ee_us
     W = frame.image.shape[1]
     sx, sy = frame.spacing
-    from bench.experiment import axial_scale
+    from bench.pipeline import axial_scale
 
     spacing = (sx, sy * axial_scale(s))
     P = np.concatenate([samples_to_base(b.samples, W, spacing, T_base_us) for b in bounds])

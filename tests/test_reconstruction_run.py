@@ -1,4 +1,4 @@
-"""The reconstruction stage on the twin (bench/reconstruction.py): cone and prism scans,
+"""The reconstruction stage on the twin (bench/jobs/table3.py): cone and prism scans,
 boundary samples, ICP against the CAD, with every error source off."""
 
 from __future__ import annotations
@@ -6,14 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.experiment import make_twin
-from bench.reconstruction import (
-    Recalibration,
-    reconstruct_phantom,
-    run_scan,
-    scan_scenario,
-)
-from bench.scenario import load_scenario
+from bench.acquire_sim import make_twin
+from bench.config.scenario import load_scenario
+from bench.jobs.table3 import phantom_scan_scenario, reconstruct_phantom, run_scan
+from bench.results import Recalibration
 from calib import se3
 from calib.dh import forward_kinematics
 
@@ -44,7 +40,7 @@ def test_with_every_error_source_off_the_reconstruction_fits_the_cad(errors_off,
     assert scan.frames_without_two_boundaries <= 45  # at most a tenth of the frames
     # The calibration is taken as exact here (its own errors-off accuracy is tested in
     # test_run); the point is the reconstruction's.
-    X = make_twin(scan_scenario(errors_off, kind)).truth.T_ee_us
+    X = make_twin(phantom_scan_scenario(errors_off, kind)).truth.T_ee_us
     table = errors_off.robot.nominal_table
     recal = Recalibration(
         {("A", m): X for m in ("single", "three")},
@@ -74,7 +70,7 @@ def test_with_every_error_source_off_the_reconstruction_fits_the_cad(errors_off,
 def test_the_phantom_stands_off_its_nominal_placement(errors_off):
     """ICP has something to do: the true placement differs from the scenario's."""
     for kind in ("cone", "prism"):
-        sc = scan_scenario(errors_off, kind)
+        sc = phantom_scan_scenario(errors_off, kind)
         assert sc.phantom.kind == kind
         shift = np.subtract(sc.phantom.position_mm, errors_off.phantom.position_mm)
         assert 0 < np.abs(shift).max() <= errors_off.reconstruction.placement_error_mm

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.recording_options import sweeps_to_log
+from bench.recording.options import sweeps_to_log
 
 
 def test_recording_goes_where_asked_and_nothing_else_is_left(quick_run):

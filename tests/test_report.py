@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from bench.scenario import load_scenario
+from bench.config.scenario import load_scenario
 from calib import se3
 from calib.image import pixel_to_us
 

@@ -10,16 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.error_sources import ERROR_SOURCES
-from bench.run import run
-from bench.scenario import load_scenario
+from bench.config.error_sources import ERROR_SOURCES
+from bench.config.scenario import load_scenario
+from bench.jobs.single import run
 
 from .test_cli import uscal
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "scenarios" / "quick.yaml"
 ONE_SPHERE = ["protocol.spheres=[1]"]
-# Every declared error source off (bench.error_sources), and the operator's teaching exact.
+# Every declared error source off (bench.config.error_sources), and the operator's teaching exact.
 ALL_ERRORS_OFF = [
     *(f"{key}={json.dumps(value)}" for s in ERROR_SOURCES for key, value in s.off),
     "protocol.teaching_error_mm=0",
@@ -98,7 +98,8 @@ def test_speed_of_sound_correction_removes_a_real_bias():
 def test_localizing_spheres_on_threads_changes_nothing():
     """`alternate(threads=2)` (the re-calibration's last task) localizes the spheres side
     by side: the same estimate, bit for bit, as one after the other."""
-    from bench.experiment import axial_scale, make_imager, make_twin, simulate_acquisition
+    from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
+    from bench.pipeline import axial_scale
     from calib.calibrate import alternate
 
     sc = load_scenario(
@@ -144,7 +145,7 @@ def test_frames_to_file_maps_the_same_frames(tmp_path):
     """A sphere's frames written to the run's scratch file come back identical, mapped
     copy-on-write (a write changes the mapping, never the file), the sweeps otherwise
     unchanged."""
-    from bench.experiment import frames_to_file
+    from bench.files import frames_to_file
 
     sweeps = _random_sweeps(np.random.default_rng(0), 4, (3, 8, 6))
     mapped = frames_to_file(sweeps, tmp_path / "A_sphere_1.npy")
@@ -175,7 +176,7 @@ def test_drop_frame_pages_lets_go_of_mapped_frames_and_keeps_them_valid(tmp_path
     """Frames mapped from a scratch file hold their pages once read; dropping them gives
     the pages back (64 MB here) and the frames still read the same; a sweep whose frames
     are in memory is left alone."""
-    from bench.experiment import drop_frame_pages, frames_to_file
+    from bench.files import drop_frame_pages, frames_to_file
 
     sweeps = _random_sweeps(np.random.default_rng(1), 16, (4, 1024, 1024))
     sums = [int(s.images.sum(dtype=np.int64)) for s in sweeps]
@@ -195,7 +196,7 @@ def test_one_blas_thread_limits_blas_inside_and_restores_after():
     count after."""
     from threadpoolctl import threadpool_info
 
-    from bench.experiment import one_blas_thread
+    from bench.parallel import one_blas_thread
 
     def blas_threads() -> list[int]:
         return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]

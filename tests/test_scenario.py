@@ -7,14 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.scenario import (
-    SECTIONS,
-    Scenario,
-    check_geometry,
-    load_scenario,
-    scenario_from_mapping,
-    scenarios_markdown,
-)
+from bench.config.docs import scenarios_markdown
+from bench.config.geometry import check_geometry
+from bench.config.scenario import SECTIONS, Scenario, load_scenario, scenario_from_mapping
 from calib.errors import ScenarioError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -174,8 +169,8 @@ def test_a_scenario_that_cannot_fit_in_memory_is_refused_at_validation(monkeypat
     when the scenario is read, naming the keys, not by a MemoryError minutes in. The
     estimate is the frames a run holds; for the paper scenario it is close to the run's
     measured peak (1.5–1.7 GB), and a machine with less memory refuses it too."""
-    import bench.scenario as scenario_module
-    from bench.scenario import frames_memory_bytes, load_scenario
+    import bench.config.scenario as scenario_module
+    from bench.config.scenario import frames_memory_bytes, load_scenario
 
     overrides = [
         "imaging.pixel_spacing_mm=[0.006, 0.006]",

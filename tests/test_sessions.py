@@ -35,7 +35,7 @@ def test_no_two_streams_share_a_spawn_key():
 
 
 def test_a_dataset_stream_is_its_own_and_repeatable():
-    from bench.scenario import load_scenario
+    from bench.config.scenario import load_scenario
 
     s = load_scenario("scenarios/quick.yaml", check_reach=False)
     a = sessions.dataset_rngs(s, 1)["imaging"].normal(size=4)
@@ -46,7 +46,7 @@ def test_a_dataset_stream_is_its_own_and_repeatable():
 
 
 def test_more_datasets_than_the_streams_allow_are_refused():
-    from bench.scenario import load_scenario
+    from bench.config.scenario import load_scenario
     from calib.errors import ScenarioError
 
     names = "[" + ", ".join(f"D{i}" for i in range(sessions.MAX_DATASETS + 1)) + "]"

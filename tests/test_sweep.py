@@ -17,7 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.sweep import load_sweep, run_sweep
+from bench.jobs.sweep import load_sweep
+from bench.jobs.sweep import run_sweep as _run_sweep
+from bench.outputs.sweep_report import write_sweep
 from calib.errors import UscalError
 
 from .test_cli import uscal, uscal_here
@@ -71,6 +73,13 @@ def test_bad_sweep_files_fail_with_one_clear_line(tmp_path, capsys, text, messag
     assert r.returncode == 2
     assert r.stderr.startswith("uscal: error:") and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def run_sweep(spec, out: Path, **kwargs):
+    """Run a sweep and write its files, as ``uscal sweep`` does."""
+    result = _run_sweep(spec, out, **kwargs)
+    write_sweep(out, result)
+    return result
 
 
 def _rows(out: Path) -> list[dict[str, str]]:
@@ -202,8 +211,7 @@ def test_linked_keys_are_set_together_and_reported(tmp_path):
     """A grid entry of several keys (the image depth following the target depth) sets
     them together: one point per value, each key in the point's overrides and its own
     column of results.csv; the page shows the entry against its first key."""
-    from bench.sweep import results_csv
-    from bench.sweep_report import sweep_html
+    from bench.outputs.sweep_report import results_csv, sweep_html
 
     path = _write(
         tmp_path / "sweep.yaml",

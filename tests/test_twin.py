@@ -166,9 +166,9 @@ def test_teach_puts_the_true_flange_on_target():
 def _acquire_two_sweeps(overrides: list[str], one_by_one: bool):
     """Two planned sweeps of quick.yaml's sphere 1 with the twin, through ``acquire``;
     ``one_by_one`` hides the imager's deferred capture so every frame is grabbed alone."""
-    from bench.experiment import coarse_estimate, make_imager
-    from bench.experiment import make_twin as make_scenario_twin
-    from bench.scenario import load_scenario
+    from bench.acquire_sim import coarse_estimate, make_imager
+    from bench.acquire_sim import make_twin as make_scenario_twin
+    from bench.config.scenario import load_scenario
     from bench.sessions import dataset_rngs, stage_rngs
     from calib.protocol import acquire, plan_sweeps
 

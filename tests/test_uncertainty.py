@@ -170,8 +170,8 @@ def test_axial_scale_term_grows_the_translation_bound():
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 5])
 def test_quick_runs_bounds_cover_the_truth(seed):
-    from bench.run import run
-    from bench.scenario import load_scenario
+    from bench.config.scenario import load_scenario
+    from bench.jobs.single import run
 
     from .conftest import QUICK
 

@@ -33,7 +33,7 @@ from calib.errors import (
 from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan
 from calib.records import Touch
 
-from .hw_config import HwConfig
+from .config.hw import HwConfig
 from .progress import report
 
 _HOLD_S = 0.3  # s between the operator's "done" and the touch reading

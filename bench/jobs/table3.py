@@ -20,15 +20,14 @@ re-calibration task left one core idle for half a minute at the end):
   :func:`run_scan` per phantom (its frames are dropped per sweep, only boundary samples
   come back);
 - :func:`run_recalibration` per method, as soon as the scans of its spheres are done
-  (single-marker: sphere 1's), mapping their frames;
+  (single-marker: sphere 1's), mapping their frames (both in :mod:`bench.jobs.recalibration`);
 - then one :func:`reconstruct_phantom` per phantom.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
-from pathlib import Path
+from dataclasses import replace
 from typing import Any
 
 import mujoco
@@ -36,91 +35,47 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.calibrate import alternate
 from calib.dh import DHTable, forward_kinematics
 from calib.evaluate import TABLE_III_METHODS
 from calib.image import pixel_to_us
-from calib.kinematics import kinematic_gauge, with_kinematics
-from calib.localization import SweepLocalization
-from calib.localize import localize_sphere
+from calib.kinematics import kinematic_gauge
 from calib.protocol import (
     acquire,
     check_plan,
-    facing_pose,
     plan_parallel_sweeps,
     plan_sweeps,
 )
 from calib.reconstruct import distance_stats, extract_boundaries, register_icp, surface_distances
-from calib.records import Sweep
 from twin.imager import acoustic_scene
 from twin.phantoms import build_phantom
 
-from .experiment import (
-    axial_scale,
-    coarse_estimate,
-    frames_to_file,
-    image_points,
-    make_imager,
-    make_twin,
-    release_memory,
-    simulate_acquisition,
-    with_frames,
-    without_frames,
-)
-from .progress import report
-from .recording_options import RecordingOptions
-from .scenario import Scenario, layout_sigma_mm
-from .sessions import REMOUNT_KEY, SESSIONS, dataset_rngs, stage_rngs, stream
-from .truth import mount_error
+from ..acquire_sim import coarse_estimate, make_imager, make_twin, teach_at
+from ..config.scenario import Scenario
+from ..pipeline import axial_scale, image_points
+from ..progress import report
+from ..recording.options import RecordingOptions, sweeps_to_log
+from ..recording.recorder import Recorder
+from ..results import PhantomReconstruction, PhantomScan, Recalibration
+from ..sessions import SESSIONS, dataset_rngs, stage_rngs
+from .recalibration import remounted
 
 __all__ = [
-    "PhantomReconstruction",
-    "PhantomScan",
-    "Recalibration",
-    "RemountScan",
     "nominal_placement",
-    "recalibration_scenario",
+    "phantom_scan_scenario",
     "reconstruct_phantom",
     "reconstruction_metrics",
-    "run_recalibration",
-    "run_remount_scan",
     "run_scan",
-    "scan_scenario",
 ]
 
 Array = NDArray[np.float64]
 _MM = 1e3
 
 
-def _remounted(scenario: Scenario) -> Scenario:
-    """The probe taken off and put back: its true mount moves by the configured amounts."""
-    rc = scenario.reconstruction
-    rng = stream(scenario.seed, REMOUNT_KEY)
-    t = scenario.tools
-    pos = np.add(t.probe_mount_position_mm, rng.normal(0.0, rc.remount_position_mm, 3))
-    rot = np.add(t.probe_mount_rotation_deg, rng.normal(0.0, rc.remount_rotation_deg, 3))
-    tools = replace(
-        t,
-        probe_mount_position_mm=tuple(float(v) for v in pos),
-        probe_mount_rotation_deg=tuple(float(v) for v in rot),
-    )
-    return replace(scenario, tools=tools)
-
-
-def recalibration_scenario(scenario: Scenario) -> Scenario:
-    """The separate four-sphere scan after the remount, of the spheres Table III's
-    methods use (sphere 4 is used by neither, so it is not scanned)."""
-    sc = _remounted(scenario)
-    used = sorted({t for spheres in TABLE_III_METHODS.values() for t in spheres})
-    spheres = tuple(int(t.split("_")[1]) for t in used)
-    return replace(sc, protocol=replace(sc.protocol, spheres=spheres))
-
-
-def scan_scenario(scenario: Scenario, kind: str) -> Scenario:
+def phantom_scan_scenario(scenario: Scenario, kind: str) -> Scenario:
     """The cone or prism in the tank: it stands up to ± ``placement_error_mm`` off the
     scenario's position (x, y) and turned up to ± ``placement_error_deg`` about the
     vertical; the scenario's placement is the nominal one ICP starts from."""
-    sc = _remounted(scenario)
+    sc = remounted(scenario)
     rc = scenario.reconstruction
     rng = dataset_rngs(scenario, SESSIONS[kind])["placement"]
     dx, dy = rng.uniform(-1, 1, 2) * rc.placement_error_mm
@@ -141,179 +96,7 @@ def nominal_placement(scenario: Scenario) -> Array:
     return se3.make(R, np.array(ph.position_mm) * 1e-3)
 
 
-# ----------------------------------------------------------------- re-calibration tasks
-
-
-@dataclass(frozen=True, eq=False)
-class RemountScan:
-    """One sphere of the re-calibration scan after the remount: its sweeps and their
-    first localization (under the coarse ``T_ee_us``). The frames are in the file
-    ``images`` (one array, sweep by sweep), which every calibration task maps instead of
-    receiving its own copy; :meth:`sweeps_with_frames` puts them back."""
-
-    target: str
-    sweeps: tuple[Sweep, ...]  # their ``images`` are empty: the frames are in the file
-    images: Path
-    first: tuple[SweepLocalization, ...]
-    cad_centre: Array  # the sphere's centre in the phantom's CAD (three-marker)
-    T_ee_us_coarse: Array
-    T_ee_us_true: Array  # truth: kept apart, for the error against it
-    dh_true: DHTable  # truth: the true arm, for the error in each model's gauge
-    timing_s: dict[str, float]
-
-    def sweeps_with_frames(self) -> tuple[Sweep, ...]:
-        return tuple(with_frames(self.sweeps, self.images))
-
-
-def run_remount_scan(scenario: Scenario, index: int, scratch: Path) -> RemountScan:
-    """Scan sphere ``index`` with the remounted probe (the re-calibration's protocol), save
-    its frames to ``scratch`` and localize it once under the coarse ``T_ee_us`` (a
-    process-pool task: one per sphere, so the scan spreads over the workers)."""
-    t0 = time.perf_counter()
-    sc = recalibration_scenario(scenario)
-    sc = replace(sc, protocol=replace(sc.protocol, spheres=(index,)))
-    rngs = dataset_rngs(scenario, SESSIONS["recalibration"] + index)
-    twin = make_twin(sc, rngs["joints"])
-    imager = make_imager(sc, twin, rngs["imaging"])
-    target = f"sphere_{index}"
-    acq = simulate_acquisition(
-        sc, twin, imager, "remount", rngs["protocol"], progress=f"remount: scan {target}"
-    )
-    truth, coarse = twin.truth, acq.T_ee_us_coarse
-    cad_centre = twin.phantom_cad.landmarks[target]
-    del imager, twin
-    t_sim = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    sweeps = acq.dataset.of(target)
-    # The first localization (under the coarse T_ee_us) is done once, on the poses the
-    # controller recorded: it depends only on the flange's motion within each 20 mm
-    # sweep, on which the DH models differ by a turn of the flange frame of a degree or
-    # two (≈ 0.3 mm over 10 mm) — well inside the coarse T_ee_us's own error (up to
-    # 10°), and absorbed by the calibration. Every model's alternation starts from it and
-    # re-localizes with its own poses.
-    first = localize_sphere(
-        sweeps, None, sc.phantom.sphere_radius_mm * 1e-3, sc.localization, axial_scale(sc)
-    )
-    path = scratch / f"remount_{target}.npy"
-    frames_to_file(sweeps, path)
-    scan = RemountScan(
-        target,
-        without_frames(sweeps),
-        path,
-        tuple(first),
-        cad_centre,
-        coarse,
-        truth.T_ee_us,
-        truth.dh_table,
-        {"simulate": t_sim, "localize": time.perf_counter() - t0},
-    )
-    del acq, sweeps
-    release_memory()
-    return scan
-
-
-@dataclass(frozen=True, eq=False)
-class Recalibration:
-    """``T_ee_us[(set, method)]`` re-estimated after the remount with each DH model, and
-    (kept apart) its error against the truth in that model's gauge."""
-
-    T_ee_us: dict[tuple[str, str], Array]
-    n_retained: dict[tuple[str, str], int]
-    truth: dict[tuple[str, str], dict[str, float]]
-    timing_s: dict[str, float]
-
-    @staticmethod
-    def merge(parts: list[Recalibration], scans: list[RemountScan]) -> Recalibration:
-        """The per-method tasks' results as one, timed with the scans: ``simulate`` and
-        ``calibrate`` (the first localizations included), seconds summed over the tasks."""
-        timing = {
-            "simulate": sum(s.timing_s["simulate"] for s in scans),
-            "calibrate": sum(s.timing_s["localize"] for s in scans)
-            + sum(p.timing_s["calibrate"] for p in parts),
-        }
-        return Recalibration(
-            {k: v for p in parts for k, v in p.T_ee_us.items()},
-            {k: v for p in parts for k, v in p.n_retained.items()},
-            {k: v for p in parts for k, v in p.truth.items()},
-            timing,
-        )
-
-
-def run_recalibration(
-    scenario: Scenario,
-    method: str,
-    tables: dict[str, DHTable],
-    scans: list[RemountScan],
-    threads: int = 1,
-) -> Recalibration:
-    """Calibrate with ``method`` (of :data:`TABLE_III_METHODS`) from the re-calibration scan of its
-    spheres, with each DH model of ``tables`` (a process-pool task, mapping the scans'
-    frames). ``threads`` > 1 localizes the spheres side by side (the localizer's kernels
-    release the GIL): the three-marker task is the last of the run, mostly alone."""
-    t0 = time.perf_counter()
-    sc = recalibration_scenario(scenario)
-    by_target = {s.target: s for s in scans}
-    spheres = TABLE_III_METHODS[method]
-    missing = [t for t in spheres if t not in by_target]
-    assert not missing, f"re-calibration scan lacks {missing}"
-    frames = {t: by_target[t].sweeps_with_frames() for t in spheres}
-    truth = by_target[spheres[0]]
-    cad = {t: by_target[t].cad_centre for t in spheres} if len(spheres) > 1 else None
-    # The truth in each model's gauge: over the frames this calibration used.
-    q_frames = np.concatenate([s.q[::10] for t in spheres for s in frames[t]])
-    tool_points = se3.apply(truth.T_ee_us_true, image_points(sc, 3))
-    T_ee_us, n_retained, errors = {}, {}, {}
-    # Every model's alternation would reach its estimate from the first localizations;
-    # each later model's starts from the previous model's final ones instead and gets
-    # there (within 0.02 mm over the image, measured) in fewer re-localizations, which
-    # is why one task calibrates with every model.
-    start = {t: by_target[t].first for t in spheres}
-    label = f"remount: {method}-marker calibrations"
-    report(label, 0, len(tables))
-    for name, table in tables.items():
-        X_equiv = (
-            kinematic_gauge(table, truth.dh_true, q_frames, tool_points).G @ truth.T_ee_us_true
-        )
-        alt = alternate(
-            {t: with_kinematics(frames[t], table) for t in spheres},
-            sc.phantom.sphere_radius_mm * 1e-3,
-            sc.localization,
-            axial_scale(sc),
-            cad,
-            truth.T_ee_us_coarse,
-            sc.calibration.max_alternations,
-            initial=start,
-            threads=threads,
-            layout_sigma_mm=layout_sigma_mm(sc),
-        )
-        start = alt.localizations
-        X = alt.result.T_ee_us
-        T_ee_us[(name, method)] = X
-        n_retained[(name, method)] = int(alt.result.retained.sum())
-        errors[(name, method)] = mount_error(sc, X, X_equiv)
-        report(label, len(errors), len(tables))
-    return Recalibration(T_ee_us, n_retained, errors, {"calibrate": time.perf_counter() - t0})
-
-
 # ------------------------------------------------------------------------- scan tasks
-
-
-@dataclass(frozen=True, eq=False)
-class PhantomScan:
-    """Boundary samples of one phantom's 45 sweeps (no frames): per used frame its joint
-    angles, per sample its frame and its point in the image (``us``, metres)."""
-
-    kind: str
-    q_frames: Array  # (m, 6) reported joint angles of the central frames
-    frame: NDArray[np.int32]  # (n,) index into q_frames
-    p_us: Array  # (n, 3)
-    q_taught: Array  # (6,) the taught pose (apex or mid-ridge on the image centre line)
-    target_depth: float  # metres below the transducer face at the taught pose
-    n_sweeps: int
-    frames_without_two_boundaries: int
-    T_base_phantom_true: Array  # truth: kept apart, for the without-ICP distances
-    timing_s: dict[str, float]
-    recording_part: Path | None = None
 
 
 def _plan(sc: Scenario, twin, kind: str, rng: np.random.Generator):
@@ -323,17 +106,16 @@ def _plan(sc: Scenario, twin, kind: str, rng: np.random.Generator):
     proto = sc.protocol
     depth = proto.target_depth_mm * 1e-3
     coarse = coarse_estimate(truth.T_ee_us, sc.calibration, stage_rngs(sc)["calibration"])
-    miss = rng.normal(0.0, proto.teaching_error_mm * 1e-3, 3)
+    error = proto.teaching_error_mm
     if kind == "cone":
-        T_face = facing_pose(truth.landmarks_base["apex"] + miss, depth)
-        taught = twin.robot.teach(T_face @ se3.invert(truth.T_ee_us), "taught at the apex")
+        apex = truth.landmarks_base["apex"]
+        taught = teach_at(twin, apex, depth, "taught at the apex", rng, error)
         return taught, plan_sweeps("cone", taught.T_base_ee, coarse, proto)
     a, b = truth.landmarks_base["ridge_start"], truth.landmarks_base["ridge_end"]
     ridge = (b - a) / np.linalg.norm(b - a)
     # The image plane across the ridge: its lateral axis horizontal, normal to the ridge.
     lateral = np.cross([0.0, 0.0, 1.0], ridge)
-    T_face = facing_pose((a + b) / 2 + miss, depth, lateral)
-    taught = twin.robot.teach(T_face @ se3.invert(truth.T_ee_us), "taught at the ridge")
+    taught = teach_at(twin, (a + b) / 2, depth, "taught at the ridge", rng, error, lateral)
     # The sweeps travel along the ridge as the operator sees it on the taught image: the
     # normal of the image plane there, which the coarse T_ee_us predicts.
     travel = (taught.T_base_ee @ coarse)[:3, 2]
@@ -348,7 +130,7 @@ def run_scan(
     ``recording``: log a spread of the frames with their boundary samples to a part file
     of the run's recording (session ``kind``)."""
     t0 = time.perf_counter()
-    sc = scan_scenario(scenario, kind)
+    sc = phantom_scan_scenario(scenario, kind)
     rngs = dataset_rngs(scenario, SESSIONS[kind])
     twin = make_twin(sc, rngs["joints"])
     imager = make_imager(sc, twin, rngs["imaging"])
@@ -361,9 +143,6 @@ def run_scan(
     first = (sc.protocol.frames_per_sweep - n_central) // 2
     rec = logged = None
     if recording is not None:
-        from .recording import Recorder
-        from .recording_options import sweeps_to_log
-
         rec = Recorder(recording.part(kind))
         rec.scene(kind, acoustic_scene(twin.robot.scene.scene).parts)
         robot_ids = rec.robot_shapes(kind, twin.scene.model)
@@ -432,17 +211,6 @@ def run_scan(
 # --------------------------------------------------------------------- reconstruction
 
 
-@dataclass(frozen=True, eq=False)
-class PhantomReconstruction:
-    """One phantom's Table III statistics (``metrics[method][set]``, plus scan figures)
-    and its registered points (CAD frame, metres, float32) with their distances (mm), by
-    (method, set)."""
-
-    kind: str
-    metrics: dict[str, Any]
-    points: dict[tuple[str, str], tuple[NDArray[np.float32], NDArray[np.float32]]]
-
-
 def _initial_alignment(
     scan: PhantomScan, landmarks: dict[str, Array], table: DHTable, X: Array, T_nominal: Array
 ) -> Array:
@@ -470,7 +238,7 @@ def reconstruct_phantom(
     rc = scenario.reconstruction
     kind = scan.kind
     true_table = make_twin(scenario).truth.dh_table
-    cad = build_phantom(scan_scenario(scenario, kind).phantom)  # the CAD: no tolerance
+    cad = build_phantom(phantom_scan_scenario(scenario, kind).phantom)  # the CAD: no tolerance
     mesh = cad.mesh()
     T_nominal = nominal_placement(scenario)
     q_gauge = scan.q_frames[:: max(1, len(scan.q_frames) // 100)]

@@ -1,6 +1,6 @@
 """``uscal budget``: which error source limits a rig, in mm.
 
-Each source of :mod:`bench.error_sources` is run
+Each source of :mod:`bench.config.error_sources` is run
 
 - ``alone``: on top of an error-free rig (every source off, this one as the scenario sets
   it): what the source costs by itself;
@@ -31,17 +31,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib.figure import Figure
-from matplotlib.patches import Patch
 
 from calib.errors import UscalError
 
-from . import progress as progress_report
-from .error_sources import ERROR_SOURCES, ErrorSource, value_at
-from .output import make_directory, write_text_atomic
-from .report import report_html
-from .scenario import Scenario, load_scenario
-from .sweep import as_completed, code_version, executor
+from .. import progress as progress_report
+from ..config.error_sources import ERROR_SOURCES, ErrorSource, value_at
+from ..config.scenario import Scenario, load_scenario
+from ..parallel import run_cached
+from .single import run
+from .sweep import code_version
 
 __all__ = [
     "FIGURES",
@@ -208,8 +206,6 @@ def run_budget_point(
     """One budget run (in a worker): the scenario with the overrides and seed, run whole
     (serially: the budget's executor is the parallelism), reduced to :data:`FIGURES`. A
     failure is recorded, not raised (a source may make a calibration impossible)."""
-    from .run import run
-
     try:
         sets = [*base_overrides, *(f"{k}={json.dumps(v)}" for k, v in overrides), f"seed={seed}"]
         scenario = load_scenario(base, sets)
@@ -244,199 +240,22 @@ def run_budget(
     workers: int | None = None,
 ) -> BudgetResult:
     """Run what is not cached in ``out/points`` (local pool of ``workers``, default one
-    per core, or the Dask cluster at ``scheduler``), then write ``budget.csv``,
-    ``budget.md``, ``budget.html`` and the tornado charts."""
+    per core, or the Dask cluster at ``scheduler``; :func:`bench.parallel.run_cached`);
+    :func:`bench.outputs.budget_report.write_budget` writes the tables and charts."""
     t0 = time.perf_counter()
-    out = Path(out)
-    make_directory(out / "points")
     runs = spec.runs()
     keys = [spec.run_key(r) for r in runs]
-    done: dict[str, dict[str, Any]] = {}
-    todo: dict[str, BudgetRun] = {}
-    for run, key in zip(runs, keys, strict=True):
-        cached = out / "points" / f"{key}.json"
-        if key in done or key in todo:
-            continue
-        if cached.is_file():
-            done[key] = json.loads(cached.read_text(encoding="utf-8"))
-        else:
-            todo[key] = run
-    n_cached = len(done)
-    total = n_cached + len(todo)
-    progress_report.report("budget runs", n_cached, total)
-    if todo:
-        submit, close = executor(scheduler, workers)
-        base = None if spec.base is None else str(spec.base)
-        try:
-            futures = {
-                submit(run_budget_point, base, spec.base_overrides, run.overrides, run.seed): key
-                for key, run in todo.items()
-            }
-            for future in as_completed(futures, scheduler is not None):
-                key = futures[future]
-                run = todo[key]
-                doc = {"overrides": [[k, v] for k, v in run.overrides], "seed": run.seed}
-                doc.update(future.result())
-                write_text_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
-                done[key] = doc
-                progress_report.report("budget runs", len(done), total)
-        finally:
-            close()
+    base = None if spec.base is None else str(spec.base)
+    tasks = {
+        key: (
+            run_budget_point,
+            (base, spec.base_overrides, run.overrides, run.seed),
+            {"overrides": [[k, v] for k, v in run.overrides], "seed": run.seed},
+        )
+        for run, key in zip(runs, keys, strict=True)
+    }
+    done, n_cached = run_cached(tasks, Path(out) / "points", scheduler, workers, "budget runs")
     ordered = [(r, done[k]) for r, k in zip(runs, keys, strict=True)]
-    write_text_atomic(out / "budget.csv", budget_csv(ordered))
-    md = budget_markdown(spec, ordered, out)
-    write_text_atomic(out / "budget.md", md)
-    write_text_atomic(out / "budget.html", report_html(md, "uscal error budget"))
     failed = sum("error" in d for d in done.values())
-    return BudgetResult(spec, ordered, len(todo), n_cached, failed, time.perf_counter() - t0)
-
-
-def budget_csv(runs: Sequence[tuple[BudgetRun, dict[str, Any]]]) -> str:
-    """One row per (source, mode, seed): the figures, and the error of a failed run."""
-    lines = [",".join(["source", "mode", "seed", *FIGURES, "error"])]
-    for run, doc in runs:
-        figs = doc.get("figures", {})
-        cells = [run.source, run.mode, str(run.seed)]
-        cells += [_fmt(figs.get(f)) for f in FIGURES]
-        error = doc.get("error", "")
-        cells.append('"' + error.replace('"', "'") + '"' if error else "")
-        lines.append(",".join(cells))
-    return "\n".join(lines) + "\n"
-
-
-def _fmt(v: Any) -> str:
-    if v is None or not np.isfinite(v):
-        return "nan"
-    return f"{v:.6g}"
-
-
-def budget_medians(
-    runs: Sequence[tuple[BudgetRun, dict[str, Any]]],
-) -> dict[tuple[str, str], dict[str, float]]:
-    """Median over seeds of each figure, per (source, mode)."""
-    groups: dict[tuple[str, str], list[dict[str, float]]] = {}
-    for run, doc in runs:
-        if "figures" in doc:
-            groups.setdefault((run.source, run.mode), []).append(doc["figures"])
-    out = {}
-    for key, docs in groups.items():
-        out[key] = {}
-        for f in FIGURES:
-            x = np.array([d[f] for d in docs], dtype=float)
-            out[key][f] = float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else np.nan
-    return out
-
-
-def tornado_rows(
-    spec: BudgetSpec, med: dict[tuple[str, str], dict[str, float]], figure: str
-) -> list[tuple[str, float, float]]:
-    """Per source present in the scenario: (name, what it adds alone to the error-free
-    rig, what removing it from the full scenario saves), in the figure's unit, largest
-    first."""
-    none = med.get(("-", "none"), {}).get(figure, np.nan)
-    full = med.get(("-", "all"), {}).get(figure, np.nan)
-    rows = []
-    for s in spec.sources:
-        if not s.present_in(spec.scenario):
-            continue
-        alone = med.get((s.name, "alone"), {}).get(figure, np.nan) - none
-        saved = full - med.get((s.name, "all_but"), {}).get(figure, np.nan)
-        rows.append((s.name, alone, saved))
-    return sorted(rows, key=lambda r: -np.nanmax([abs(r[1]), abs(r[2]), 0.0]))
-
-
-def _tornado(name: str, rows: list[tuple[str, float, float]], none: float, full: float, path):
-    """Tornado chart: per source, a bar from the error-free rig's value to the value with
-    the source alone (right of the floor line), and one from the full scenario's value
-    down to the value without the source; sources sorted by effect, largest on top."""
-    fig = Figure(figsize=(6.4, 1.1 + 0.36 * max(len(rows), 1)), layout="constrained")
-    ax = fig.subplots()
-    if not rows:
-        ax.text(0.5, 0.5, "no source present in this scenario", ha="center",
-                transform=ax.transAxes)  # fmt: skip
-    y = np.arange(len(rows))[::-1]
-    for yi, (_, alone, saved) in zip(y, rows, strict=True):
-        if np.isfinite(alone):
-            ax.barh(yi + 0.18, alone, left=none, height=0.34, color="#4c72b0")
-        if np.isfinite(saved):
-            ax.barh(yi - 0.18, -saved, left=full, height=0.34, color="#dd8452")
-    ax.axvline(none, color="#4c72b0", lw=1, ls="--")
-    ax.axvline(full, color="#dd8452", lw=1, ls="--")
-    ax.set_yticks(y, [r[0] for r in rows])
-    ax.set_xlabel(FIGURES[name])
-    handles = [
-        Patch(color="#4c72b0", label=f"source alone, from every source off ({none:.3g}, dashed)"),
-        Patch(
-            color="#dd8452", label=f"scenario without the source, from the scenario ({full:.3g})"
-        ),
-    ]
-    fig.legend(handles=handles, fontsize=7, loc="outside upper center", ncols=1)
-    fig.savefig(path, dpi=100)
-
-
-def budget_markdown(
-    spec: BudgetSpec, runs: Sequence[tuple[BudgetRun, dict[str, Any]]], out: Path
-) -> str:
-    """The budget page (its tornado charts written into ``out/figures``)."""
-    fig_dir = out / "figures"
-    fig_dir.mkdir(exist_ok=True)
-    med = budget_medians(runs)
-    failed = [(r, d) for r, d in runs if "error" in d]
-    name = spec.base.name if spec.base is not None else "the built-in scenario"
-    sets = f" with `{' '.join(spec.base_overrides)}`" if spec.base_overrides else ""
-    lines = [
-        "# Error budget",
-        "",
-        f"Scenario `{name}`{sets}; seeds {', '.join(map(str, spec.seeds))}. Each source is "
-        "run *alone* on an error-free rig (every other source off) and left out of the full "
-        "scenario (*all but*). Figures are medians over the seeds; every run is in "
-        "`budget.csv`."
-        + (
-            " With one seed there is no spread to judge by: differences of the order of the "
-            "figure's seed-to-seed spread are noise (`--seeds 3` shows it)."
-            if len(spec.seeds) == 1
-            else ""
-        ),
-        "",
-        "| source | what | keys (value in the scenario → off) | in the scenario |",
-        "|---|---|---|---|",
-    ]
-    for s in spec.sources:
-        keys = "; ".join(
-            f"`{k}` {json.dumps(_plain(value_at(spec.scenario, k)))} → {json.dumps(v)}"
-            for k, v in s.off
-        )
-        lines.append(
-            f"| {s.name} | {s.title} | {keys} | {'on' if s.present_in(spec.scenario) else 'off'} |"
-        )
-    lines.append("")
-    if failed:
-        lines += [f"**{len(failed)} run(s) failed** (their figures are left out):", ""]
-        lines += [f"- {r.source} / {r.mode} / seed {r.seed}: {d['error']}" for r, d in failed]
-        lines.append("")
-    none = med.get(("-", "none"), {})
-    full = med.get(("-", "all"), {})
-    for figure, label in FIGURES.items():
-        if not (np.isfinite(none.get(figure, np.nan)) or np.isfinite(full.get(figure, np.nan))):
-            continue  # not measured by this scenario (e.g. no reconstruction)
-        rows = tornado_rows(spec, med, figure)
-        png = f"tornado_{figure}.png"
-        _tornado(figure, rows, none.get(figure, np.nan), full.get(figure, np.nan), fig_dir / png)
-        lines += [f"## {label}", ""]
-        lines += [
-            f"Every source off: **{none.get(figure, np.nan):.3g}**; the scenario: "
-            f"**{full.get(figure, np.nan):.3g}**."
-            + (f" Largest: **{rows[0][0]}**." if rows else ""),
-            "",
-            f"![tornado chart of {label}](figures/{png})",
-            "",
-            "| source | alone: added to the error-free rig | all but: saved by removing it |",
-            "|---|---:|---:|",
-        ]
-        lines += [f"| {n} | {a:+.3g} | {s:+.3g} |" for n, a, s in rows]
-        lines.append("")
-    return "\n".join(lines)
-
-
-def _plain(v: Any) -> Any:
-    return list(v) if isinstance(v, tuple) else v
+    computed = len(tasks) - n_cached
+    return BudgetResult(spec, ordered, computed, n_cached, failed, time.perf_counter() - t0)

@@ -21,12 +21,10 @@ finishes.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import functools
 import hashlib
 import itertools
 import json
-import multiprocessing
 import os
 import time
 import traceback
@@ -42,27 +40,21 @@ from calib.calibrate import alternate
 from calib.errors import UscalError
 from calib.localize import localize_sphere
 
-from . import progress as progress_report
-from .experiment import (
-    axial_scale,
-    make_imager,
-    make_twin,
-    one_blas_thread,
-    release_memory,
-    simulate_acquisition,
-    true_centre_in_sweep,
-)
-from .output import make_directory, write_text_atomic
-from .scenario import acquisition_pixels, load_scenario, validate_overrides
-from .truth import image_error_mm
+from .. import progress as progress_report
+from ..acquire_sim import make_imager, make_twin, simulate_acquisition
+from ..config.scenario import acquisition_pixels, load_scenario, validate_overrides
+from ..parallel import release_memory, run_cached
+from ..pipeline import axial_scale
+from ..truth import image_error_mm, localization_errors
 
 __all__ = [
+    "LOCALIZATION_METRICS",
     "SweepError",
+    "SweepResult",
     "SweepSpec",
-    "as_completed",
     "code_version",
-    "executor",
     "load_sweep",
+    "point_key",
     "run_point",
     "run_sweep",
 ]
@@ -269,21 +261,14 @@ def run_point(
     rows = []
     for method in methods:
         cfg = replace(scenario.localization, method=method)
-        errors, n, rejected = [], 0, 0  # errors of the accepted sweeps, mm
-        for t in targets:
-            sweeps = acq.dataset.of(t)
-            # The localizer alone: the sweeps stacked with the true T_ee_us (the twin's),
-            # so that no calibration error enters; centres against the true centre in
-            # each sweep's true reference frame.
-            locs = localize_sphere(sweeps, truth.T_ee_us, radius, cfg, scale)
-            for sweep, loc in zip(sweeps, locs, strict=True):
-                n += 1
-                if not loc.accepted:
-                    rejected += 1
-                    continue
-                p_true = true_centre_in_sweep(acq, truth, t, sweep)
-                errors.append(float(np.linalg.norm(loc.centre - p_true)) * 1e3)
-        e = np.array(errors)
+        # The localizer alone: the sweeps stacked with the true T_ee_us (the twin's), so
+        # that no calibration error enters; centres against the true centre in each
+        # sweep's true reference frame (errors of the accepted sweeps, mm).
+        locs = {
+            t: localize_sphere(acq.dataset.of(t), truth.T_ee_us, radius, cfg, scale)
+            for t in targets
+        }
+        e, n, rejected = localization_errors(acq, truth, locs)
         row: dict[str, Any] = {
             "seed": seed,
             "method": method,
@@ -339,27 +324,6 @@ class SweepResult:
     seconds: float
 
 
-def executor(scheduler: str | None, workers: int | None):
-    """(submit, wait-for-any, close) on a local process pool or a Dask cluster."""
-    if scheduler is None:
-        n = workers or os.cpu_count() or 1
-        pool = cf.ProcessPoolExecutor(
-            max_workers=n,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=one_blas_thread,  # n processes on the cores: no BLAS threads
-        )
-        return pool.submit, pool.shutdown
-    try:
-        from distributed import Client
-    except ImportError:
-        raise SweepError("--scheduler needs Dask distributed: pip install 'uscal[dist]'") from None
-    try:
-        client = Client(scheduler, timeout="10s")
-    except OSError as exc:
-        raise SweepError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
-    return client.submit, client.close
-
-
 def run_sweep(
     spec: SweepSpec,
     out: str | os.PathLike[str],
@@ -367,84 +331,21 @@ def run_sweep(
     workers: int | None = None,
 ) -> SweepResult:
     """Run every point not yet cached in ``out/points``, on a local process pool
-    (``workers``, default one per core) or the Dask cluster at ``scheduler``; then write
-    ``results.csv`` and ``sweep.html``. A failed point records its error and the sweep
-    goes on."""
+    (``workers``, default one per core) or the Dask cluster at ``scheduler``
+    (:func:`bench.parallel.run_cached`). A failed point records its error and the sweep
+    goes on; :func:`bench.outputs.sweep_report.write_sweep` writes the tables."""
     t0 = time.perf_counter()
-    out = Path(out)
-    make_directory(out / "points")
-    todo, done = [], {}
     points = spec.points()
-    for overrides, seed in points:
-        key = point_key(spec, overrides, seed)
-        cached = out / "points" / f"{key}.json"
-        if cached.is_file():
-            done[key] = json.loads(cached.read_text(encoding="utf-8"))
-        else:
-            todo.append((key, overrides, seed))
-    n_cached = len(done)
-    progress_report.report("sweep points", n_cached, len(points))
-    if todo:
-        submit, close = executor(scheduler, workers)
-        try:
-            futures = {
-                submit(_safe_point, str(spec.base), overrides, seed, spec.stages, spec.methods): (
-                    key,
-                    overrides,
-                    seed,
-                )
-                for key, overrides, seed in todo
-            }
-            for future in as_completed(futures, scheduler is not None):
-                key, overrides, seed = futures[future]
-                doc = {"overrides": [[k, v] for k, v in overrides], "seed": seed}
-                doc.update(future.result())
-                write_text_atomic(out / "points" / f"{key}.json", json.dumps(doc, indent=1))
-                done[key] = doc
-                progress_report.report("sweep points", len(done), len(points))
-        finally:
-            close()
+    tasks = {
+        point_key(spec, overrides, seed): (
+            _safe_point,
+            (str(spec.base), overrides, seed, spec.stages, spec.methods),
+            {"overrides": [[k, v] for k, v in overrides], "seed": seed},
+        )
+        for overrides, seed in points
+    }
+    done, n_cached = run_cached(tasks, Path(out) / "points", scheduler, workers, "sweep points")
     ordered = [done[point_key(spec, o, s)] for o, s in points]
-    write_text_atomic(out / "results.csv", results_csv(spec, ordered))
-    from .sweep_report import sweep_html
-
-    write_text_atomic(out / "sweep.html", sweep_html(spec, ordered, out))
     failed = sum("error" in d for d in ordered)
-    return SweepResult(spec, ordered, len(todo), n_cached, failed, time.perf_counter() - t0)
-
-
-def as_completed(futures, dask: bool):
-    if dask:
-        from distributed import as_completed
-
-        return as_completed(list(futures))
-    return cf.as_completed(futures)
-
-
-def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any]]) -> str:
-    """One row per point, seed and method: the grid keys (named by key path), then
-    seed, method and the metrics; a failed point gives one row per method with the
-    error."""
-    keys = spec.override_keys()
-    metrics = list(LOCALIZATION_METRICS)
-    if "calibrate" in spec.stages:
-        metrics.append("calibration_image_mm")
-    lines = [",".join([*keys, "seed", "method", *metrics, "error"])]
-    for doc in points:
-        values = [json.dumps(v) if not isinstance(v, str) else v for _, v in doc["overrides"]]
-        rows = doc.get("rows") or [{"method": m} for m in spec.methods]
-        for row in rows:
-            cells = [*values, str(doc["seed"]), row["method"]]
-            cells += [_fmt(row.get(m)) for m in metrics]
-            error = doc.get("error") or row.get("calibration_error") or ""
-            cells.append('"' + error.replace('"', "'") + '"' if error else "")
-            lines.append(",".join(cells))
-    return "\n".join(lines) + "\n"
-
-
-def _fmt(v: Any) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return "nan" if not np.isfinite(v) else f"{v:.6g}"
-    return str(v)
+    computed = len(tasks) - n_cached
+    return SweepResult(spec, ordered, computed, n_cached, failed, time.perf_counter() - t0)

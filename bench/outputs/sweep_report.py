@@ -1,6 +1,6 @@
-"""``sweep.html``: a sweep's results per grid key and localizer — localization error
-(median and spread), detection failures, calibration error — with its figures in
-``DIR/figures``."""
+"""``results.csv`` and ``sweep.html``: a sweep's results per grid key and localizer —
+localization error (median and spread), detection failures, calibration error — with its
+figures in ``DIR/figures``."""
 
 from __future__ import annotations
 
@@ -12,9 +12,11 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from ..files import write_text_atomic
+from ..jobs.sweep import LOCALIZATION_METRICS, SweepResult, SweepSpec
 from .report import report_html
 
-__all__ = ["sweep_html", "sweep_table"]
+__all__ = ["results_csv", "sweep_html", "sweep_table", "write_sweep"]
 
 _METRICS = {
     "localization_median_error_mm": "localization error, median over sweeps (mm)",
@@ -131,3 +133,40 @@ def sweep_html(spec, points: Sequence[dict[str, Any]], out: Path) -> str:
                 lines.append(f"| {method} | " + " | ".join(f"{m:.3g}" for m in med) + " |")
             lines.append("")
     return report_html("\n".join(lines), "uscal sweep")
+
+
+def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any]]) -> str:
+    """One row per point, seed and method: the grid keys (named by key path), then
+    seed, method and the metrics; a failed point gives one row per method with the
+    error."""
+    keys = spec.override_keys()
+    metrics = list(LOCALIZATION_METRICS)
+    if "calibrate" in spec.stages:
+        metrics.append("calibration_image_mm")
+    lines = [",".join([*keys, "seed", "method", *metrics, "error"])]
+    for doc in points:
+        values = [json.dumps(v) if not isinstance(v, str) else v for _, v in doc["overrides"]]
+        rows = doc.get("rows") or [{"method": m} for m in spec.methods]
+        for row in rows:
+            cells = [*values, str(doc["seed"]), row["method"]]
+            cells += [_fmt(row.get(m)) for m in metrics]
+            error = doc.get("error") or row.get("calibration_error") or ""
+            cells.append('"' + error.replace('"', "'") + '"' if error else "")
+            lines.append(",".join(cells))
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "nan" if not np.isfinite(v) else f"{v:.6g}"
+    return str(v)
+
+
+def write_sweep(out: str | Path, result: SweepResult) -> list[Path]:
+    """``results.csv`` and ``sweep.html`` (with its figures) of a finished sweep."""
+    out = Path(out)
+    write_text_atomic(out / "results.csv", results_csv(result.spec, result.points))
+    write_text_atomic(out / "sweep.html", sweep_html(result.spec, result.points, out))
+    return [out / "results.csv", out / "sweep.html"]

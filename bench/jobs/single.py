@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,72 +17,33 @@ from calib.calibrate import AlternationResult
 from calib.kinematics import kinematic_gauge
 from calib.localize import localize_sphere
 from calib.uncertainty import UncertaintyInputs, alternation_bound
+from twin.imager import acoustic_scene
 
-from .evaluation import EvaluationResult, run_evaluation
-from .experiment import (
-    SimulatedAcquisition,
+from ..acquire_sim import SimulatedAcquisition, make_imager, make_twin, simulate_acquisition
+from ..acquire_sim import save_dataset as save_dataset_files
+from ..config.scenario import Scenario, layout_sigma_mm
+from ..pipeline import (
     axial_scale,
-    image_points,
-    make_imager,
-    make_twin,
-    simulate_acquisition,
-    true_centre_in_sweep,
-)
-from .figures import LocalizationSnapshot, dataset_snapshot
-from .offline import (
-    RecordedCalibration,
     calibrate_markers,
     calibration_entry,
+    image_points,
     scenario_uncertainty,
 )
-from .offline import save_dataset as save_dataset_files
-from .recording_options import RecordingOptions
-from .scenario import Scenario, layout_sigma_mm
-from .truth import mount_error, snapshot_of, transform_difference
+from ..recording.logs import log_acquisition, merge_parts
+from ..recording.options import RecordingOptions
+from ..recording.recorder import Recorder
+from ..results import RunResult
+from ..truth import (
+    localization_errors,
+    mount_error,
+    snapshot_of,
+    transform_difference,
+)
+from .paper import run_evaluation
 
-__all__ = ["RunResult", "recorded_run_result", "run"]
+__all__ = ["equivalent_mount", "run"]
 
 Array = NDArray[np.float64]
-
-
-@dataclass(frozen=True, eq=False)
-class RunResult:
-    """Metrics (the ``metrics.json`` content) and the objects they came from: one
-    acquisition with the controller's kinematics, or the paper's evaluation."""
-
-    metrics: dict[str, Any]
-    acquisition: SimulatedAcquisition | None = None
-    single: AlternationResult | None = None
-    three: AlternationResult | None = None
-    evaluation: EvaluationResult | None = None
-    snapshot: LocalizationSnapshot | None = None  # what the report shows of one sweep
-
-    def alternations(self) -> dict[str, AlternationResult]:
-        """The calibrations ``metrics["calibration"]`` describes, by method (in an
-        evaluation: the first dataset's first single- and three-marker folds)."""
-        if self.evaluation is not None:
-            out: dict[str, AlternationResult] = {}
-            for r in self.evaluation.outcomes[0].folds:
-                out.setdefault(r.fold.kind, r.alternation)
-            return out
-        pairs = (("single", self.single), ("three", self.three))
-        return {k: a for k, a in pairs if a is not None}
-
-
-def recorded_run_result(recorded: RecordedCalibration, settings: Scenario) -> RunResult:
-    """A recorded dataset's calibration (``uscal calibrate``) as the report draws a run."""
-    cals = recorded.calibrations
-    first = cals.single or cals.three
-    snapshot = None
-    if first is not None:
-        snapshot = dataset_snapshot(
-            recorded.dataset,
-            first,
-            recorded.info.sphere_radius_mm * 1e-3,
-            settings.localization,
-            recorded.axial_scale,
-        )
-    return RunResult(recorded.metrics, None, cals.single, cals.three, snapshot=snapshot)
 
 
 def _true_errors(scenario, T_est, T_true) -> dict[str, float]:
@@ -156,10 +116,6 @@ def _record_run(
 ) -> int:
     """The single-acquisition run in rerun (see :mod:`bench.recording`); returns the
     number of B-mode frames logged."""
-    from twin.imager import acoustic_scene
-
-    from .recording import Recorder, log_acquisition, merge_parts
-
     rec = Recorder(options)
     alternations = {"single": single} | ({"three": three} if three is not None else {})
     logged = log_acquisition(
@@ -208,7 +164,6 @@ def run(
     scale = axial_scale(scenario)
     loc_cfg = scenario.localization
     targets = acq.dataset.targets()
-    by_target = {t: acq.dataset.of(t) for t in targets}
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
     cal = scenario.calibration
 
@@ -225,19 +180,11 @@ def run(
     single, three = cals.single, cals.three
     assert single is not None  # markers 1 and 3: the single-marker calibration always runs
     # Localization error of the final single-marker localizations vs the true centres.
-    errors, n_sweeps, n_rejected = [], 0, 0
     final = {targets[0]: single.localizations[targets[0]]}
     if three is not None:
         final.update(three.localizations)
-    for target, locs in final.items():
-        for sweep, loc in zip(by_target[target], locs, strict=True):
-            n_sweeps += 1
-            if not loc.accepted:
-                n_rejected += 1
-                continue
-            p_true = true_centre_in_sweep(acq, truth, target, sweep)
-            errors.append(1e3 * np.linalg.norm(loc.centre - p_true))
-    errors = np.array(errors) if errors else np.array([np.nan])
+    errors, n_sweeps, n_rejected = localization_errors(acq, truth, final)
+    errors = errors if len(errors) else np.array([np.nan])
     # The bounds' declared terms: the phantom's print specification and the medium; no
     # kinematic residual is known (the controller's own model).
     inputs = scenario_uncertainty(scenario)

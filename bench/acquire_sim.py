@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
-import gc
-import mmap
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, replace
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from threadpoolctl import threadpool_limits
 
 from calib import se3
-from calib.image import pixel_to_us
+from calib.dataset_files import AcquisitionInfo, DatasetWriter
 from calib.protocol import (
     PlannedSweep,
     PlannedTouch,
@@ -30,28 +27,30 @@ from calib.protocol import (
 )
 from calib.records import Dataset, Sweep, Touch
 from calib.settings import CalibrationConfig
-from sim_us.materials import water_speed_m_s
 from twin.arm_errors import robot_stream
 from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
+from .config.scenario import Scenario
+from .files import frames_to_file
 from .progress import report
-from .scenario import Scenario
 from .sessions import stage_rngs
 
 __all__ = [
     "SimulatedAcquisition",
-    "axial_scale",
+    "acquisition_info",
     "coarse_estimate",
-    "frames_to_file",
-    "image_points",
+    "image_meta",
     "make_imager",
     "make_twin",
-    "one_blas_thread",
+    "save_dataset",
     "simulate_acquisition",
     "simulate_touches",
+    "teach_at",
 ]
+
+Array = NDArray[np.float64]
 
 
 def make_twin(scenario: Scenario, joints_rng: np.random.Generator | None = None) -> Twin:
@@ -134,6 +133,27 @@ def simulate_touches(
         twin.mount("probe")
 
 
+def teach_at(
+    twin: Twin,
+    point: NDArray[np.float64],
+    depth: float,
+    label: str,
+    miss_rng: np.random.Generator | None = None,
+    teaching_error_mm: float = 0.0,
+    lateral_axis: NDArray[np.float64] | tuple[float, float, float] = (0, 1, 0),
+):
+    """The operator teaches the nominal pose at a target, as on the rig: jogs until
+    ``point`` (base frame, the truth) sits on the image's centre line ``depth`` below
+    the face — off by the teaching error (isotropic, ``teaching_error_mm`` 1 σ, drawn
+    from ``miss_rng``) — and the robot records the joint angles and the pose its
+    controller reports there (:meth:`twin.robot.SimRobot.teach`)."""
+    miss = np.zeros(3)
+    if miss_rng is not None:
+        miss = miss_rng.normal(0.0, teaching_error_mm * 1e-3, 3)
+    T_face = facing_pose(point + miss, depth, lateral_axis)
+    return twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), label)
+
+
 def simulate_acquisition(
     scenario: Scenario,
     twin: Twin,
@@ -173,9 +193,14 @@ def simulate_acquisition(
     for index in proto.spheres:
         target = f"sphere_{index}"
         centre = twin.truth.landmarks_base[target]
-        miss = rngs["protocol"].normal(0.0, proto.teaching_error_mm * 1e-3, 3)
-        T_face = facing_pose(centre + miss, depth)
-        taught = twin.robot.teach(T_face @ se3.invert(T_ee_us), f"taught pose at {target}")
+        taught = teach_at(
+            twin,
+            centre,
+            depth,
+            f"taught pose at {target}",
+            rngs["protocol"],
+            proto.teaching_error_mm,
+        )
         plan = plan_sweeps(target, taught.T_base_ee, coarse, proto)
         check_plan(twin.robot, plan)
 
@@ -202,110 +227,57 @@ def simulate_acquisition(
     )
 
 
-def frames_to_file(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:
-    """Write the sweeps' frames (all of one shape) to ``path`` (``.npy``) and return the
-    sweeps with their frames mapped from it (:func:`with_frames`)."""
-    shape = (len(sweeps), *sweeps[0].images.shape)
-    for s in sweeps:  # checked before anything is written
-        if s.images.shape != shape[1:]:
-            raise ValueError(f"sweep {s.pose_id}: frames {s.images.shape}, not {shape[1:]}")
-    # Written, not through a writable map: a map takes a page fault per 4 KiB written
-    # (≈ 1 s of CPU per dataset's 577 MB).
-    with open(path, "wb") as f:
-        header = {"descr": "|u1", "fortran_order": False, "shape": shape}
-        np.lib.format.write_array_header_1_0(f, header)
-        for s in sweeps:
-            f.write(np.ascontiguousarray(s.images, dtype=np.uint8).data)
-    return with_frames(sweeps, path)
-
-
-def with_frames(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:
-    """The sweeps with their frames mapped from the ``.npy`` file ``path`` (one frame
-    stack per sweep, in order), copy-on-write: the pages are the page cache's, shared by
-    every process that maps them, read as the pipeline touches them, and writable, so the
-    localizer's compiled kernels take them as any frame array. Nothing else changes."""
-    frames = np.load(path, mmap_mode="c")
-    return [replace(s, images=frames[i]) for i, s in enumerate(sweeps)]
-
-
-def drop_frame_pages(sweeps: Iterable[Sweep]) -> None:
-    """Let go of the resident pages of the sweeps' frames mapped from scratch files
-    (:func:`with_frames`), e.g. between folds that use different spheres: the frames
-    stay valid, and the pages a later step touches are read back from the page cache
-    (a minor fault each). Frames held in memory are left alone."""
-    maps = {}
-    for s in sweeps:
-        m = getattr(s.images, "_mmap", None)
-        if m is not None:
-            maps[id(m)] = m
-    for m in maps.values():
-        m.madvise(mmap.MADV_DONTNEED)
-
-
-def without_frames(sweeps: Sequence[Sweep]) -> tuple[Sweep, ...]:
-    """The sweeps with their frames left out (while a file holds them), to cross a pipe."""
-    empty = np.zeros((0, 0, 0), dtype=np.uint8)
-    return tuple(replace(s, images=empty) for s in sweeps)
-
-
-def true_centre_in_sweep(
-    acq: SimulatedAcquisition, truth, target: str, sweep: Sweep
-) -> NDArray[np.float64]:
-    """Truth: a sphere's centre (3,) in the sweep's true reference frame (the true
-    flange pose of its reference frame and the true mount), where a localization of it
-    should land."""
-    T = acq.T_base_ee_true[(target, sweep.pose_id)][sweep.reference_index] @ truth.T_ee_us
-    return se3.apply(se3.invert(T), truth.landmarks_base[target])
-
-
-def one_blas_thread() -> threadpool_limits:
-    """Limit this process's BLAS (OpenBLAS) to one thread, until the returned limiter
-    is exited (a ``with`` block) or for good.
-
-    For a process that shares the cores with a pool's workers, or is one of them: an
-    OpenBLAS thread per core in each process oversubscribes the cores, and its threads
-    spin waiting for each other on the tiny matrices of the pipeline (the DH
-    refinement's SVDs took 9.7 s of a paper run instead of 1 s)."""
-    return threadpool_limits(1, user_api="blas")
-
-
-def release_memory() -> None:
-    """Collect garbage and give the heap's freed pages back to the system (glibc
-    ``malloc_trim``).
-
-    A pool worker's frames are freed when its task ends, but glibc keeps freed heap
-    memory for reuse, so an idle worker went on holding ≈ 0.3-0.9 GB (measured) until
-    the pool closed; with three workers that decided the run's peak memory."""
-    gc.collect()
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-
-
-def speed_ratio(
-    correction: bool, medium: str, temperature_c: float, assumed_speed_m_s: float
-) -> float:
-    """c_medium / c_assumed when the speed-of-sound correction is on (the pipeline knows
-    the water temperature a user reads off a thermometer), else 1; a medium other than
-    water is taken at 1540 m/s."""
-    if not correction:
-        return 1.0
-    c = water_speed_m_s(temperature_c) if medium == "water" else 1540.0
-    return c / assumed_speed_m_s
-
-
-def axial_scale(scenario: Scenario) -> float:
-    """The axial spacing's correction factor of a scenario (:func:`speed_ratio`)."""
-    return speed_ratio(
-        scenario.imaging.sound_speed_correction,
-        scenario.medium.kind,
-        scenario.medium.temperature_c,
-        scenario.imaging.assumed_speed_m_s,
+def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> AcquisitionInfo:
+    """What a twin acquisition's dataset records besides its sweeps: what the pipeline
+    knows (CAD landmarks, coarse mount, settings), never the truth."""
+    return AcquisitionInfo(
+        T_ee_us_coarse=np.asarray(T_ee_us_coarse, dtype=float),
+        landmarks={k: np.asarray(v, dtype=float) for k, v in twin.phantom_cad.landmarks.items()},
+        sphere_radius_mm=scenario.phantom.sphere_radius_mm,
+        temperature_c=scenario.medium.temperature_c,
+        assumed_speed_m_s=scenario.imaging.assumed_speed_m_s,
+        sound_speed_correction=scenario.imaging.sound_speed_correction,
+        medium=scenario.medium.kind,
+        stylus_tip_cad_mm=tuple(scenario.evaluation.stylus_tip_cad_mm),
+        source="twin",
+        target_depth_mm=scenario.protocol.target_depth_mm,
+        extra={"scenario": scenario.source, "seed": scenario.seed},
     )
 
 
-def image_points(scenario: Scenario, n: int = 21) -> NDArray[np.float64]:
-    """An n × n grid of points (n², 3) covering the image, metres in the ``us`` frame."""
-    probe = scenario.imaging
-    spacing = (probe.width_mm * 1e-3 / (n - 1), probe.depth_mm * 1e-3 / (n - 1))
-    P = pixel_to_us(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), n, spacing)
-    return P.reshape(-1, 3)
+def image_meta(scenario: Scenario) -> dict[str, Any]:
+    """The probe settings a dataset's manifest keeps (for the reader's information)."""
+    im = scenario.imaging
+    H, W = im.image_shape
+    return {
+        "width_px": int(W),
+        "height_px": int(H),
+        "pixel_spacing_mm": [float(v) for v in im.pixel_spacing_mm],
+        "depth_mm": float(im.depth_mm),
+        "f_mhz": float(im.f_mhz),
+        "gain_db": float(im.gain_db),
+    }
+
+
+def save_dataset(
+    directory: str | os.PathLike[str], scenario: Scenario, twin, acq: SimulatedAcquisition
+) -> Path:
+    """Write a twin acquisition in the dataset format (:mod:`calib.dataset_files`).
+
+    The twin has no acquisition clock; each frame's timestamp is its index in the
+    dataset times a nominal frame period, so timestamps increase through the dataset.
+    """
+    writer = DatasetWriter(
+        directory,
+        acq.dataset.name,
+        acquisition_info(scenario, twin, acq.T_ee_us_coarse),
+        image_meta(scenario),
+    )
+    period = 0.5  # s per frame: settle and grab
+    n = 0
+    for sweep in acq.dataset.sweeps:
+        writer.add_sweep(sweep, period * (n + np.arange(sweep.n_frames)))
+        n += sweep.n_frames
+    writer.add_touches(acq.dataset.touches)
+    writer.finish()
+    return Path(directory)

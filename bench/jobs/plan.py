@@ -20,11 +20,11 @@ from calib.observability import (
     observability,
     planned_observations,
 )
-from calib.protocol import check_plan, facing_pose, plan_sweeps
+from calib.protocol import check_plan, plan_sweeps
 
-from .experiment import coarse_estimate, make_twin
-from .scenario import Scenario
-from .sessions import stage_rngs
+from ..acquire_sim import coarse_estimate, make_twin, teach_at
+from ..config.scenario import Scenario
+from ..sessions import stage_rngs
 
 __all__ = ["PlanReport", "plan_report"]
 
@@ -51,8 +51,7 @@ def plan_report(scenario: Scenario, noise_mm: float = 0.1) -> list[PlanReport]:
     out = []
     for index in proto.spheres:
         name = f"sphere_{index}"
-        T_face = facing_pose(twin.truth.landmarks_base[name], depth)
-        taught = twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), f"taught at {name}")
+        taught = teach_at(twin, twin.truth.landmarks_base[name], depth, f"taught at {name}")
         plan = plan_sweeps(name, taught.T_base_ee, coarse, proto)
         check_plan(twin.robot, plan)
         # The plan as the pipeline sees it: the sphere where the coarse estimate puts it.

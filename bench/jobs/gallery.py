@@ -18,10 +18,10 @@ from matplotlib.figure import Figure
 from skimage import io as skio
 
 from calib import se3
-from calib.protocol import facing_pose, rotated_about_target
+from calib.protocol import rotated_about_target
 
-from .experiment import make_imager, make_twin
-from .scenario import Scenario
+from ..acquire_sim import make_imager, make_twin, teach_at
+from ..config.scenario import Scenario
 
 __all__ = ["GalleryPose", "gallery_poses", "write_gallery"]
 
@@ -67,7 +67,7 @@ def write_gallery(scenario: Scenario, outdir: Path) -> list[str]:
     # kinematic error shows as it would on a real robot.
     T_ee_us = twin.truth.T_ee_us
     target_name, target = _target(scenario, twin.truth.landmarks_base)
-    taught = twin.robot.teach(facing_pose(target, depth) @ se3.invert(T_ee_us), "taught pose")
+    taught = teach_at(twin, target, depth, "taught pose")
     T_face = taught.T_base_ee @ T_ee_us
     written, frames, records = [], [], {}
     for pose in gallery_poses():

@@ -1,0 +1,186 @@
+"""``calibration.yaml``: the estimated ``T_ee_us`` (metres and mm, rotation matrix and
+angles), its 1 σ and 95 % bounds, the DH table it holds with, PLUS's ``ImageToProbe``
+matrix, and where it came from."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from calib import se3
+from calib.dh import DHTable
+from calib.evaluate import METHOD_TITLES
+
+from ..config.scenario import Scenario
+from ..results import RunResult
+
+Array = NDArray[np.float64]
+_MM = 1e3
+
+
+def image_to_probe_mm(T_ee_us: Array, width_px: int, spacing_m: tuple[float, float]) -> Array:
+    """PLUS's ``ImageToProbe``: pixel (i = column, j = row, 0, 1) → flange millimetres.
+
+    PLUS keeps the pixel spacing in this transform, not in the image: it is
+    ``T_ee_us`` (in mm) times the pixel-to-``us`` map of :mod:`calib.image`
+    (x = (i − (W − 1)/2)·sx, y = j·sy)."""
+    sx, sy = (s * _MM for s in spacing_m)
+    S = np.array(
+        [[sx, 0.0, 0.0, -(width_px - 1) / 2 * sx], [0.0, sy, 0.0, 0.0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    )
+    T = np.asarray(T_ee_us, dtype=float).copy()
+    T[:3, 3] *= _MM
+    return T @ S
+
+
+def _pose_doc(T: Array) -> dict[str, Any]:
+    T = np.asarray(T, dtype=float)
+    T_mm = T.copy()
+    T_mm[:3, 3] *= _MM
+    return {
+        "matrix_m": np.round(T, 9).tolist(),
+        "matrix_mm": np.round(T_mm, 6).tolist(),
+        "position_mm": np.round(T[:3, 3] * _MM, 4).tolist(),
+        "rotation_vector_rad": np.round(se3.rotvec_from_matrix(T[:3, :3]), 9).tolist(),
+        "rotation_xyz_deg": np.round(np.degrees(se3.euler_from_matrix(T[:3, :3])), 5).tolist(),
+    }
+
+
+def _dh_doc(table: DHTable, source: str) -> dict[str, Any]:
+    return {
+        "source": source,
+        "theta_rad": list(table.theta),
+        "d_m": list(table.d),
+        "a_m": list(table.a),
+        "alpha_rad": list(table.alpha),
+    }
+
+
+def _chosen(metrics: dict[str, Any]) -> str:
+    """The calibration the document recommends: three-marker when it ran (it also
+    anchors the phantom; the paper's recommended use), else single-marker."""
+    return "three" if "three" in metrics["calibration"] else "single"
+
+
+def _bound_doc(cal: dict[str, Any]) -> dict[str, Any]:
+    """``calibration.yaml``'s 95 % error bounds of a calibration."""
+    b = cal["bound95"]
+    u = cal.get("uncertainty", {})
+    declared = u.get("declared", {})
+    return {
+        "rotation_deg": round(b["rotation_deg"], 5),
+        "translation_mm": round(b["translation_mm"], 5),
+        "image_mm": round(b["image_mm"], 5),
+        "note": (
+            "95 % error bounds of T_ee_us: its rotation angle, the distance of its origin, "
+            "and the mean error over the image; from a jackknife over the "
+            f"{u.get('views', '?')} views (probe orientations) of the data plus the declared "
+            f"systematic terms (print tolerance {declared.get('print_tolerance_mm', 0):g} mm, "
+            f"radius tolerance {declared.get('radius_tolerance_mm', 0):g} mm, "
+            f"axial bias {declared.get('axial_bias_mm', 0):.3g} mm, "
+            f"kinematic residual {declared.get('kinematic_sigma_mm', 0):.3g} mm, axial scale "
+            f"{declared.get('axial_scale_sigma', 0):.2g}; 1 σ per axis)."
+        ),
+    }
+
+
+def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any]:
+    """``calibration.yaml``'s content."""
+    m = result.metrics
+    method = _chosen(m)
+    cal = m["calibration"][method]
+    T = np.array(cal["T_ee_us"])
+    cov = np.array(cal["covariance_rotvec_rad_translation_m"])
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if "image" in m:  # a recorded dataset: its frames decide
+        W, H = m["image"]["width_px"], m["image"]["height_px"]
+        spacing = tuple(m["image"]["spacing_m"])
+    else:
+        H, W = scenario.imaging.image_shape
+        spacing = scenario.imaging.spacing_m
+    if "dataset" in m and "dh_table_refined" in m:
+        dh = _dh_doc(
+            DHTable.from_array(np.array(m["dh_table_refined"])),
+            f"refined from the touches of {m['evaluation']['dh_from']}; the flange poses "
+            "were recomputed from the joint angles with it",
+        )
+        origin = f"dataset {m['dataset']['name']} ({m['dataset']['path']})"
+    elif "dataset" in m:
+        dh = _dh_doc(
+            scenario.robot.nominal_table,
+            f"nominal {scenario.robot.model} table (the poses are as the controller reported "
+            "them, with its own calibrated model)",
+        )
+        origin = f"dataset {m['dataset']['name']} ({m['dataset']['path']})"
+    elif result.evaluation is not None:
+        dataset = cal["fold"].split("/")[0]
+        others = ", ".join(n for n in m["evaluation"]["datasets"] if n != dataset)
+        dh = _dh_doc(
+            result.evaluation.refinements[dataset].table,
+            f"refined from the touches of datasets {others} (used for dataset {dataset})",
+        )
+        origin = f"fold {cal['fold']} of the paper's cross-validation"
+    else:
+        dh = _dh_doc(scenario.robot.nominal_table, f"nominal {scenario.robot.model} table")
+        origin = "the run's acquisition"
+    return {
+        "description": (
+            "T_ee_us maps points of the ultrasound image frame (us: origin at the centre of "
+            "the transducer face, x lateral along increasing columns, y axial = depth, "
+            "z = x × y) to the robot flange frame (ee); T_dst_src convention."
+        ),
+        **(
+            {"scenario": m["scenario"]["name"]}
+            if "scenario" in m
+            else {"dataset": m["dataset"]["path"]}
+        ),
+        "method": METHOD_TITLES[method],
+        "from": origin,
+        "T_ee_us": _pose_doc(T),
+        "uncertainty_1sigma": {
+            "rotation_deg": np.round(np.degrees(std[:3]), 5).tolist(),
+            "translation_mm": np.round(std[3:] * _MM, 5).tolist(),
+            "covariance_rotvec_rad_translation_m": cov.tolist(),
+        },
+        **({"bound95": _bound_doc(cal)} if "bound95" in cal else {}),
+        "image": {
+            "width_px": int(W),
+            "height_px": int(H),
+            "pixel_spacing_mm": [round(s * _MM, 6) for s in spacing],
+            "note": "spacing as the scanner displays it (at its assumed speed of sound)",
+        },
+        "plus_ImageToProbe": {
+            # Nine decimals: the entries are mm per pixel, multiplied by hundreds of pixels.
+            "matrix": np.round(image_to_probe_mm(T, W, spacing), 9).tolist(),
+            "note": (
+                "PLUS / 3D Slicer: image pixel (i, j) → probe (= flange) mm, pixel spacing "
+                "included; put it in the PLUS device set as the ImageToProbe transform."
+            ),
+        },
+        "dh_table": dh,
+    }
+
+
+class _Dumper(yaml.SafeDumper):
+    """Lists of numbers in flow style (a 4 × 4 matrix reads as four rows)."""
+
+
+def _represent_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
+    flat = all(not isinstance(v, (list, dict)) for v in data)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flat)
+
+
+_Dumper.add_representer(list, _represent_list)
+
+
+def calibration_yaml(scenario: Scenario, result: RunResult) -> str:
+    """``calibration.yaml``: :func:`calibration_document` with its header."""
+    header = (
+        "# uscal calibration. T_ee_us: image (us) → flange (ee). Lengths in metres unless\n"
+        "# the key says mm; rotations in radians unless it says deg.\n"
+    )
+    doc = calibration_document(scenario, result)
+    return header + yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=100, allow_unicode=True)

@@ -1,0 +1,167 @@
+"""Parallel execution: the paper run's process pool (its workers' initializer, one BLAS
+thread per process, memory given back after each task), and the local-pool-or-Dask
+executor of sweeps and budgets with their per-point cache (:func:`run_cached`)."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import ctypes
+import gc
+import json
+import multiprocessing
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from threadpoolctl import threadpool_limits
+
+from calib.errors import UscalError
+from twin.printing import forget_parts, use_disk_cache
+
+from . import progress as progress_report
+from .config.scenario import Scenario
+from .files import make_directory, write_text_atomic
+
+__all__ = [
+    "SchedulerError",
+    "executor",
+    "one_blas_thread",
+    "pool_task",
+    "release_memory",
+    "run_cached",
+    "start_worker",
+    "worker_initializer",
+    "workers_for",
+]
+
+
+class SchedulerError(UscalError):
+    """The Dask scheduler cannot be used."""
+
+
+def one_blas_thread() -> threadpool_limits:
+    """Limit this process's BLAS (OpenBLAS) to one thread, until the returned limiter
+    is exited (a ``with`` block) or for good.
+
+    For a process that shares the cores with a pool's workers, or is one of them: an
+    OpenBLAS thread per core in each process oversubscribes the cores, and its threads
+    spin waiting for each other on the tiny matrices of the pipeline (the DH
+    refinement's SVDs took 9.7 s of a paper run instead of 1 s)."""
+    return threadpool_limits(1, user_api="blas")
+
+
+def release_memory() -> None:
+    """Collect garbage and give the heap's freed pages back to the system (glibc
+    ``malloc_trim``).
+
+    A pool worker's frames are freed when its task ends, but glibc keeps freed heap
+    memory for reuse, so an idle worker went on holding ≈ 0.3-0.9 GB (measured) until
+    the pool closed; with three workers that decided the run's peak memory."""
+    gc.collect()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+
+
+def pool_task(fn: Callable[..., Any], *args: Any) -> Any:
+    """Run a pool task, then release the memory it freed (its printed parts included:
+    a worker's next task reads them back from the run's disk cache)."""
+    try:
+        return fn(*args)
+    finally:
+        forget_parts()
+        release_memory()
+
+
+def start_worker() -> None:
+    """A no-op task: submitting it starts a worker process."""
+
+
+def worker_initializer(counts: Any, parts: Path) -> None:
+    """A pool worker: report progress to the run, share the run's printed parts, one
+    BLAS thread (:func:`one_blas_thread`)."""
+    progress_report.worker_initializer(counts)
+    use_disk_cache(parts)
+    one_blas_thread()
+
+
+def workers_for(scenario: Scenario, n_tasks: int) -> int:
+    """Worker processes: the scenario's number, or one per core (at most one per task).
+    Since the reconstruction's tasks queue behind the datasets, a third worker on two
+    cores no longer fills an idle core: it only adds a dataset's frames to the memory
+    (paper.yaml, 2 cores: 89.6 s and 2.7 GB with two workers, 94.2 s and 3.9 GB with
+    three)."""
+    w = scenario.evaluation.workers or (os.cpu_count() or 1)
+    return max(1, min(w, n_tasks))
+
+
+def executor(scheduler: str | None, workers: int | None):
+    """(submit, wait-for-any, close) on a local process pool or a Dask cluster."""
+    if scheduler is None:
+        n = workers or os.cpu_count() or 1
+        pool = cf.ProcessPoolExecutor(
+            max_workers=n,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=one_blas_thread,  # n processes on the cores: no BLAS threads
+        )
+        return pool.submit, pool.shutdown
+    try:
+        from distributed import Client
+    except ImportError:
+        raise SchedulerError(
+            "--scheduler needs Dask distributed: pip install 'uscal[dist]'"
+        ) from None
+    try:
+        client = Client(scheduler, timeout="10s")
+    except OSError as exc:
+        raise SchedulerError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+    return client.submit, client.close
+
+
+def as_completed(futures, dask: bool):
+    """The futures as they finish (a local pool's or a Dask cluster's)."""
+    if dask:
+        from distributed import as_completed
+
+        return as_completed(list(futures))
+    return cf.as_completed(futures)
+
+
+def run_cached(
+    tasks: dict[str, tuple[Callable[..., dict[str, Any]], tuple[Any, ...], dict[str, Any]]],
+    points: Path,
+    scheduler: str | None,
+    workers: int | None,
+    label: str,
+) -> tuple[dict[str, dict[str, Any]], int]:
+    """Run the tasks (key → (function, arguments, what the point's file records besides
+    its result)) whose ``points/<key>.json`` does not exist yet, on a local pool of
+    ``workers`` (default one per core) or the Dask cluster at ``scheduler``; each result
+    is written to its file as it comes (an interrupted sweep resumes). Returns every
+    key's document and how many came from the files."""
+    make_directory(points)
+    done: dict[str, dict[str, Any]] = {}
+    todo = {}
+    for key, task in tasks.items():
+        cached = points / f"{key}.json"
+        if cached.is_file():
+            done[key] = json.loads(cached.read_text(encoding="utf-8"))
+        else:
+            todo[key] = task
+    n_cached = len(done)
+    progress_report.report(label, n_cached, len(tasks))
+    if todo:
+        submit, close = executor(scheduler, workers)
+        try:
+            futures = {submit(fn, *args): key for key, (fn, args, _) in todo.items()}
+            for future in as_completed(futures, scheduler is not None):
+                key = futures[future]
+                doc = dict(todo[key][2])
+                doc.update(future.result())
+                write_text_atomic(points / f"{key}.json", json.dumps(doc, indent=1))
+                done[key] = doc
+                progress_report.report(label, len(done), len(tasks))
+        finally:
+            close()
+    return done, n_cached

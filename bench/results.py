@@ -1,0 +1,184 @@
+"""The typed results of the jobs (the bottom layer of :mod:`bench`): what a run, the
+paper's experiment, one of its datasets, the re-calibration and reconstruction, and a
+recorded dataset's calibration hand to the outputs. Each carries its ``metrics.json``
+part and the objects it came from; none holds frames, except a single run's
+acquisition."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.calibrate import AlternationResult
+from calib.dataset_files import AcquisitionInfo
+from calib.dh import DHTable
+from calib.evaluate import FoldResult
+from calib.kinematics import DHRefinement, TouchReference
+from calib.localization import SweepLocalization
+from calib.records import Dataset, Sweep
+
+from .files import with_frames
+
+if TYPE_CHECKING:  # types only: the results layer loads neither the twin nor the pipeline
+    from .acquire_sim import SimulatedAcquisition
+    from .pipeline import MarkerCalibrations
+    from .snapshot import LocalizationSnapshot
+
+__all__ = [
+    "DatasetOutcome",
+    "EvaluationResult",
+    "PhantomReconstruction",
+    "PhantomScan",
+    "Recalibration",
+    "RecordedCalibration",
+    "RemountScan",
+    "RunResult",
+]
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedCalibration:
+    """``uscal calibrate``'s result: metrics, and what they came from."""
+
+    metrics: dict[str, Any]
+    dataset: Dataset
+    info: AcquisitionInfo
+    calibrations: MarkerCalibrations
+    axial_scale: float  # the axial spacing's correction from the recorded temperature
+    dh_table: DHTable | None = None  # refined from touches, when the dataset has them
+
+
+@dataclass(frozen=True, eq=False)
+class RunResult:
+    """Metrics (the ``metrics.json`` content) and the objects they came from: one
+    acquisition with the controller's kinematics, or the paper's evaluation."""
+
+    metrics: dict[str, Any]
+    acquisition: SimulatedAcquisition | None = None
+    single: AlternationResult | None = None
+    three: AlternationResult | None = None
+    evaluation: EvaluationResult | None = None
+    snapshot: LocalizationSnapshot | None = None  # what the report shows of one sweep
+
+    def alternations(self) -> dict[str, AlternationResult]:
+        """The calibrations ``metrics["calibration"]`` describes, by method (in an
+        evaluation: the first dataset's first single- and three-marker folds)."""
+        if self.evaluation is not None:
+            out: dict[str, AlternationResult] = {}
+            for r in self.evaluation.outcomes[0].folds:
+                out.setdefault(r.fold.kind, r.alternation)
+            return out
+        pairs = (("single", self.single), ("three", self.three))
+        return {k: a for k, a in pairs if a is not None}
+
+
+@dataclass(frozen=True, eq=False)
+class DatasetOutcome:
+    """What one dataset task returns (no frames)."""
+
+    name: str
+    folds: list[FoldResult]
+    truth: dict[str, Any]
+    localization_errors_mm: Array
+    n_sweeps: int
+    n_rejected: int
+    timing_s: dict[str, float]
+    recording_part: Path | None = None
+    snapshot: LocalizationSnapshot | None = None  # the report's look (first dataset only)
+    uncertainty: dict[str, dict[str, Any]] = field(default_factory=dict)  # per fold name
+
+
+@dataclass(frozen=True, eq=False)
+class EvaluationResult:
+    """Metrics (``metrics.json`` content), the tables as text, and the parts."""
+
+    metrics: dict[str, Any]
+    tables_markdown: str
+    tables_csv: str
+    refinements: dict[str, DHRefinement]
+    references: dict[str, TouchReference]
+    outcomes: list[DatasetOutcome] = field(repr=False)
+    reconstruction: list[PhantomReconstruction] = field(default_factory=list, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class RemountScan:
+    """One sphere of the re-calibration scan after the remount: its sweeps and their
+    first localization (under the coarse ``T_ee_us``). The frames are in the file
+    ``images`` (one array, sweep by sweep), which every calibration task maps instead of
+    receiving its own copy; :meth:`sweeps_with_frames` puts them back."""
+
+    target: str
+    sweeps: tuple[Sweep, ...]  # their ``images`` are empty: the frames are in the file
+    images: Path
+    first: tuple[SweepLocalization, ...]
+    cad_centre: Array  # the sphere's centre in the phantom's CAD (three-marker)
+    T_ee_us_coarse: Array
+    T_ee_us_true: Array  # truth: kept apart, for the error against it
+    dh_true: DHTable  # truth: the true arm, for the error in each model's gauge
+    timing_s: dict[str, float]
+
+    def sweeps_with_frames(self) -> tuple[Sweep, ...]:
+        return tuple(with_frames(self.sweeps, self.images))
+
+
+@dataclass(frozen=True, eq=False)
+class Recalibration:
+    """``T_ee_us[(set, method)]`` re-estimated after the remount with each DH model, and
+    (kept apart) its error against the truth in that model's gauge."""
+
+    T_ee_us: dict[tuple[str, str], Array]
+    n_retained: dict[tuple[str, str], int]
+    truth: dict[tuple[str, str], dict[str, float]]
+    timing_s: dict[str, float]
+
+    @staticmethod
+    def merge(parts: list[Recalibration], scans: list[RemountScan]) -> Recalibration:
+        """The per-method tasks' results as one, timed with the scans: ``simulate`` and
+        ``calibrate`` (the first localizations included), seconds summed over the tasks."""
+        timing = {
+            "simulate": sum(s.timing_s["simulate"] for s in scans),
+            "calibrate": sum(s.timing_s["localize"] for s in scans)
+            + sum(p.timing_s["calibrate"] for p in parts),
+        }
+        return Recalibration(
+            {k: v for p in parts for k, v in p.T_ee_us.items()},
+            {k: v for p in parts for k, v in p.n_retained.items()},
+            {k: v for p in parts for k, v in p.truth.items()},
+            timing,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PhantomScan:
+    """Boundary samples of one phantom's 45 sweeps (no frames): per used frame its joint
+    angles, per sample its frame and its point in the image (``us``, metres)."""
+
+    kind: str
+    q_frames: Array  # (m, 6) reported joint angles of the central frames
+    frame: NDArray[np.int32]  # (n,) index into q_frames
+    p_us: Array  # (n, 3)
+    q_taught: Array  # (6,) the taught pose (apex or mid-ridge on the image centre line)
+    target_depth: float  # metres below the transducer face at the taught pose
+    n_sweeps: int
+    frames_without_two_boundaries: int
+    T_base_phantom_true: Array  # truth: kept apart, for the without-ICP distances
+    timing_s: dict[str, float]
+    recording_part: Path | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class PhantomReconstruction:
+    """One phantom's Table III statistics (``metrics[method][set]``, plus scan figures)
+    and its registered points (CAD frame, metres, float32) with their distances (mm), by
+    (method, set)."""
+
+    kind: str
+    metrics: dict[str, Any]
+    points: dict[tuple[str, str], tuple[NDArray[np.float32], NDArray[np.float32]]]
