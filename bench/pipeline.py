@@ -39,13 +39,14 @@ from calib.settings import EvaluationConfig
 from calib.uncertainty import Bound95, UncertaintyInputs
 from sim_us.materials import water_speed_m_s
 
-from .config.scenario import Scenario
+from .config.scenario import Scenario, layout_sigma_mm
 from .progress import report
 
 __all__ = [
     "THERMOMETER_UNCERTAINTY_C",
     "FoldRun",
     "MarkerCalibrations",
+    "MethodInputs",
     "axial_scale",
     "axial_scale_of",
     "calibrate_markers",
@@ -53,6 +54,7 @@ __all__ = [
     "declared_uncertainty",
     "fold_summary",
     "image_points",
+    "residual_rms_mm",
     "run_folds",
     "scenario_uncertainty",
     "speed_ratio",
@@ -109,6 +111,44 @@ def image_points(scenario: Scenario, n: int = 21) -> Array:
 
 
 @dataclass(frozen=True, eq=False)
+class MethodInputs:
+    """What the method takes besides the sweeps: the CAD sphere radius (m; the only
+    prior on a sphere), the localizer's settings, the images' axial scale, the CAD
+    sphere centres (phantom frame, m; for multi-marker fits and the folds' references),
+    the coarse ``T_ee_us`` to start from, the alternation's limit and the printed
+    layout's prior (1 σ per axis, mm; 0 takes the CAD layout as exact)."""
+
+    radius: float
+    localizer: LocalizerConfig
+    axial_scale: float
+    cad_centres: Mapping[str, Array]
+    T_coarse: Array
+    max_alternations: int
+    layout_sigma_mm: float = 0.0
+
+    @classmethod
+    def of(
+        cls,
+        settings: Scenario,
+        radius_mm: float,
+        axial_scale: float,
+        cad_centres: Mapping[str, Array],
+        T_coarse: Array,
+    ) -> MethodInputs:
+        """The inputs with the localizer, alternation and layout settings of a scenario
+        (a twin's own, or the settings ``uscal calibrate`` runs a recorded dataset with)."""
+        return cls(
+            radius_mm * 1e-3,
+            settings.localization,
+            axial_scale,
+            cad_centres,
+            T_coarse,
+            settings.calibration.max_alternations,
+            layout_sigma_mm(settings),
+        )
+
+
+@dataclass(frozen=True, eq=False)
 class MarkerCalibrations:
     """The single-marker calibration (first sphere) and, with three or more spheres and
     ``markers`` 3, the three-marker one (first three)."""
@@ -119,21 +159,14 @@ class MarkerCalibrations:
 
 
 def calibrate_markers(
-    dataset: Dataset,
-    radius: float,
-    localizer: LocalizerConfig,
-    axial_scale: float,
-    cad_centres: Mapping[str, Array],
-    T_coarse: Array,
-    max_alternations: int,
-    markers: tuple[int, ...] = (1, 3),
-    layout_sigma_mm: float = 0.0,
+    dataset: Dataset, inputs: MethodInputs, markers: tuple[int, ...] = (1, 3)
 ) -> MarkerCalibrations:
     """Localize ↔ calibrate (the paper's alternation) with one and/or three markers;
-    the three-marker fit estimates the printed layout at ``layout_sigma_mm`` (see
+    the three-marker fit estimates the printed layout at ``inputs.layout_sigma_mm`` (see
     :func:`calib.calibrate.calibrate`)."""
     targets = dataset.targets()
     by_target = {t: dataset.of(t) for t in targets}
+    cad_centres = inputs.cad_centres
     if 3 in markers and len(targets) < 3 and 1 not in markers:
         raise DatasetError(
             f"dataset {dataset.name}: three-marker calibration needs sweeps of three "
@@ -147,29 +180,26 @@ def calibrate_markers(
         )
     run_three = 3 in markers and len(targets) >= 3
     n_cal = int(1 in markers) + int(run_three)
+    common = (inputs.radius, inputs.localizer, inputs.axial_scale)
     report("calibrations", 0, n_cal)
     single = three = None
     if 1 in markers:
         single = alternate(
             {targets[0]: by_target[targets[0]]},
-            radius,
-            localizer,
-            axial_scale,
+            *common,
             None,
-            T_coarse,
-            max_alternations,
+            inputs.T_coarse,
+            inputs.max_alternations,
         )
         report("calibrations", 1, n_cal)
     if run_three:
         three = alternate(
             {t: by_target[t] for t in targets[:3]},
-            radius,
-            localizer,
-            axial_scale,
+            *common,
             {t: cad_centres[t] for t in targets[:3]},
-            T_coarse,
-            max_alternations,
-            layout_sigma_mm=layout_sigma_mm,
+            inputs.T_coarse,
+            inputs.max_alternations,
+            layout_sigma_mm=inputs.layout_sigma_mm,
         )
         report("calibrations", n_cal, n_cal)
     return MarkerCalibrations(targets, single, three)
@@ -224,13 +254,7 @@ def run_folds(
     name: str,
     sweeps: Mapping[str, Sequence[Sweep]],
     references: Mapping[str, Array],
-    radius: float,
-    localizer: LocalizerConfig,
-    axial_scale: float,
-    cad_centres: Mapping[str, Array],
-    T_coarse: Array,
-    max_alternations: int,
-    layout_sigma_mm: float = 0.0,
+    inputs: MethodInputs,
     progress: str = "folds",
     before_fold: Callable[[], None] | None = None,
 ) -> FoldRun:
@@ -239,8 +263,9 @@ def run_folds(
     Every sweep is localized once without a calibration, shared by all folds.
     ``before_fold`` runs before each fold (e.g. to release the frames' pages)."""
     targets = list(sweeps)
+    common = (inputs.radius, inputs.localizer, inputs.axial_scale)
     t0 = time.perf_counter()
-    initial = {t: localize_sphere(sweeps[t], None, radius, localizer, axial_scale) for t in targets}
+    initial = {t: localize_sphere(sweeps[t], None, *common) for t in targets}
     t_initial = time.perf_counter() - t0
     t0 = time.perf_counter()
     fold_list = folds(name, targets)
@@ -255,13 +280,11 @@ def run_folds(
                 sweeps,
                 initial,
                 references,
-                radius,
-                localizer,
-                axial_scale,
-                cad_centres,
-                T_coarse,
-                max_alternations,
-                layout_sigma_mm,
+                *common,
+                inputs.cad_centres,
+                inputs.T_coarse,
+                inputs.max_alternations,
+                inputs.layout_sigma_mm,
             )
         )
     report(progress, len(fold_list), len(fold_list))

@@ -34,10 +34,12 @@ METHODS = ("single", "three, CAD exact", "three, layout estimated")
 
 
 def one(seed: int, tolerance_mm: float) -> dict:
+    from dataclasses import replace
+
     from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
     from bench.config.scenario import load_scenario
     from bench.parallel import one_blas_thread
-    from bench.pipeline import axial_scale, calibrate_markers
+    from bench.pipeline import MethodInputs, axial_scale, calibrate_markers
     from bench.truth import image_error_mm
     from calib import se3
 
@@ -49,17 +51,11 @@ def one(seed: int, tolerance_mm: float) -> dict:
         acq = simulate_acquisition(sc, twin, make_imager(sc, twin), f"layout-{seed}")
         truth = twin.truth
         cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
-        args = (
-            acq.dataset,
-            sc.phantom.sphere_radius_mm * 1e-3,
-            sc.localization,
-            axial_scale(sc),
-            cad,
-            acq.T_ee_us_coarse,
-            sc.calibration.max_alternations,
+        inputs = MethodInputs.of(
+            sc, sc.phantom.sphere_radius_mm, axial_scale(sc), cad, acq.T_ee_us_coarse
         )
-        exact = calibrate_markers(*args, markers=(1, 3), layout_sigma_mm=0.0)
-        est = calibrate_markers(*args, markers=(3,), layout_sigma_mm=tolerance_mm)
+        exact = calibrate_markers(acq.dataset, replace(inputs, layout_sigma_mm=0.0), (1, 3))
+        est = calibrate_markers(acq.dataset, replace(inputs, layout_sigma_mm=tolerance_mm), (3,))
     out = {}
     for name, alt in zip(METHODS, (exact.single, exact.three, est.three), strict=True):
         T = alt.result.T_ee_us

@@ -29,10 +29,17 @@ from ..acquire_sim import (
     save_dataset,
     simulate_acquisition,
 )
-from ..config.scenario import Scenario, layout_sigma_mm
+from ..config.scenario import Scenario
 from ..files import drop_frame_pages, with_frames, without_frames
 from ..parallel import release_memory
-from ..pipeline import axial_scale, image_points, run_folds, scenario_uncertainty, uncertainty_entry
+from ..pipeline import (
+    MethodInputs,
+    axial_scale,
+    image_points,
+    run_folds,
+    scenario_uncertainty,
+    uncertainty_entry,
+)
 from ..recording.logs import log_acquisition
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
@@ -151,24 +158,20 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
         acq = replace(acq, dataset=replace(acq.dataset, touches=tuple(task.touches)))
     scenario = task.scenario
     truth, cad, scene_view, t_sim = scan.truth, scan.cad, scan.scene_view, scan.seconds
-    radius = scenario.phantom.sphere_radius_mm * 1e-3
     scale = axial_scale(scenario)
     targets = acq.dataset.targets()
     # Every frame's flange pose from its joint angles through the frozen DH model.
     sweeps = {t: with_kinematics(acq.dataset.of(t), task.table) for t in targets}
     references = task.reference.reference_points({t: cad[t] for t in targets})
     everything = [s for ss in sweeps.values() for s in ss]
+    inputs = MethodInputs.of(
+        scenario, scenario.phantom.sphere_radius_mm, scale, cad, acq.T_ee_us_coarse
+    )
     run = run_folds(
         task.name,
         sweeps,
         references,
-        radius,
-        scenario.localization,
-        scale,
-        cad,
-        acq.T_ee_us_coarse,
-        scenario.calibration.max_alternations,
-        layout_sigma_mm(scenario),
+        inputs,
         progress=f"{task.name}: folds",
         # A fold maps only its own spheres' frames back in (≈ 145 MB a sphere).
         before_fold=lambda: drop_frame_pages(everything),

@@ -26,8 +26,9 @@ from calib.records import Dataset
 from calib.uncertainty import alternation_bound, image_grid
 
 from ..acquire_sim import make_twin
-from ..config.scenario import Scenario, layout_sigma_mm
+from ..config.scenario import Scenario
 from ..pipeline import (
+    MethodInputs,
     axial_scale_of,
     calibrate_markers,
     calibration_entry,
@@ -130,7 +131,6 @@ def calibrate_recorded(
     if others and not dataset.touches:
         raise DatasetError(f"--dh-from: dataset {dataset.name} itself has no touches")
     t_read = time.perf_counter() - t0
-    radius = info.sphere_radius_mm * 1e-3
     scale = axial_scale_of(info)
     cad = {k: v for k, v in info.landmarks.items() if k.startswith("sphere_")}
     evaluation: dict[str, Any] | None = None
@@ -153,17 +153,8 @@ def calibrate_recorded(
             k: float(v) for k, v in reference.tool_precision_mm.items()
         }
         evaluation["seconds_dh"] = time.perf_counter() - t1
-    cals = calibrate_markers(
-        dataset,
-        radius,
-        settings.localization,
-        scale,
-        cad,
-        info.T_ee_us_coarse,
-        settings.calibration.max_alternations,
-        markers,
-        layout_sigma_mm(settings),
-    )
+    inputs = MethodInputs.of(settings, info.sphere_radius_mm, scale, cad, info.T_ee_us_coarse)
+    cals = calibrate_markers(dataset, inputs, markers)
     targets = cals.targets
     final: dict[str, Any] = {}
     calibration: dict[str, Any] = {}
@@ -200,9 +191,7 @@ def calibrate_recorded(
         a, b = cals.single.result.T_ee_us, cals.three.result.T_ee_us
         calibration["single_vs_three"] = transform_difference(a, b)
     if evaluation is not None and len(targets) >= 2:
-        evaluation.update(
-            _folds(dataset, reference, radius, settings, scale, cad, info.T_ee_us_coarse)
-        )
+        evaluation.update(_folds(dataset, reference, inputs))
     metrics: dict[str, Any] = {
         "dataset": {
             "path": str(Path(directory)),
@@ -234,20 +223,14 @@ def calibrate_recorded(
     return RecordedCalibration(metrics, dataset, info, cals, scale, dh_table)
 
 
-def _folds(dataset, reference, radius, settings, scale, cad, T_coarse) -> dict[str, Any]:
+def _folds(dataset: Dataset, reference, inputs: MethodInputs) -> dict[str, Any]:
     """The paper's folds of one dataset against its touch reference."""
     targets = dataset.targets()
     run = run_folds(
         dataset.name,
         {t: dataset.of(t) for t in targets},
-        reference.reference_points({t: cad[t] for t in targets}),
-        radius,
-        settings.localization,
-        scale,
-        cad,
-        T_coarse,
-        settings.calibration.max_alternations,
-        layout_sigma_mm(settings),
+        reference.reference_points({t: inputs.cad_centres[t] for t in targets}),
+        inputs,
     )
     rows = [
         {

@@ -21,8 +21,9 @@ from twin.imager import acoustic_scene
 
 from ..acquire_sim import SimulatedAcquisition, make_imager, make_twin, simulate_acquisition
 from ..acquire_sim import save_dataset as save_dataset_files
-from ..config.scenario import Scenario, layout_sigma_mm
+from ..config.scenario import Scenario
 from ..pipeline import (
+    MethodInputs,
     axial_scale,
     calibrate_markers,
     calibration_entry,
@@ -165,18 +166,11 @@ def run(
     loc_cfg = scenario.localization
     targets = acq.dataset.targets()
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
-    cal = scenario.calibration
 
-    cals = calibrate_markers(
-        acq.dataset,
-        radius,
-        loc_cfg,
-        scale,
-        cad,
-        acq.T_ee_us_coarse,
-        cal.max_alternations,
-        layout_sigma_mm=layout_sigma_mm(scenario),
+    inputs = MethodInputs.of(
+        scenario, scenario.phantom.sphere_radius_mm, scale, cad, acq.T_ee_us_coarse
     )
+    cals = calibrate_markers(acq.dataset, inputs)
     single, three = cals.single, cals.three
     assert single is not None  # markers 1 and 3: the single-marker calibration always runs
     # Localization error of the final single-marker localizations vs the true centres.
