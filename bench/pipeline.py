@@ -9,9 +9,9 @@ sweeps and the budget:
    corrections from other datasets' touches, then this dataset's tool tip and phantom
    pose with that model frozen;
 4. the cross-validation folds (:func:`run_folds`; §III) and their summary;
-5. each calibration's 95 % bounds from its own data and the declared systematic terms
-   (:func:`declared_uncertainty`), and what ``metrics.json`` keeps of it
-   (:func:`calibration_entry`).
+5. the declared systematic terms of each calibration's 95 % bounds
+   (:func:`declared_uncertainty`; what ``metrics.json`` keeps of a calibration is
+   :func:`bench.results.calibration_entry`).
 
 No ground truth here: comparisons with the twin's truth live in :mod:`bench.truth`.
 """
@@ -29,14 +29,14 @@ from numpy.typing import NDArray
 from calib.calibrate import AlternationResult, alternate
 from calib.dataset_files import AcquisitionInfo
 from calib.errors import DatasetError
-from calib.evaluate import FoldResult, evaluate_fold, folds, training_precision
+from calib.evaluate import FoldResult, evaluate_fold, folds
 from calib.image import pixel_to_us
 from calib.kinematics import DHRefinement, TouchReference, fit_reference, refine_dh
 from calib.localization import LocalizerConfig
 from calib.localize import localize_sphere
 from calib.records import Dataset, Sweep, Touch
 from calib.settings import EvaluationConfig
-from calib.uncertainty import Bound95, UncertaintyInputs
+from calib.uncertainty import UncertaintyInputs
 from sim_us.materials import water_speed_m_s
 
 from .config.scenario import Scenario, layout_sigma_mm
@@ -50,7 +50,6 @@ __all__ = [
     "axial_scale",
     "axial_scale_of",
     "calibrate_markers",
-    "calibration_entry",
     "declared_uncertainty",
     "fold_summary",
     "image_points",
@@ -59,11 +58,9 @@ __all__ = [
     "scenario_uncertainty",
     "speed_ratio",
     "touch_kinematics",
-    "uncertainty_entry",
 ]
 
 Array = NDArray[np.float64]
-_MM = 1e3  # mm per metre
 
 
 # ------------------------------------------------------------------ the image's scale
@@ -365,55 +362,3 @@ def scenario_uncertainty(
         scenario.phantom.tolerance_radius_mm,
         scenario.imaging.axial_fwhm_mm,
     )
-
-
-def uncertainty_entry(bound: Bound95, inputs: UncertaintyInputs) -> dict[str, Any]:
-    """``metrics.json``'s ``bound95`` and ``uncertainty`` of one calibration."""
-    details = bound.details()
-    details["declared"] = {
-        "print_tolerance_mm": inputs.print_tolerance_m * _MM,
-        "radius_tolerance_mm": inputs.radius_tolerance_m * _MM,
-        "axial_bias_mm": inputs.axial_bias_m * _MM,
-        "kinematic_sigma_mm": inputs.kinematic_sigma_m * _MM,
-        "axial_scale_sigma": inputs.axial_scale_sigma,
-    }
-    return {"bound95": bound.as_dict(), "uncertainty": details}
-
-
-def calibration_entry(
-    alt: AlternationResult,
-    train: Sequence[str],
-    test: Sequence[str],
-    bound: tuple[Bound95, UncertaintyInputs] | None = None,
-) -> dict[str, Any]:
-    """What ``metrics.json`` keeps of one calibration, truth aside (``bound``: its 95 %
-    error bounds and the declared terms they include). Its precision is the mean over
-    the training spheres of the spread of their reconstructed centres."""
-    precision = training_precision(alt)
-    return {
-        "precision_mm": float(np.mean([precision[t] for t in train])),
-        "n_retained": int(alt.result.retained.sum()),
-        "iterations": len(alt.history),
-        "rejected": dict(alt.result.rejection_reasons),
-        "T_ee_us": np.round(alt.result.T_ee_us, 9).tolist(),
-        "covariance_rotvec_rad_translation_m": alt.result.covariance.tolist(),
-        "history": alt.history,
-        "trained_on": list(train),
-        "tested_on": list(test),
-        **(uncertainty_entry(*bound) if bound is not None else {}),
-        **layout_entry(alt),
-    }
-
-
-def layout_entry(alt: AlternationResult) -> dict[str, Any]:
-    """The printed sphere layout a multi-marker fit estimated (phantom frame, mm; with
-    the phantom pose it came with), or nothing."""
-    layout = alt.result.layout
-    if layout is None:
-        return {}
-    return {
-        "layout_estimated_mm": {
-            t: [round(float(v) * _MM, 4) for v in c] for t, c in layout.items()
-        },
-        "layout_prior_weight": alt.result.layout_weight,
-    }

@@ -2,10 +2,12 @@
 paper's experiment, one of its datasets, the re-calibration and reconstruction, and a
 recorded dataset's calibration hand to the outputs. Each carries its ``metrics.json``
 part and the objects it came from; none holds frames, except a single run's
-acquisition."""
+acquisition. With them, what ``metrics.json`` keeps of one calibration
+(:func:`calibration_entry`), truth aside."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,10 +18,11 @@ from numpy.typing import NDArray
 from calib.calibrate import AlternationResult
 from calib.dataset_files import AcquisitionInfo
 from calib.dh import DHTable
-from calib.evaluate import FoldResult
+from calib.evaluate import FoldResult, training_precision
 from calib.kinematics import DHRefinement, TouchReference
 from calib.localization import SweepLocalization
 from calib.records import Dataset, Sweep
+from calib.uncertainty import Bound95, UncertaintyInputs
 
 from .files import with_frames
 
@@ -37,9 +40,13 @@ __all__ = [
     "RecordedCalibration",
     "RemountScan",
     "RunResult",
+    "calibration_entry",
+    "layout_entry",
+    "uncertainty_entry",
 ]
 
 Array = NDArray[np.float64]
+_MM = 1e3  # mm per metre
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,3 +189,55 @@ class PhantomReconstruction:
     kind: str
     metrics: dict[str, Any]
     points: dict[tuple[str, str], tuple[NDArray[np.float32], NDArray[np.float32]]]
+
+
+def uncertainty_entry(bound: Bound95, inputs: UncertaintyInputs) -> dict[str, Any]:
+    """``metrics.json``'s ``bound95`` and ``uncertainty`` of one calibration."""
+    details = bound.details()
+    details["declared"] = {
+        "print_tolerance_mm": inputs.print_tolerance_m * _MM,
+        "radius_tolerance_mm": inputs.radius_tolerance_m * _MM,
+        "axial_bias_mm": inputs.axial_bias_m * _MM,
+        "kinematic_sigma_mm": inputs.kinematic_sigma_m * _MM,
+        "axial_scale_sigma": inputs.axial_scale_sigma,
+    }
+    return {"bound95": bound.as_dict(), "uncertainty": details}
+
+
+def calibration_entry(
+    alt: AlternationResult,
+    train: Sequence[str],
+    test: Sequence[str],
+    bound: tuple[Bound95, UncertaintyInputs] | None = None,
+) -> dict[str, Any]:
+    """What ``metrics.json`` keeps of one calibration, truth aside (``bound``: its 95 %
+    error bounds and the declared terms they include). Its precision is the mean over
+    the training spheres of the spread of their reconstructed centres."""
+    precision = training_precision(alt)
+    return {
+        "precision_mm": float(np.mean([precision[t] for t in train])),
+        "n_retained": int(alt.result.retained.sum()),
+        "iterations": len(alt.history),
+        "rejected": dict(alt.result.rejection_reasons),
+        "T_ee_us": np.round(alt.result.T_ee_us, 9).tolist(),
+        "covariance_rotvec_rad_translation_m": alt.result.covariance.tolist(),
+        "history": alt.history,
+        "trained_on": list(train),
+        "tested_on": list(test),
+        **(uncertainty_entry(*bound) if bound is not None else {}),
+        **layout_entry(alt),
+    }
+
+
+def layout_entry(alt: AlternationResult) -> dict[str, Any]:
+    """The printed sphere layout a multi-marker fit estimated (phantom frame, mm; with
+    the phantom pose it came with), or nothing."""
+    layout = alt.result.layout
+    if layout is None:
+        return {}
+    return {
+        "layout_estimated_mm": {
+            t: [round(float(v) * _MM, 4) for v in c] for t, c in layout.items()
+        },
+        "layout_prior_weight": alt.result.layout_weight,
+    }

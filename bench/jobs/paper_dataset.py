@@ -32,18 +32,11 @@ from ..acquire_sim import (
 from ..config.scenario import Scenario
 from ..files import drop_frame_pages, with_frames, without_frames
 from ..parallel import release_memory
-from ..pipeline import (
-    MethodInputs,
-    axial_scale,
-    image_points,
-    run_folds,
-    scenario_uncertainty,
-    uncertainty_entry,
-)
+from ..pipeline import MethodInputs, axial_scale, image_points, run_folds, scenario_uncertainty
 from ..recording.logs import log_acquisition
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
-from ..results import DatasetOutcome
+from ..results import DatasetOutcome, uncertainty_entry
 from ..sessions import dataset_rngs
 from ..truth import localization_errors, mount_error, snapshot_of
 
@@ -164,14 +157,14 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
     sweeps = {t: with_kinematics(acq.dataset.of(t), task.table) for t in targets}
     references = task.reference.reference_points({t: cad[t] for t in targets})
     everything = [s for ss in sweeps.values() for s in ss]
-    inputs = MethodInputs.of(
+    method = MethodInputs.of(
         scenario, scenario.phantom.sphere_radius_mm, scale, cad, acq.T_ee_us_coarse
     )
     run = run_folds(
         task.name,
         sweeps,
         references,
-        inputs,
+        method,
         progress=f"{task.name}: folds",
         # A fold maps only its own spheres' frames back in (≈ 145 MB a sphere).
         before_fold=lambda: drop_frame_pages(everything),

@@ -21,8 +21,8 @@ from calib.kinematics import (
 
 from ..acquire_sim import coarse_estimate
 from ..config.scenario import Scenario
-from ..pipeline import calibration_entry as pipeline_entry
 from ..results import DatasetOutcome
+from ..results import calibration_entry as pipeline_entry
 from ..sessions import stage_rngs
 from ..truth import transform_difference
 

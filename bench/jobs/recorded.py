@@ -31,7 +31,6 @@ from ..pipeline import (
     MethodInputs,
     axial_scale_of,
     calibrate_markers,
-    calibration_entry,
     declared_uncertainty,
     fold_summary,
     residual_rms_mm,
@@ -41,7 +40,7 @@ from ..pipeline import (
 from ..recording.logs import log_acquisition, merge_parts
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
-from ..results import RecordedCalibration, RunResult
+from ..results import RecordedCalibration, RunResult, calibration_entry
 from ..snapshot import dataset_snapshot
 from ..truth import transform_difference
 
@@ -153,8 +152,8 @@ def calibrate_recorded(
             k: float(v) for k, v in reference.tool_precision_mm.items()
         }
         evaluation["seconds_dh"] = time.perf_counter() - t1
-    inputs = MethodInputs.of(settings, info.sphere_radius_mm, scale, cad, info.T_ee_us_coarse)
-    cals = calibrate_markers(dataset, inputs, markers)
+    method = MethodInputs.of(settings, info.sphere_radius_mm, scale, cad, info.T_ee_us_coarse)
+    cals = calibrate_markers(dataset, method, markers)
     targets = cals.targets
     final: dict[str, Any] = {}
     calibration: dict[str, Any] = {}
@@ -191,7 +190,7 @@ def calibrate_recorded(
         a, b = cals.single.result.T_ee_us, cals.three.result.T_ee_us
         calibration["single_vs_three"] = transform_difference(a, b)
     if evaluation is not None and len(targets) >= 2:
-        evaluation.update(_folds(dataset, reference, inputs))
+        evaluation.update(_folds(dataset, reference, method))
     metrics: dict[str, Any] = {
         "dataset": {
             "path": str(Path(directory)),
@@ -223,14 +222,14 @@ def calibrate_recorded(
     return RecordedCalibration(metrics, dataset, info, cals, scale, dh_table)
 
 
-def _folds(dataset: Dataset, reference, inputs: MethodInputs) -> dict[str, Any]:
+def _folds(dataset: Dataset, reference, method: MethodInputs) -> dict[str, Any]:
     """The paper's folds of one dataset against its touch reference."""
     targets = dataset.targets()
     run = run_folds(
         dataset.name,
         {t: dataset.of(t) for t in targets},
-        reference.reference_points({t: inputs.cad_centres[t] for t in targets}),
-        inputs,
+        reference.reference_points({t: method.cad_centres[t] for t in targets}),
+        method,
     )
     rows = [
         {

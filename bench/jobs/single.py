@@ -26,20 +26,14 @@ from ..pipeline import (
     MethodInputs,
     axial_scale,
     calibrate_markers,
-    calibration_entry,
     image_points,
     scenario_uncertainty,
 )
 from ..recording.logs import log_acquisition, merge_parts
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
-from ..results import RunResult
-from ..truth import (
-    localization_errors,
-    mount_error,
-    snapshot_of,
-    transform_difference,
-)
+from ..results import RunResult, calibration_entry
+from ..truth import localization_errors, mount_error, snapshot_of, transform_difference
 from .paper import run_evaluation
 
 __all__ = ["equivalent_mount", "run"]
@@ -167,10 +161,10 @@ def run(
     targets = acq.dataset.targets()
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
 
-    inputs = MethodInputs.of(
+    method = MethodInputs.of(
         scenario, scenario.phantom.sphere_radius_mm, scale, cad, acq.T_ee_us_coarse
     )
-    cals = calibrate_markers(acq.dataset, inputs)
+    cals = calibrate_markers(acq.dataset, method)
     single, three = cals.single, cals.three
     assert single is not None  # markers 1 and 3: the single-marker calibration always runs
     # Localization error of the final single-marker localizations vs the true centres.

@@ -1,0 +1,91 @@
+"""The one dataset → calibration path (bench.pipeline) on a small twin dataset with
+touches, read back from its files as `uscal calibrate` reads a rig's: single- and
+three-marker calibration, the touch-based kinematics and the paper's folds, checked
+against the twin's ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.acquire_sim import (
+    make_imager,
+    make_twin,
+    save_dataset,
+    simulate_acquisition,
+    simulate_touches,
+)
+from bench.config.scenario import load_scenario
+from bench.jobs.recorded import calibrate_recorded
+from bench.pipeline import MethodInputs, axial_scale, calibrate_markers, run_folds
+from bench.sessions import dataset_rngs
+from bench.truth import image_error_mm
+
+from .conftest import QUICK
+
+
+@pytest.fixture(scope="module")
+def two_spheres_with_touches(tmp_path_factory):
+    """quick.yaml on spheres 1 and 2 (7 frames a sweep), with the 24 stylus touches,
+    saved as dataset files: (scenario, twin truth, acquisition, dataset directory)."""
+    sc = load_scenario(QUICK, ["protocol.spheres=[1, 2]", "protocol.frames_per_sweep=7"])
+    twin = make_twin(sc)
+    touches = simulate_touches(sc, twin, dataset_rngs(sc, 0)["touch_contact"])
+    acq = simulate_acquisition(sc, twin, make_imager(sc, twin), "A", touches=touches)
+    directory = tmp_path_factory.mktemp("pipeline") / "A"
+    save_dataset(directory, sc, twin, acq)
+    return sc, twin.truth, acq, directory
+
+
+def test_a_recorded_dataset_with_touches_runs_the_papers_folds(two_spheres_with_touches):
+    sc, truth, _, directory = two_spheres_with_touches
+    result = calibrate_recorded(directory, sc, (1,))
+    ev = result.metrics["evaluation"]
+    assert ev["dh_from"] == "A" and ev["touches"] == 24
+    # Two spheres: each trained alone and tested on the other, then leave-one-out.
+    assert [(f["kind"], f["train"]) for f in ev["folds"]] == [
+        ("single", ["sphere_1"]),
+        ("single", ["sphere_2"]),
+        ("three", ["sphere_2"]),
+        ("three", ["sphere_1"]),
+    ]
+    # quick.yaml's arm is exact and its touches are the stylus's: the test sphere's
+    # centre lands within a millimetre of where the touches put it, and every fold's
+    # mount maps the image within a millimetre of the truth.
+    for fold in ev["folds"]:
+        assert all(0 < v < 1.0 for v in fold["accuracy_mm"].values()), fold
+        T = np.array(fold["T_ee_us"])
+        assert image_error_mm(sc, T, truth.T_ee_us) < 1.0
+    s = ev["summary"]["single"]
+    assert s["accuracy_mm"]["mean"] == pytest.approx(
+        np.mean([v for f in ev["folds"][:2] for v in f["accuracy_mm"].values()])
+    )
+    assert result.metrics["dh_table_refined"] and result.dh_table is not None
+
+
+def test_folds_against_the_true_centres_measure_the_method_alone(two_spheres_with_touches):
+    """With the twin's true sphere centres as the references (the touches' role), a
+    fold's accuracy is the localization and calibration error alone: under a millimetre
+    with quick.yaml's error sources, on every fold; the calibrations run once per fold
+    from one shared first localization."""
+    sc, truth, acq, _ = two_spheres_with_touches
+    cad = {k: v for k, v in make_twin(sc).phantom_cad.landmarks.items() if "sphere" in k}
+    method = MethodInputs.of(
+        sc, sc.phantom.sphere_radius_mm, axial_scale(sc), cad, acq.T_ee_us_coarse
+    )
+    targets = ("sphere_1", "sphere_2")
+    sweeps = {t: acq.dataset.of(t) for t in targets}
+    folds = run_folds("A", sweeps, {t: truth.landmarks_base[t] for t in targets}, method)
+    assert [r.fold.name for r in folds.results] == [
+        "A/single/sphere_1",
+        "A/single/sphere_2",
+        "A/three/sphere_2",
+        "A/three/sphere_1",
+    ]
+    assert folds.seconds_initial > 0 and folds.seconds_folds > 0
+    for r in folds.results:
+        assert 0 < r.accuracy < 1.0, r.fold.name
+        assert image_error_mm(sc, r.T_ee_us, truth.T_ee_us) < 1.0
+    # The single-marker calibration of calibrate_markers is the first fold's.
+    single = calibrate_markers(acq.dataset, method, (1,)).single
+    assert np.allclose(single.result.T_ee_us, folds.results[0].T_ee_us, atol=1e-12)
