@@ -34,6 +34,7 @@ from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan
 from calib.records import Touch
 
 from .config.hw import HwConfig
+from .config.plan_file import sphere_poses
 from .progress import report
 
 _HOLD_S = 0.3  # s between the operator's "done" and the touch reading
@@ -60,7 +61,8 @@ class AcquisitionSummary:
 def _plans(cfg: HwConfig, taught_T: dict[str, np.ndarray]) -> list[PlannedSweep]:
     plan: list[PlannedSweep] = []
     for target, T in taught_T.items():
-        plan += plan_sweeps(target, T, cfg.rig.T_ee_us_coarse, cfg.protocol)
+        poses = sphere_poses(cfg.protocol, target)
+        plan += plan_sweeps(target, T, cfg.rig.T_ee_us_coarse, cfg.protocol, poses)
     return plan
 
 
@@ -243,7 +245,11 @@ def acquire_dataset(
                     replanned = {
                         p.pose_id: p
                         for p in plan_sweeps(
-                            current, T_taught, cfg.rig.T_ee_us_coarse, cfg.protocol
+                            current,
+                            T_taught,
+                            cfg.rig.T_ee_us_coarse,
+                            cfg.protocol,
+                            sphere_poses(cfg.protocol, current),
                         )
                     }
                 sweep_plan = replanned[planned.pose_id]

@@ -20,8 +20,6 @@ from calib.protocol import (
     acquire_touches,
     check_plan,
     facing_pose,
-    in_plane_offsets,
-    orientation_offsets,
     plan_sweeps,
     touch_plan,
 )
@@ -32,6 +30,7 @@ from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
+from .config.plan_file import sphere_poses, sweeps_about
 from .config.scenario import Scenario
 from .files import frames_to_file
 from .progress import report
@@ -91,6 +90,7 @@ class SimulatedAcquisition:
     dataset: Dataset
     T_ee_us_coarse: NDArray[np.float64]
     T_base_ee_true: dict[tuple[str, int], NDArray[np.float64]]
+    robot_time_s: float = 0.0  # the twin controller's session clock over the sweeps
 
 
 def coarse_estimate(
@@ -175,6 +175,7 @@ def simulate_acquisition(
     (:func:`frames_to_file`), so a long acquisition never holds its frames and the twin
     in memory at once.
     """
+    clock_start = twin.robot.clock_s
     rngs = stage_rngs(scenario)
     if protocol_rng is not None:
         rngs["protocol"] = protocol_rng
@@ -184,10 +185,7 @@ def simulate_acquisition(
     depth = proto.target_depth_mm * 1e-3
     sweeps: list[Sweep] = []
     truth: dict[tuple[str, int], list[NDArray[np.float64]]] = {}
-    per_sphere = len(orientation_offsets(proto.rotation_deg)) * len(
-        in_plane_offsets(proto.translation_mm)
-    )
-    total = len(proto.spheres) * per_sphere
+    total = sum(sweeps_about(proto, f"sphere_{i}") for i in proto.spheres)
     label = progress or f"{name}: acquire sweeps"
     report(label, 0, total)
     for index in proto.spheres:
@@ -201,7 +199,7 @@ def simulate_acquisition(
             rngs["protocol"],
             proto.teaching_error_mm,
         )
-        plan = plan_sweeps(target, taught.T_base_ee, coarse, proto)
+        plan = plan_sweeps(target, taught.T_base_ee, coarse, proto, sphere_poses(proto, target))
         check_plan(twin.robot, plan)
 
         def log(planned: PlannedSweep, j: int) -> None:
@@ -224,6 +222,7 @@ def simulate_acquisition(
         Dataset(name, tuple(sweeps), meta, tuple(touches)),
         coarse,
         {k: np.array(v) for k, v in truth.items()},
+        twin.robot.clock_s - clock_start,
     )
 
 

@@ -26,11 +26,13 @@ from .acquire_rig import acquire_dataset, console_operator, dashboard_operator
 from .cli_parser import parser
 from .config.docs import scenarios_markdown
 from .config.hw import load_hw_config
+from .config.plan_file import write_plan
 from .config.scenario import load_scenario
 from .console import (
     print_cached_run,
     print_evaluation,
     print_plan,
+    print_plan_comparison,
     print_reconstruction,
     print_recorded,
     print_run,
@@ -45,6 +47,7 @@ from .files import atomic_output_dir, check_new_directory
 from .jobs.budget import plan_budget, run_budget
 from .jobs.gallery import write_gallery
 from .jobs.plan import plan_report
+from .jobs.plan_optimize import optimize_plan, plan_about
 from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
 from .jobs.single import run
 from .jobs.sweep import load_sweep, run_sweep
@@ -66,7 +69,15 @@ def _cmd_check(args: argparse.Namespace, console: Console) -> int:
 
 def _cmd_plan(args: argparse.Namespace, console: Console) -> int:
     scenario = load_scenario(args.scenario, args.overrides)
-    print_plan(scenario, plan_report(scenario, args.noise_mm), args.noise_mm, console)
+    if not args.optimize:
+        print_plan(scenario, plan_report(scenario, args.noise_mm), args.noise_mm, console)
+        return 0
+    with console.status("choosing the sweeps"):
+        comparison = optimize_plan(scenario, args.sweeps, args.criterion, args.markers)
+    print_plan_comparison(comparison, scenario, console)
+    if args.out:
+        write_plan(args.out, comparison.optimized.poses, plan_about(comparison, scenario))
+        console.print(f"wrote {args.out}; use it with --set protocol.plan={args.out}")
     return 0
 
 

@@ -64,6 +64,16 @@ def _positive_mm(text: str) -> float:
     return value
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number ≥ 1")
+    return value
+
+
 def _non_negative_int(text: str) -> int:
     try:
         value = int(text)
@@ -225,6 +235,36 @@ def parser() -> argparse.ArgumentParser:
         type=_positive_mm,
         default=0.1,
         help="localization noise (1 σ per axis, mm) for the predicted spread (default 0.1)",
+    )
+    plan.add_argument(
+        "--optimize",
+        action="store_true",
+        help="choose the sweeps that determine T_ee_us best (reachable, collision-free, "
+        "the sphere in the image) and compare them with the paper's plan",
+    )
+    plan.add_argument(
+        "--sweeps",
+        type=_positive_int,
+        default=15,
+        metavar="N",
+        help="with --optimize: sweeps in the plan, in all (default 15)",
+    )
+    plan.add_argument(
+        "--criterion",
+        choices=["D", "A", "E"],
+        default="D",
+        help="with --optimize: D (log det of the information), A (mean squared image "
+        "error) or E (its worst direction); default D",
+    )
+    plan.add_argument(
+        "--markers",
+        type=int,
+        choices=[1, 3],
+        help="with --optimize: plan the first sphere alone (1) or the first three jointly "
+        "(3); default 3 when the protocol scans three or more spheres",
+    )
+    plan.add_argument(
+        "--out", metavar="PLAN", help="with --optimize: write the plan file (protocol.plan)"
     )
 
     twin = sub.add_parser("twin", help="the digital twin")

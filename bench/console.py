@@ -32,6 +32,7 @@ __all__ = [
     "print_cached_run",
     "print_evaluation",
     "print_plan",
+    "print_plan_comparison",
     "print_reconstruction",
     "print_recorded",
     "print_run",
@@ -351,6 +352,37 @@ def print_plan(scenario: Scenario, reports: Sequence, noise_mm: float, console: 
         "the nominal image plane; it slides along itself, so it never informs more than "
         "the sphere."
     )
+
+
+def print_plan_comparison(c, scenario: Scenario, console: Console) -> None:
+    """``uscal plan --optimize``: the chosen plan beside the paper's."""
+    o = c.optimized
+    per_sphere = ", ".join(f"{k}: {len(v)}" for k, v in o.poses.items())
+    left = ", ".join(f"{n} {k}" for k, n in (o.left_out or {}).items())
+    kind = "three-marker" if len(c.spheres) >= 3 else "single-marker"
+    console.print(
+        f"chose {o.n_sweeps} sweeps ({per_sphere}) from {o.candidates} candidates ({left}), "
+        f"criterion {c.criterion}, for {kind} calibration"
+    )
+    noise = scenario.planning.localization_noise_mm
+    table = Table(
+        title="predicted for localization noise "
+        f"{noise[0]:g} / {noise[1]:g} / {noise[2]:g} mm (lateral / axial / elevation, 1 σ)"
+    )
+    for col in ("plan", "sweeps", "rot° 1σ", "mm 1σ", "image mm", "cond.", "robot time"):
+        table.add_column(col, justify="left" if col == "plan" else "right")
+    for name, p in (("paper", c.paper), ("optimized", o)):
+        pr = p.prediction
+        table.add_row(
+            name,
+            str(p.n_sweeps),
+            f"{pr.rotation_deg:.3f}",
+            f"{pr.translation_mm:.3f}",
+            f"{pr.image_mm:.3f}",
+            f"{pr.condition_number:.3g}",
+            f"{p.robot_time_s:.0f} s",
+        )
+    console.print(table)
 
 
 def print_truth(landmarks_mm: dict[str, list[float]], T_ee_us, console: Console) -> None:

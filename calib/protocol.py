@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import se3
+from .planning import SweepPose, paper_poses, sweep_commands
 from .records import RobotReading, Sweep, Touch, UsFrame
 
 __all__ = [
@@ -93,6 +94,15 @@ class ProtocolConfig:
             "doc": "Simulation: 1 σ error of the operator-taught nominal pose.",
             "ge": 0,
             "le": 20,
+        },
+    )
+    plan: str | None = field(
+        default=None,
+        metadata={
+            "doc": "A plan file (`uscal plan --optimize --out PLAN.yaml`): the sweeps about "
+            "each sphere, relative to its taught pose, instead of the paper's 9 orientations "
+            "× 5 positions (rotation_deg and translation_mm then do not apply); a relative "
+            "path is read from the scenario file's folder."
         },
     )
     touches_per_vertex: int = field(
@@ -220,16 +230,12 @@ class DeferredImager(Protocol):
 
 @dataclass(frozen=True)
 class PlannedSweep:
-    """One sweep of the plan: flange commands for its frames.
-
-    ``orientation`` indexes :func:`orientation_offsets`, ``position`` the in-plane offsets
-    (0 = nominal, 1–4 the (±t, ±t) corners).
-    """
+    """One sweep of the plan: flange commands for its frames, and where it was placed
+    relative to the taught pose (:class:`calib.planning.SweepPose`)."""
 
     target: str
     pose_id: int
-    orientation: int
-    position: int
+    pose: SweepPose
     T_base_ee: NDArray[np.float64]  # (n_frames, 4, 4)
 
 
@@ -241,29 +247,34 @@ def in_plane_offsets(translation_mm: float) -> NDArray[np.float64]:
 
 
 def plan_sweeps(
-    target: str, T_base_ee_taught: ArrayLike, T_ee_us_coarse: ArrayLike, cfg: ProtocolConfig
+    target: str,
+    T_base_ee_taught: ArrayLike,
+    T_ee_us_coarse: ArrayLike,
+    cfg: ProtocolConfig,
+    poses: Sequence[SweepPose] | None = None,
 ) -> list[PlannedSweep]:
-    """The paper's plan about one sphere: 9 orientations × 5 positions, each a sweep.
+    """The sweeps about one sphere: the paper's 9 orientations × 5 positions, or the
+    ``poses`` of a chosen plan (:mod:`calib.planning`).
 
     The taught pose puts the sphere on the image centre line at ``target_depth_mm`` as the
     coarse ``T_ee_us`` predicts it; orientations turn about that point, positions shift the
     probe in its image plane, and each sweep runs along the estimated elevational axis.
     """
-    T_ee_us = np.asarray(T_ee_us_coarse, dtype=float)
-    T_us_ee = se3.invert(T_ee_us)
+    if poses is None:
+        poses = paper_poses(cfg.rotation_deg, cfg.translation_mm)
     depth = cfg.target_depth_mm * 1e-3
-    T_face = np.asarray(T_base_ee_taught, dtype=float) @ T_ee_us
     half = cfg.sweep_half_length_mm * 1e-3
-    steps = np.linspace(-half, half, cfg.frames_per_sweep)
-    frame_shifts = se3.make(np.eye(3), np.column_stack([0 * steps, 0 * steps, steps]))
-    plan = []
-    for k, R in enumerate(orientation_offsets(cfg.rotation_deg)):
-        T_rot = rotated_about_target(T_face, R, depth)
-        for m, (dx, dy) in enumerate(in_plane_offsets(cfg.translation_mm)):
-            T_us = T_rot @ se3.make(np.eye(3), [dx, dy, 0.0])
-            commands = T_us @ frame_shifts @ T_us_ee
-            plan.append(PlannedSweep(target, len(plan), k, m, commands))
-    return plan
+    return [
+        PlannedSweep(
+            target,
+            k,
+            pose,
+            sweep_commands(
+                T_base_ee_taught, T_ee_us_coarse, depth, pose, half, cfg.frames_per_sweep
+            ),
+        )
+        for k, pose in enumerate(poses)
+    ]
 
 
 def plan_parallel_sweeps(
@@ -285,7 +296,7 @@ def plan_parallel_sweeps(
     plan = []
     for p in plan_sweeps(target, T_base_ee_taught, T_ee_us_coarse, cfg):
         T_centre = p.T_base_ee[len(p.T_base_ee) // 2]  # the starting pose, mid-sweep
-        plan.append(PlannedSweep(p.target, p.pose_id, p.orientation, p.position, shifts @ T_centre))
+        plan.append(PlannedSweep(p.target, p.pose_id, p.pose, shifts @ T_centre))
     return plan
 
 

@@ -9,7 +9,15 @@ import pytest
 
 from calib import se3
 from calib.errors import CollisionError, UnreachablePoseError
-from calib.protocol import ProtocolConfig, check_plan, facing_pose, plan_sweeps
+from calib.planning import SweepPose, paper_poses
+from calib.protocol import (
+    PlannedSweep,
+    ProtocolConfig,
+    acquire,
+    check_plan,
+    facing_pose,
+    plan_sweeps,
+)
 from twin.phantoms import PhantomConfig
 from twin.robot import RobotConfig
 from twin.tools import ToolsConfig
@@ -31,9 +39,10 @@ def test_plan_is_the_papers_45_sweeps():
     taught = facing_pose(centre, 0.02) @ se3.invert(T_ee_us)
     plan = plan_sweeps("sphere_1", taught, T_ee_us, cfg)
     assert len(plan) == 45
-    assert {(p.orientation, p.position) for p in plan} == {
-        (k, m) for k in range(9) for m in range(5)
-    }
+    assert {p.pose for p in plan} == set(paper_poses(10.0, 3.0))
+    assert {p.pose.rotation_deg for p in plan} == {
+        (sx * 10.0, sy * 10.0, sz * 10.0) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)
+    } | {(0.0, 0.0, 0.0)}
     for p in plan:
         T_us = p.T_base_ee @ T_ee_us
         assert len(T_us) == 21
@@ -55,7 +64,7 @@ def test_plan_is_the_papers_45_sweeps():
     got = sorted(
         np.degrees(se3.rotation_angle(plan[0].T_base_ee[10], p.T_base_ee[10]))
         for p in plan
-        if p.position == 0
+        if (p.pose.lateral_mm, p.pose.axial_mm) == (0.0, 0.0)
     )
     np.testing.assert_allclose(got, expected, atol=1e-9)
 
@@ -101,7 +110,7 @@ def test_an_interrupted_sweep_leaves_a_deferred_imager_clean():
     """A deferred imager (the twin's) notes frames and forms them after the sweep; when a
     move fails mid-sweep, the frames noted so far are formed and dropped, so the next
     sweep holds only its own frames."""
-    from calib.protocol import DeferredImager, PlannedSweep, acquire
+    from calib.protocol import DeferredImager
     from calib.records import UsFrame
 
     class Reading:
@@ -139,7 +148,7 @@ def test_an_interrupted_sweep_leaves_a_deferred_imager_clean():
 
     imager = Imager()
     assert isinstance(imager, DeferredImager)
-    sweep = PlannedSweep("sphere_1", 0, 0, 0, np.repeat(np.eye(4)[None], 5, axis=0))
+    sweep = PlannedSweep("sphere_1", 0, SweepPose(), np.repeat(np.eye(4)[None], 5, axis=0))
     with pytest.raises(CollisionError, match="frame 2"):
         acquire(Robot(fail_at=3), imager, [sweep])
     assert imager.developed == [2] and imager.noted == 0

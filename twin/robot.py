@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from calib import se3
 from calib.dh import NOMINAL_TABLES, DHDeltas, DHTable, forward_kinematics
-from calib.errors import CollisionError
+from calib.errors import CollisionError, UnreachablePoseError
 from calib.records import RobotReading
 
 from .arm_errors import (
@@ -452,6 +452,22 @@ class SimRobot:
                 f"pose {pose_label or describe_pose(T)} would put {c.robot_geom} "
                 f"{1e3 * c.depth:.1f} mm into {c.environment_geom}"
             )
+
+    def clearances(self, T_base_ee: ArrayLike, within: float) -> Array:
+        """How far (m, up to ``within``) the arm and tool stay from the phantom and tank
+        at each of the poses (n, 4, 4) — −inf where the controller cannot reach one: the
+        room a plan leaves for another session's taught pose and mount. Nothing moves."""
+        T = np.asarray(T_base_ee, dtype=float).reshape(-1, 4, 4)
+        out = np.full(len(T), -np.inf)
+        for k, pose in enumerate(T):
+            if k % 4096 == 0:  # solved in batches the IK's memo holds
+                solve_poses(self.nominal, T[k : k + 4096])
+            try:
+                q = solve_ik(self.nominal, pose, self._q_reported)
+            except UnreachablePoseError:
+                continue
+            out[k] = self.scene.clearance(q, within)
+        return out
 
     def check_poses(self, T_base_ee: ArrayLike, pose_labels: Sequence[str]) -> None:
         """:meth:`check_pose` of many poses (n, 4, 4) in order, their inverse kinematics

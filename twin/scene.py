@@ -262,6 +262,9 @@ class SceneModel:
         self._ee = self.model.site("ee").id
         # Geom ids that belong to the environment, for naming contacts.
         self._robot_geoms = {i for i in range(self.model.ngeom) if self.model.geom_contype[i] == 1}
+        self._environment_geoms = [
+            i for i in range(self.model.ngeom) if self.model.geom_conaffinity[i] == 1
+        ]
 
     def set_q(self, q: ArrayLike) -> None:
         """Put the arm at joint angles ``q`` (6,), radians, and update kinematics."""
@@ -311,6 +314,18 @@ class SceneModel:
                 continue
             contacts.append(Contact(names[0], names[1], float(-c.dist)))
         return contacts
+
+    def clearance(self, q: ArrayLike, within: float) -> float:
+        """The smallest distance (m) between the arm or tool and the phantom or tank at
+        ``q``, up to ``within`` (``within`` when nothing is nearer; negative when they
+        overlap): MuJoCo's exact geom distances (``mj_geomDistance``)."""
+        self.set_q(q)
+        nearest = float(within)
+        for g1 in self._robot_geoms:
+            for g2 in self._environment_geoms:
+                d = mujoco.mj_geomDistance(self.model, self.data, g1, g2, nearest, None)
+                nearest = min(nearest, float(d))
+        return nearest
 
 
 def export_scene(scene: Scene, outdir: str | os.PathLike[str]) -> list[str]:

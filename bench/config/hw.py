@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +28,7 @@ from calib.protocol import ProtocolConfig
 from hw.config import GrabberConfig, URRobotConfig
 from twin.phantoms import PhantomConfig, build_phantom
 
+from .plan_file import check_plan_spheres, plan_beside
 from .schema import apply_overrides, build_section, read_yaml
 
 __all__ = ["HwConfig", "RigConfig", "load_hw_config"]
@@ -137,6 +139,7 @@ def load_hw_config(path: str | os.PathLike[str], overrides: list[str] | tuple = 
         data = {}
     if not isinstance(data, dict):
         raise ScenarioError("a hw config must be a mapping of sections", source=source)
+    data = plan_beside(data, Path(source).parent)
     if overrides:
         data = apply_overrides(data, overrides, source)
         source += " (with --set)"
@@ -149,6 +152,7 @@ def load_hw_config(path: str | os.PathLike[str], overrides: list[str] | tuple = 
     if "host" not in (data.get("robot") or {}):
         raise ScenarioError("the controller's address is required", source=source, key="robot.host")
     cfg = HwConfig(**sections, source=source)
+    check_plan_spheres(cfg.protocol, source)
     lo, hi = np.array(cfg.robot.workspace_min_mm), np.array(cfg.robot.workspace_max_mm)
     if np.any(lo >= hi):
         raise ScenarioError(

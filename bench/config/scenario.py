@@ -18,18 +18,21 @@ import dataclasses
 import os
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from calib.errors import ScenarioError
 from calib.localization import LocalizerConfig
+from calib.planning import PlanningConfig
 from calib.protocol import ProtocolConfig
 from calib.settings import CalibrationConfig, EvaluationConfig, ReconstructionConfig
 from sim_us import MediumConfig, ProbeConfig
 from twin import PhantomConfig, RobotConfig, ToolsConfig
 
 from .geometry import check_geometry
+from .plan_file import check_plan_spheres, plan_beside, read_plan
 from .schema import apply_overrides, build_section, did_you_mean, read_yaml
 
 __all__ = [
@@ -43,6 +46,7 @@ __all__ = [
     "load_scenario",
     "scenario_from_mapping",
     "sweep_pixels",
+    "sweeps_per_target",
     "validate_overrides",
 ]
 
@@ -66,6 +70,7 @@ SECTIONS: dict[str, type] = {
     "calibration": CalibrationConfig,
     "evaluation": EvaluationConfig,
     "reconstruction": ReconstructionConfig,
+    "planning": PlanningConfig,
     "output": OutputConfig,
 }
 
@@ -87,6 +92,7 @@ class Scenario:
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    planning: PlanningConfig = field(default_factory=PlanningConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     source: str = "<default>"
 
@@ -124,6 +130,8 @@ def scenario_from_mapping(data: Any, source: str = "<scenario>") -> Scenario:
         )
     scenario = Scenario(seed=seed, source=source, **sections)
     _check_consistency(scenario)
+    if scenario.protocol.plan is not None:
+        _check_plan(scenario)
     return scenario
 
 
@@ -148,6 +156,8 @@ def load_scenario(
     data = {} if path is None else read_yaml(source)
     if data is not None and not isinstance(data, dict):
         raise ScenarioError("a scenario must be a mapping of sections", source=source)
+    if path is not None:
+        data = plan_beside(data, Path(source).parent)
     if overrides:
         data = apply_overrides(data, overrides, source)
         source += " (with --set)"
@@ -155,6 +165,35 @@ def load_scenario(
     if check_reach:
         check_geometry(scenario)
     return scenario
+
+
+def _check_plan(s: Scenario) -> None:
+    """A plan file names the spheres the protocol scans, and each of its sweeps keeps the
+    sphere inside the image (as the plan puts it)."""
+    check_plan_spheres(s.protocol, s.source)
+    poses = read_plan(s.protocol.plan)
+    depth, r = s.protocol.target_depth_mm * 1e-3, s.phantom.sphere_radius_mm * 1e-3
+    half_width, image_depth = s.imaging.width_mm * 5e-4, s.imaging.depth_mm * 1e-3
+    for name, sweeps in poses.items():
+        for k, pose in enumerate(sweeps):
+            x, y, _ = pose.target_in_image(depth)
+            if abs(x) + r > half_width or y - r < 0 or y + r > image_depth:
+                raise ScenarioError(
+                    f"sweep {k} of {name} puts the sphere at ({-pose.lateral_mm:g}, "
+                    f"{y * 1e3:g}) mm, not wholly inside the {s.imaging.width_mm:g} × "
+                    f"{s.imaging.depth_mm:g} mm image",
+                    source=s.source,
+                    key="protocol.plan",
+                    value=s.protocol.plan,
+                    allowed="a plan made for this image and target depth (uscal plan --optimize)",
+                )
+
+
+def sweeps_per_target(s: Scenario) -> int:
+    """Sweeps about each target: the plan file's most, or the paper's 45."""
+    if s.protocol.plan is None:
+        return _SWEEPS_PER_TARGET
+    return max(len(v) for v in read_plan(s.protocol.plan).values())
 
 
 def validate_overrides(
@@ -266,7 +305,7 @@ def sweep_pixels(s: Scenario) -> int:
 def acquisition_pixels(s: Scenario) -> int:
     """Frame pixels of one acquisition: the plan's sweeps of every target."""
     targets = len(s.protocol.spheres) if s.phantom.kind == "spheres" else 1
-    return _SWEEPS_PER_TARGET * targets * sweep_pixels(s)
+    return sweeps_per_target(s) * targets * sweep_pixels(s)
 
 
 def frames_memory_bytes(s: Scenario) -> int:

@@ -183,6 +183,12 @@ def run(
     t_cal = float(sum(h["calibrate_s"] for h in hist))
     metrics: dict[str, Any] = {
         "scenario": {"name": scenario.source, "seed": scenario.seed},
+        "acquisition": {
+            "sweeps": len(acq.dataset.sweeps),
+            "frames": int(sum(s.n_frames for s in acq.dataset.sweeps)),
+            "robot_time_s": acq.robot_time_s,
+            "plan": scenario.protocol.plan or "paper",
+        },
         "localization": {
             "method": loc_cfg.method,
             "n_sweeps": n_sweeps,

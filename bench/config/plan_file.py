@@ -1,0 +1,192 @@
+"""Plan files: the sweeps to acquire about each sphere, relative to its taught nominal
+pose (``uscal plan --optimize --out PLAN.yaml``; used through ``protocol.plan: PLAN.yaml``
+by ``uscal run`` and ``uscal acquire``). A plain YAML list per sphere, units in the key
+names::
+
+    kind: uscal-plan
+    spheres:
+      sphere_1:
+        - {rotation_xyz_deg: [10, -20, 0], lateral_mm: 4, axial_mm: -2}
+        - ...
+
+Everything else in the file (how it was chosen, what it predicts) is for the reader.
+Problems give one :class:`~calib.errors.ScenarioError` naming the file and the entry.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from calib.errors import ScenarioError
+from calib.planning import SweepPose, paper_poses
+from calib.protocol import ProtocolConfig
+
+from ..files import write_text_atomic
+from .schema import read_yaml
+
+__all__ = [
+    "MAX_ROTATION_DEG",
+    "MAX_SHIFT_MM",
+    "check_plan_spheres",
+    "plan_beside",
+    "read_plan",
+    "sphere_poses",
+    "sweeps_about",
+    "write_plan",
+]
+
+KIND = "uscal-plan"
+#: Bounds of a sweep's placement (as for the candidates a plan is chosen from).
+MAX_ROTATION_DEG = 45.0
+MAX_SHIFT_MM = 30.0
+_KEYS = ("rotation_xyz_deg", "lateral_mm", "axial_mm")
+
+
+def _number(value: Any, where: str, source: str, limit: float, key: str) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok or not math.isfinite(value) or abs(value) > limit:
+        raise ScenarioError(
+            "not a number within the bounds",
+            source=source,
+            key=f"{where}.{key}",
+            value=value,
+            allowed=f"a number within ± {limit:g}",
+        )
+    return float(value)
+
+
+def read_plan(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]]:
+    """{sphere name: its sweeps, in acquisition order} of a plan file."""
+    source = os.fspath(path)
+    doc = read_yaml(source)
+    if not isinstance(doc, dict) or doc.get("kind") != KIND:
+        raise ScenarioError(
+            f"not a plan file (it must be a mapping with kind: {KIND})", source=source
+        )
+    spheres = doc.get("spheres")
+    if not isinstance(spheres, dict) or not spheres:
+        raise ScenarioError(
+            "no sweeps", source=source, key="spheres", allowed="sphere_N: [sweeps...]"
+        )
+    out: dict[str, tuple[SweepPose, ...]] = {}
+    for name, sweeps in spheres.items():
+        where = f"spheres.{name}"
+        if not (isinstance(name, str) and name.startswith("sphere_")):
+            raise ScenarioError("not a sphere's name", source=source, key=where, allowed="sphere_N")
+        if not isinstance(sweeps, list) or not sweeps:
+            raise ScenarioError("expected a list of sweeps", source=source, key=where)
+        poses = []
+        for k, sweep in enumerate(sweeps):
+            at = f"{where}[{k}]"
+            if not isinstance(sweep, dict) or set(sweep) != set(_KEYS):
+                raise ScenarioError(
+                    "a sweep is a mapping of exactly these keys",
+                    source=source,
+                    key=at,
+                    value=sweep,
+                    allowed=", ".join(_KEYS),
+                )
+            angles = sweep["rotation_xyz_deg"]
+            if not isinstance(angles, list) or len(angles) != 3:
+                raise ScenarioError(
+                    "expected three angles", source=source, key=f"{at}.rotation_xyz_deg"
+                )
+            rot = tuple(
+                _number(a, at, source, MAX_ROTATION_DEG, "rotation_xyz_deg") for a in angles
+            )
+            poses.append(
+                SweepPose(
+                    rot,  # type: ignore[arg-type]
+                    _number(sweep["lateral_mm"], at, source, MAX_SHIFT_MM, "lateral_mm"),
+                    _number(sweep["axial_mm"], at, source, MAX_SHIFT_MM, "axial_mm"),
+                )
+            )
+        out[name] = tuple(poses)
+    return out
+
+
+def write_plan(
+    path: str | os.PathLike[str],
+    poses: Mapping[str, Sequence[SweepPose]],
+    about: Mapping[str, Any],
+) -> Path:
+    """Write a plan file (atomically); ``about`` goes in as the reader's information."""
+
+    def plain(x: float) -> float:
+        return round(float(x), 6) + 0.0  # no -0.0
+
+    doc = {
+        "kind": KIND,
+        **dict(about),
+        "spheres": {
+            name: [
+                {
+                    "rotation_xyz_deg": [plain(a) for a in p.rotation_deg],
+                    "lateral_mm": plain(p.lateral_mm),
+                    "axial_mm": plain(p.axial_mm),
+                }
+                for p in sweeps
+            ]
+            for name, sweeps in poses.items()
+        },
+    }
+    header = (
+        "# uscal plan: the sweeps about each sphere, relative to its taught nominal pose\n"
+        "# (turned about the target by rotation_xyz_deg about the image axes, then shifted\n"
+        "# in the image plane). Use it with protocol.plan: <this file>.\n"
+    )
+    text = header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
+    write_text_atomic(Path(path), text)
+    return Path(path)
+
+
+def sphere_poses(protocol: ProtocolConfig, target: str) -> tuple[SweepPose, ...] | None:
+    """The sweeps of ``protocol.plan`` about ``target`` (None: the paper's plan)."""
+    if protocol.plan is None:
+        return None
+    poses = read_plan(protocol.plan)
+    if target not in poses:
+        raise ScenarioError(
+            f"the plan has no sweeps for {target}",
+            source=protocol.plan,
+            allowed=", ".join(poses),
+        )
+    return poses[target]
+
+
+def sweeps_about(protocol: ProtocolConfig, target: str) -> int:
+    """How many sweeps the protocol takes about ``target``."""
+    poses = sphere_poses(protocol, target)
+    return len(poses) if poses is not None else len(paper_poses(0.0, 0.0))
+
+
+def plan_beside(data: Any, folder: Path) -> Any:
+    """A settings file's ``protocol.plan``, when relative, read from the file's folder
+    (an override's is from the current one)."""
+    protocol = data.get("protocol") if isinstance(data, dict) else None
+    plan = protocol.get("plan") if isinstance(protocol, dict) else None
+    if not isinstance(plan, str) or Path(plan).is_absolute():
+        return data
+    return {**data, "protocol": {**protocol, "plan": str(folder / plan)}}
+
+
+def check_plan_spheres(protocol: ProtocolConfig, source: str) -> None:
+    """A plan file holds sweeps for exactly the spheres the protocol scans."""
+    if protocol.plan is None:
+        return
+    poses = read_plan(protocol.plan)
+    wanted = [f"sphere_{i}" for i in protocol.spheres]
+    if sorted(poses) != sorted(wanted):
+        raise ScenarioError(
+            f"the plan has sweeps for {', '.join(poses)}; the protocol scans {', '.join(wanted)}",
+            source=source,
+            key="protocol.plan",
+            value=protocol.plan,
+            allowed="a plan of the protocol's spheres (or set protocol.spheres to the plan's)",
+        )

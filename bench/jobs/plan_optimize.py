@@ -1,0 +1,274 @@
+"""``uscal plan --optimize``: choose the sweeps that determine ``T_ee_us`` best for the
+robot time (:mod:`calib.planning`), where the arm can actually put the probe.
+
+For each sphere of the plan: teach the nominal pose (emulated, as ``uscal plan`` does),
+lay the scenario's dense candidate set about it (``planning`` section), keep the
+candidates that hold the sphere inside the image with the margin, whose sweep the arm
+reaches without touching the tank or the phantom (the first, middle and last frames of every
+candidate; every frame of the chosen ones, which are replaced if one fails), and choose
+N of them for the information of the joint problem (one sphere: its centre unknown;
+three spheres: the phantom's pose unknown, the CAD layout known). The paper's plan is
+scored the same way beside it, and both are timed as the twin's controller would move
+(trapezoidal profiles at the configured speeds, settle and grab per frame).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib import se3
+from calib.errors import UscalError
+from calib.planning import (
+    Candidates,
+    Criterion,
+    PlanPrediction,
+    SweepPose,
+    bias_covariance,
+    image_metric,
+    paper_poses,
+    predict,
+    select_sweeps,
+    sweep_commands,
+)
+from twin.arm_errors import trapezoid_time_s
+from twin.robot import RobotConfig
+
+from ..acquire_sim import coarse_estimate, make_twin, teach_at
+from ..config.scenario import Scenario
+from ..pipeline import image_points
+from ..sessions import stage_rngs
+
+__all__ = ["PlanChoice", "PlanComparison", "optimize_plan", "plan_about", "plan_time_s"]
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class PlanChoice:
+    """A plan (its sweeps about each sphere, in acquisition order) and what it
+    predicts; ``candidates`` how many sweeps it was chosen from, and why the others
+    were left out."""
+
+    poses: dict[str, tuple[SweepPose, ...]]
+    prediction: PlanPrediction
+    robot_time_s: float
+    candidates: int = 0
+    left_out: dict[str, int] | None = None
+
+    @property
+    def n_sweeps(self) -> int:
+        return sum(len(v) for v in self.poses.values())
+
+
+@dataclass(frozen=True, eq=False)
+class PlanComparison:
+    """The optimized plan beside the paper's, for the same spheres and noise."""
+
+    optimized: PlanChoice
+    paper: PlanChoice
+    criterion: Criterion
+    spheres: list[str]
+
+
+def plan_time_s(commands: Sequence[Array], robot: RobotConfig, start: Array) -> float:
+    """Robot time of a sequence of flange commands (each sweep (n, 4, 4), in order) from
+    ``start``: a linear move to every frame at the controller's tool speed and
+    acceleration (its turn at the joint limits), then the settle and the grab — the
+    twin's session clock (:class:`twin.robot.SimRobot`)."""
+    poses = np.concatenate([np.asarray(c, dtype=float) for c in commands])
+    previous = np.concatenate([np.asarray(start, dtype=float)[None], poses[:-1]])
+    total = 0.0
+    for T0, T1 in zip(previous, poses, strict=True):
+        path_mm = 1e3 * float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        turn_deg = float(np.degrees(se3.rotation_angle(T0, T1)))
+        total += max(
+            trapezoid_time_s(path_mm, robot.tool_speed_mm_s, robot.tool_acceleration_mm_s2),
+            trapezoid_time_s(turn_deg, robot.joint_speed_deg_s, robot.joint_acceleration_deg_s2),
+        )
+    return total + len(poses) * (robot.settle_s + robot.grab_s)
+
+
+@dataclass(frozen=True, eq=False)
+class _Sphere:
+    name: str
+    index: int  # into the plan's spheres
+    taught: Array  # T_base_ee of the taught pose (as the controller reports it)
+    centre: Array  # where the coarse T_ee_us puts the sphere, base frame (m)
+
+
+def _in_image(scenario: Scenario, pose: SweepPose) -> bool:
+    """The sphere, as the coarse mount predicts it, inside the image by the margin."""
+    p = scenario.planning
+    depth = scenario.protocol.target_depth_mm
+    r = scenario.phantom.sphere_radius_mm + p.image_margin_mm
+    x, y = -pose.lateral_mm, depth - pose.axial_mm
+    return abs(x) + r <= scenario.imaging.width_mm / 2 and r <= y <= scenario.imaging.depth_mm - r
+
+
+def _commands(scenario: Scenario, sphere: _Sphere, coarse: Array, pose: SweepPose) -> Array:
+    proto = scenario.protocol
+    return sweep_commands(
+        sphere.taught,
+        coarse,
+        proto.target_depth_mm * 1e-3,
+        pose,
+        proto.sweep_half_length_mm * 1e-3,
+        proto.frames_per_sweep,
+    )
+
+
+def _clear(scenario: Scenario, twin, commands: Array) -> bool:
+    """Every pose reachable, with the clearance (``planning.clearance_mm``) from the tank
+    and the phantom."""
+    need = scenario.planning.clearance_mm * 1e-3
+    return bool(np.all(twin.robot.clearances(commands, need + 1e-3) >= need))
+
+
+def _candidates(scenario, twin, spheres, coarse, poses_of, check: bool):
+    """(sphere, pose, commands) of every candidate that passes the checks, and the
+    count left out by each check (the reach and clearance of every candidate's first,
+    middle and last frames in one batch)."""
+    out, left = [], {"out of the image": 0, "unreachable or too close to the tank or phantom": 0}
+    for s in spheres:
+        for pose in poses_of(s):
+            if check and not _in_image(scenario, pose):
+                left["out of the image"] += 1
+                continue
+            out.append((s, pose, _commands(scenario, s, coarse, pose)))
+    if check and out:
+        ends = np.array([C[[0, len(C) // 2, -1]] for _, _, C in out])
+        need = scenario.planning.clearance_mm * 1e-3
+        room = twin.robot.clearances(ends.reshape(-1, 4, 4), need + 1e-3).reshape(len(out), 3)
+        keep = np.all(room >= need, axis=1)
+        left["unreachable or too close to the tank or phantom"] += int((~keep).sum())
+        out = [c for c, k in zip(out, keep, strict=True) if k]
+    return out, left
+
+
+def _observations(scenario, coarse, spheres, found, multi: bool) -> Candidates:
+    depth = scenario.protocol.target_depth_mm * 1e-3
+    T_ref = np.array([C[len(C) // 2] for _, _, C in found])
+    p_us = np.array([pose.target_in_image(depth) for _, pose, _ in found])
+    target = np.array([s.index for s, _, _ in found])
+    layout = {s.index: s.centre for s in spheres} if multi else None
+    return Candidates.build(T_ref, coarse, p_us, target, scenario.planning.noise(), layout=layout)
+
+
+def _ordered(chosen: list[tuple[_Sphere, SweepPose, Array]], start: Array) -> list:
+    """The sweeps sphere by sphere, each sphere's by nearest next start (the move from
+    one sweep's last frame to the next's first is what the order changes)."""
+    out = []
+    for name in dict.fromkeys(s.name for s, _, _ in chosen):
+        todo = [c for c in chosen if c[0].name == name]
+        here = start
+        while todo:
+            k = int(np.argmin([np.linalg.norm(c[2][0][:3, 3] - here[:3, 3]) for c in todo]))
+            here = todo[k][2][-1]
+            out.append(todo.pop(k))
+        start = here
+    return out
+
+
+def optimize_plan(
+    scenario: Scenario, n_sweeps: int, criterion: Criterion = "D", markers: int | None = None
+) -> PlanComparison:
+    """Choose ``n_sweeps`` sweeps (in all) for single-marker calibration on the first
+    sphere (``markers`` 1) or three-marker calibration on the first three (3; default:
+    3 when the protocol scans three or more spheres) and score the paper's plan beside
+    them (see the module docstring)."""
+    proto = scenario.protocol
+    if markers is None:
+        markers = 3 if len(proto.spheres) >= 3 else 1
+    if markers == 3 and len(proto.spheres) < 3:
+        raise UscalError(
+            f"--markers 3: the protocol scans {len(proto.spheres)} sphere(s); three-marker "
+            "plans need three (protocol.spheres)"
+        )
+    names = [f"sphere_{i}" for i in proto.spheres[:markers]]
+    twin = make_twin(scenario)
+    coarse = coarse_estimate(
+        twin.truth.T_ee_us, scenario.calibration, stage_rngs(scenario)["calibration"]
+    )
+    depth = proto.target_depth_mm * 1e-3
+    spheres = []
+    for k, name in enumerate(names):
+        taught = teach_at(twin, twin.truth.landmarks_base[name], depth, f"taught at {name}")
+        centre = se3.apply(taught.T_base_ee @ coarse, np.array([0.0, depth, 0.0]))
+        spheres.append(_Sphere(name, k, taught.T_base_ee, centre))
+    M = image_metric(coarse, image_points(scenario))
+    bias = bias_covariance(coarse, scenario.planning.localization_bias_mm)
+    start = spheres[0].taught
+    multi = markers == 3
+
+    paper, _ = _candidates(
+        scenario, twin, spheres, coarse,
+        lambda s: paper_poses(proto.rotation_deg, proto.translation_mm), check=False,
+    )  # fmt: skip
+    paper_pred = predict(
+        _observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias
+    )
+    paper_choice = PlanChoice(
+        {s.name: tuple(paper_poses(proto.rotation_deg, proto.translation_mm)) for s in spheres},
+        paper_pred,
+        plan_time_s([C for _, _, C in paper], scenario.robot, start),
+    )
+
+    dense = scenario.planning.candidates()
+    found, left = _candidates(scenario, twin, spheres, coarse, lambda s: dense, check=True)
+    if not found:
+        raise UscalError(
+            "no candidate sweep keeps the sphere in the image and is reachable without a "
+            f"collision ({left}); widen the image or lower planning.image_margin_mm"
+        )
+    for _ in range(10):  # replace chosen sweeps that fail the frame-by-frame check
+        cands = _observations(scenario, coarse, spheres, found, multi)
+        chosen_idx = select_sweeps(cands, n_sweeps, criterion, M)
+        bad = {k for k in dict.fromkeys(chosen_idx) if not _clear(scenario, twin, found[k][2])}
+        if not bad:
+            break
+        left["unreachable or too close to the tank or phantom"] += len(bad)
+        found = [f for k, f in enumerate(found) if k not in bad]
+    else:
+        raise UscalError("could not find a plan whose every frame is reachable and clear")
+    prediction = predict(cands, chosen_idx, M, bias)
+    ordered = _ordered([found[k] for k in chosen_idx], start)
+    poses: dict[str, tuple[SweepPose, ...]] = {
+        s.name: tuple(p for t, p, _ in ordered if t.name == s.name) for s in spheres
+    }
+    optimized = PlanChoice(
+        {k: v for k, v in poses.items() if v},
+        prediction,
+        plan_time_s([C for _, _, C in ordered], scenario.robot, start),
+        len(found),
+        left,
+    )
+    return PlanComparison(optimized, paper_choice, criterion, names)
+
+
+def plan_about(comparison: PlanComparison, scenario: Scenario) -> dict:
+    """What a plan file records for its reader: how it was chosen and what it predicts
+    beside the paper's plan."""
+
+    def figures(c: PlanChoice) -> dict:
+        p = c.prediction
+        return {
+            "sweeps": c.n_sweeps,
+            "rotation_deg_1sigma": round(p.rotation_deg, 4),
+            "translation_mm_1sigma": round(p.translation_mm, 4),
+            "image_mm_rms": round(p.image_mm, 4),
+            "condition_number": round(p.condition_number, 1),
+            "robot_time_s": round(c.robot_time_s, 1),
+        }
+
+    return {
+        "scenario": scenario.source,
+        "criterion": comparison.criterion,
+        "markers": len(comparison.spheres),
+        "localization_noise_mm": list(scenario.planning.localization_noise_mm),
+        "predicted": figures(comparison.optimized),
+        "paper_plan": figures(comparison.paper),
+    }

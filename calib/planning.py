@@ -1,0 +1,447 @@
+"""Pose planning: which sweeps to acquire so that ``T_ee_us`` is best determined for the
+robot time spent (the paper's closing open problem: "reduce the number of required
+acquisition poses while maintaining calibration accuracy and conditioning").
+
+A sweep is placed relative to the taught nominal pose (:class:`SweepPose`): turned about
+the target by three angles about the image axes, then shifted in its image plane, as the
+paper's plan does with its 9 orientations × 5 positions (:func:`paper_poses`). Each sweep
+yields one localized centre; its information about θ = (ω rad, t mm) of ``T_ee_us`` is
+that of :mod:`calib.observability`, whitened by the localizer's noise in the image frame
+(anisotropic: laterally a few hundredths of a millimetre, axially and in elevation a
+tenth, :class:`NoiseModel`).
+
+The target's own position is unknown (one sphere: its centre; several spheres with the
+CAD layout: the phantom's pose), so the information of a set of sweeps is the Schur
+complement of the nuisance block,
+
+    H = Σ AᵀA − (Σ AᵀB)(Σ BᵀB)⁻¹(Σ BᵀA),
+
+with A the whitened Jacobians of the observations with respect to θ and B those with
+respect to the nuisance parameters. Sweeps of several spheres therefore inform each
+other through the shared phantom pose: a multi-sphere plan is chosen for the joint
+problem, not sphere by sphere.
+
+The selection (:func:`select_sweeps`) is a greedy start followed by Fedorov exchange
+(swap a chosen sweep for a candidate while the criterion improves), on a finite set of
+candidates that the caller has checked for reach, collisions and the target's place in
+the image. A convex relaxation (weights on the candidates, then rounding) would bound
+the optimum, but needs rounding to N whole sweeps all the same and loses the nuisance
+coupling's sparsity; the exchange reaches a local optimum that, on this problem, sits
+within a few percent of the greedy-with-restarts best (the paper's plan is far from
+both, see ``benchmarks/planning.py``). Criteria, all in the image-error metric (mm at
+the image's points, so that rotation and translation are weighed by what a user sees):
+
+- ``D``: maximize log det H (the volume of the confidence ellipsoid; unit-free);
+- ``A``: minimize the predicted mean squared image error, trace(M H⁻¹);
+- ``E``: minimize its worst direction, λ_max(M^½ H⁻¹ M^½).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import se3
+from .observability import jacobians
+
+__all__ = [
+    "CRITERIA",
+    "Candidates",
+    "NoiseModel",
+    "PlanPrediction",
+    "PlanningConfig",
+    "SweepPose",
+    "bias_covariance",
+    "candidate_poses",
+    "image_metric",
+    "paper_poses",
+    "predict",
+    "select_sweeps",
+    "sweep_commands",
+]
+
+Array = NDArray[np.float64]
+Criterion = Literal["D", "A", "E"]
+CRITERIA: tuple[Criterion, ...] = ("D", "A", "E")
+_MM = 1e3
+
+
+@dataclass(frozen=True)
+class PlanningConfig:
+    """Pose planning (``uscal plan --optimize``): the candidate sweeps a plan is chosen
+    from and the localization noise it is chosen for."""
+
+    max_rotation_deg: float = field(
+        default=30.0,
+        metadata={
+            "doc": "Candidates turn about the target by up to ± this about each image axis.",
+            "ge": 0,
+            "le": 45,
+        },
+    )
+    rotation_step_deg: float = field(
+        default=10.0,
+        metadata={"doc": "Step of the candidates' angles.", "gt": 0, "le": 45},
+    )
+    max_lateral_mm: float = field(
+        default=10.0,
+        metadata={
+            "doc": "Candidates shift the image laterally by up to ± this.",
+            "ge": 0,
+            "le": 30,
+        },
+    )
+    max_axial_mm: float = field(
+        default=6.0,
+        metadata={"doc": "Candidates shift the image axially by up to ± this.", "ge": 0, "le": 30},
+    )
+    shift_step_mm: float = field(
+        default=2.0,
+        metadata={"doc": "Step of the candidates' in-plane shifts.", "gt": 0, "le": 30},
+    )
+    image_margin_mm: float = field(
+        default=3.0,
+        metadata={
+            "doc": "The sphere stays this far inside the image (beyond its radius) as the "
+            "coarse T_ee_us predicts it: room for the coarse mount's error, which moves "
+            "the sphere by up to 3 mm at a 20° turn (the twin's ± 10°, ± 3 mm mount).",
+            "ge": 0,
+            "le": 30,
+        },
+    )
+    clearance_mm: float = field(
+        default=5.0,
+        metadata={
+            "doc": "Every frame of a chosen sweep keeps the arm and probe this far from the "
+            "tank and the phantom: room for another session's taught pose and coarse "
+            "mount, which move the commanded poses by millimetres.",
+            "ge": 0,
+            "le": 100,
+        },
+    )
+    localization_noise_mm: tuple[float, float, float] = field(
+        default=(0.015, 0.04, 0.055),
+        metadata={
+            "doc": "1 σ of a localized centre along the image's lateral, axial and "
+            "elevational axes, independent between sweeps, which a plan is chosen for "
+            "(the twin's refined localizer on quick.yaml, scatter within a session: "
+            "0.014, 0.039, 0.054 mm).",
+            "len": 3,
+            "gt": 0,
+            "le": 5,
+        },
+    )
+    localization_bias_mm: tuple[float, float, float] = field(
+        default=(0.01, 0.05, 0.01),
+        metadata={
+            "doc": "1 σ of an offset shared by every centre of a session, along the image's "
+            "lateral, axial and elevational axes (where in the cap's echo the centre lands): "
+            "it moves T_ee_us by as much, whatever the plan (the twin on quick.yaml, "
+            "seeds 0–2: 0.008, 0.05, 0.01 mm).",
+            "len": 3,
+            "ge": 0,
+            "le": 5,
+        },
+    )
+
+    def noise(self) -> NoiseModel:
+        return NoiseModel(*self.localization_noise_mm)
+
+    def candidates(self) -> list[SweepPose]:
+        """The dense candidate set: every angle, lateral and axial shift of the grid."""
+
+        def grid(limit: float, step: float) -> Array:
+            k = int(np.floor(limit / step + 1e-9))
+            return step * np.arange(-k, k + 1)
+
+        return candidate_poses(
+            grid(self.max_rotation_deg, self.rotation_step_deg),
+            grid(self.max_lateral_mm, self.shift_step_mm),
+            grid(self.max_axial_mm, self.shift_step_mm),
+        )
+
+
+@dataclass(frozen=True)
+class SweepPose:
+    """One sweep relative to the taught nominal pose: turned about the target by the
+    extrinsic x-y-z Euler angles ``rotation_deg`` about the image axes (lateral, axial,
+    elevational), then shifted in the image plane by ``lateral_mm`` and ``axial_mm``
+    (the target then appears at (−lateral, depth − axial) in the image)."""
+
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    lateral_mm: float = 0.0
+    axial_mm: float = 0.0
+
+    def rotation(self) -> Array:
+        return se3.matrix_from_euler(np.radians(np.asarray(self.rotation_deg, dtype=float)))
+
+    def target_in_image(self, depth: float) -> Array:
+        """Where the target appears (us frame, metres) if the taught pose were exact."""
+        return np.array([-self.lateral_mm * 1e-3, depth - self.axial_mm * 1e-3, 0.0])
+
+
+def paper_poses(rotation_deg: float, translation_mm: float) -> list[SweepPose]:
+    """The paper's 45 sweeps about one sphere: the nominal orientation and the eight
+    (±r, ±r, ±r) corners, each at the nominal position and the four (±t, ±t) in-plane
+    corners (the order of :func:`calib.protocol.plan_sweeps`)."""
+    r, t = float(rotation_deg), float(translation_mm)
+    corners = [(0.0, 0.0, 0.0)] + [
+        (sx * r, sy * r, sz * r) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)
+    ]
+    shifts = [(0.0, 0.0)] + [(sx * t, sy * t) for sx in (-1, 1) for sy in (-1, 1)]
+    return [SweepPose(c, dx, dy) for c in corners for dx, dy in shifts]
+
+
+def candidate_poses(
+    rotation_deg: Sequence[float],
+    lateral_mm: Sequence[float],
+    axial_mm: Sequence[float],
+) -> list[SweepPose]:
+    """Every combination of the angles (each about each image axis), lateral and axial
+    shifts: the dense set a plan is chosen from."""
+    return [
+        SweepPose((float(a), float(b), float(c)), float(x), float(y))
+        for a in rotation_deg
+        for b in rotation_deg
+        for c in rotation_deg
+        for x in lateral_mm
+        for y in axial_mm
+    ]
+
+
+def sweep_commands(
+    T_base_ee_taught: ArrayLike,
+    T_ee_us_coarse: ArrayLike,
+    depth: float,
+    pose: SweepPose,
+    half_length: float,
+    n_frames: int,
+) -> Array:
+    """Flange commands (n_frames, 4, 4) of one sweep: the image turned about the target
+    at ``depth`` and shifted in plane as ``pose`` says (with the coarse ``T_ee_us``),
+    then run ± ``half_length`` along its elevational axis."""
+    T_ee_us = np.asarray(T_ee_us_coarse, dtype=float)
+    T_face = np.asarray(T_base_ee_taught, dtype=float) @ T_ee_us
+    T_target = se3.make(np.eye(3), [0.0, depth, 0.0])
+    T_rot = T_face @ T_target @ se3.make(pose.rotation(), np.zeros(3)) @ se3.invert(T_target)
+    T_us = T_rot @ se3.make(np.eye(3), [pose.lateral_mm * 1e-3, pose.axial_mm * 1e-3, 0.0])
+    steps = np.linspace(-half_length, half_length, n_frames)
+    frame_shifts = se3.make(np.eye(3), np.column_stack([0 * steps, 0 * steps, steps]))
+    return T_us @ frame_shifts @ se3.invert(T_ee_us)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """1 σ (mm) of a localized centre along the image's lateral, axial and elevational
+    axes, independent between sweeps."""
+
+    lateral_mm: float
+    axial_mm: float
+    elevation_mm: float
+
+    def whitening(self, R_base_us: Array) -> Array:
+        """W (n, 3, 3) with WᵀW the inverse covariance of a centre in the base frame,
+        for images at orientations ``R_base_us`` (n, 3, 3)."""
+        inv_sigma = 1.0 / np.array([self.lateral_mm, self.axial_mm, self.elevation_mm])
+        return inv_sigma[None, :, None] * np.swapaxes(R_base_us, 1, 2)
+
+
+@dataclass(frozen=True, eq=False)
+class Candidates:
+    """Sweeps to choose from, as observations: the whitened Jacobians ``A`` (n, 3, 6)
+    with respect to θ and ``B`` (n, 3, m) with respect to the nuisance parameters (the
+    targets' positions, or the phantom's pose), and each sweep's target."""
+
+    A: Array
+    B: Array
+    target: NDArray[np.int_]
+
+    def __len__(self) -> int:
+        return len(self.A)
+
+    @classmethod
+    def build(
+        cls,
+        T_ref_base_ee: ArrayLike,
+        T_ee_us: ArrayLike,
+        p_us: ArrayLike,
+        target: ArrayLike,
+        noise: NoiseModel,
+        layout: Mapping[int, ArrayLike] | None = None,
+    ) -> Candidates:
+        """Candidates observed at flange poses ``T_ref_base_ee`` (n, 4, 4; each sweep's
+        reference frame), the target at ``p_us`` (n, 3, metres) in its image; ``target``
+        (n,) indexes the sphere each one sees. ``layout``: {target: its centre in the
+        phantom (metres)} — the CAD layout, whose one unknown pose the spheres share;
+        without it each target's position is unknown on its own."""
+        T = np.asarray(T_ref_base_ee, dtype=float)
+        X = np.asarray(T_ee_us, dtype=float)
+        G = jacobians(T, X, p_us)
+        W = noise.whitening(T[:, :3, :3] @ X[:3, :3])
+        A = W @ G
+        idx = np.asarray(target, dtype=int)
+        if layout is None:
+            names = np.unique(idx)
+            B = np.zeros((len(T), 3, 3 * len(names)))
+            for j, name in enumerate(names):
+                rows = idx == name
+                B[rows, :, 3 * j : 3 * j + 3] = -W[rows]
+        else:
+            # c_s = R_φ c_s⁰ + t_φ: ∂c_s/∂(ω_φ rad, t_φ mm) = [−[c_s]_× · 1000 | I] (mm).
+            D = np.zeros((len(T), 3, 6))
+            for name, c in layout.items():
+                rows = idx == name
+                D[rows, :, :3] = -_skew(np.asarray(c, dtype=float)) * _MM
+                D[rows, :, 3:] = np.eye(3)
+            B = -W @ D
+        return cls(A, B, idx)
+
+
+def _skew(v: Array) -> Array:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def image_metric(T_ee_us: ArrayLike, points_us: ArrayLike) -> Array:
+    """M (6, 6): the mean over image points of JᵀJ, J the change of a point mapped
+    through ``T_ee_us`` (flange frame, mm) with θ; δθᵀ M δθ is the mean squared
+    image error (mm²) of an error δθ of ``T_ee_us``."""
+    X = np.asarray(T_ee_us, dtype=float)
+    G = jacobians(np.eye(4)[None], X, np.asarray(points_us, dtype=float))
+    return np.einsum("nij,nik->jk", G, G) / len(G)
+
+
+def _information(S_AA: Array, S_AB: Array, S_BB: Array) -> Array:
+    """H (…, 6, 6): the Schur complement of the nuisance block (a pseudo-inverse where
+    the sweeps do not yet fix every nuisance parameter)."""
+    return S_AA - S_AB @ np.linalg.pinv(S_BB, hermitian=True) @ np.swapaxes(S_AB, -1, -2)
+
+
+def _score(H: Array, criterion: Criterion, M: Array, ridge: float) -> Array:
+    """The criterion of information matrices H (…, 6, 6), larger is better."""
+    H = H + ridge * np.eye(6)
+    if criterion == "D":
+        sign, logdet = np.linalg.slogdet(H)
+        return np.where(sign > 0, logdet, -np.inf)
+    cov = np.linalg.inv(H)
+    if criterion == "A":
+        return -np.einsum("ij,...ji->...", M, cov)
+    L = np.linalg.cholesky(M)
+    return -np.linalg.eigvalsh(L.T @ cov @ L)[..., -1]
+
+
+def select_sweeps(
+    cands: Candidates,
+    n: int,
+    criterion: Criterion = "D",
+    M: Array | None = None,
+    max_passes: int = 10,
+    repeats: bool = False,
+) -> list[int]:
+    """``n`` of the candidates (indices, in the order chosen) maximizing the criterion:
+    greedy (each next sweep the one that adds most), then exchange passes (swap a chosen
+    sweep for the candidate that improves the criterion most) until none improves.
+    Without ``repeats`` every sweep is at its own pose: the optimum of a linear model
+    repeats its few extreme poses, but a sweep repeated shares its view's localization
+    bias (which the model does not hold), and distinct views are what the bounds'
+    jackknife needs."""
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion {criterion!r}: one of {', '.join(CRITERIA)}")
+    if n < 1:
+        raise ValueError(f"n = {n}: a plan needs at least one sweep")
+    M = np.eye(6) if M is None else np.asarray(M, dtype=float)
+    # Per candidate: its contributions to the three sums.
+    cAA = np.einsum("nij,nik->njk", cands.A, cands.A)
+    cAB = np.einsum("nij,nik->njk", cands.A, cands.B)
+    cBB = np.einsum("nij,nik->njk", cands.B, cands.B)
+    ridge = 1e-9 * float(np.trace(cAA.mean(axis=0)))  # the first picks: never singular
+    m = cands.B.shape[2]
+    sums = [np.zeros((6, 6)), np.zeros((6, m)), np.zeros((m, m))]
+    chosen: list[int] = []
+
+    def scores(base: list[Array]) -> Array:
+        H = _information(base[0] + cAA, base[1] + cAB, base[2] + cBB)
+        # The greedy start ranks by D (defined from the first sweep on); the exchange
+        # by the criterion asked for.
+        return _score(H, crit, M, ridge)
+
+    if not repeats and n > len(cands):
+        raise ValueError(f"{n} sweeps from {len(cands)} candidates: too few candidates")
+    taken = np.zeros(len(cands), dtype=bool)
+
+    def masked(s: Array) -> Array:
+        return s if repeats else np.where(taken, -np.inf, s)
+
+    crit: Criterion = "D"
+    for _ in range(n):
+        k = int(np.argmax(masked(scores(sums))))
+        taken[k] = True
+        chosen.append(k)
+        sums = [sums[0] + cAA[k], sums[1] + cAB[k], sums[2] + cBB[k]]
+    crit = criterion
+    best = float(_score(_information(*sums), crit, M, ridge))
+    for _ in range(max_passes):
+        improved = False
+        for i in range(len(chosen)):
+            k = chosen[i]
+            without = [sums[0] - cAA[k], sums[1] - cAB[k], sums[2] - cBB[k]]
+            s = masked(scores(without))
+            j = int(np.argmax(s))
+            if s[j] > best + 1e-9 * abs(best) and j != k:
+                chosen[i], best, improved = j, float(s[j]), True
+                taken[k], taken[j] = False, True
+                sums = [without[0] + cAA[j], without[1] + cAB[j], without[2] + cBB[j]]
+        if not improved:
+            break
+    return chosen
+
+
+@dataclass(frozen=True)
+class PlanPrediction:
+    """What a plan predicts of ``T_ee_us`` for its noise model: 1 σ (RMS over the axes)
+    of the rotation (°) and translation (mm), the RMS image error (mm), the condition
+    number of its information and the covariance of θ = (ω rad, t mm)."""
+
+    rotation_deg: float
+    translation_mm: float
+    image_mm: float
+    condition_number: float
+    covariance: Array
+
+
+def bias_covariance(T_ee_us: ArrayLike, bias_mm: Sequence[float]) -> Array:
+    """(6, 6) covariance of θ from an offset shared by every centre of a session (1 σ
+    per image axis, mm): the fit moves ``t_X`` by −R_X δ, whatever the plan, and leaves
+    the rotation alone."""
+    R = np.asarray(T_ee_us, dtype=float)[:3, :3]
+    cov = np.zeros((6, 6))
+    cov[3:, 3:] = R @ np.diag(np.square(np.asarray(bias_mm, dtype=float))) @ R.T
+    return cov
+
+
+def predict(
+    cands: Candidates, chosen: Sequence[int], M: Array, bias: Array | None = None
+) -> PlanPrediction:
+    """The prediction of the sweeps ``chosen`` (indices into ``cands``, repeats
+    allowed), with the covariance ``bias`` of a session's shared offset added
+    (:func:`bias_covariance`)."""
+    k = np.asarray(chosen, dtype=int)
+    A, B = cands.A[k], cands.B[k]
+    S_AA = np.einsum("nij,nik->jk", A, A)
+    S_AB = np.einsum("nij,nik->jk", A, B)
+    S_BB = np.einsum("nij,nik->jk", B, B)
+    H = _information(S_AA, S_AB, S_BB)
+    w = np.linalg.eigvalsh(0.5 * (H + H.T))
+    cov = np.linalg.pinv(H, hermitian=True)
+    if bias is not None:
+        cov = cov + bias
+    return PlanPrediction(
+        rotation_deg=float(np.degrees(np.sqrt(np.trace(cov[:3, :3])))),
+        translation_mm=float(np.sqrt(np.trace(cov[3:, 3:]))),
+        image_mm=float(np.sqrt(np.einsum("ij,ji->", M, cov))),
+        condition_number=float(w[-1] / w[0]) if w[0] > 0 else float("inf"),
+        covariance=cov,
+    )
