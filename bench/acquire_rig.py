@@ -68,13 +68,16 @@ def _plans(cfg: HwConfig, taught_T: dict[str, np.ndarray]) -> list[PlannedSweep]
 
 def _check(robot, cfg: HwConfig, taught_T: dict[str, np.ndarray], plan) -> None:
     """Workspace and step checks of every pose of the plan, in the order they are
-    visited (each sphere's sweeps start from its taught pose)."""
+    visited (each sphere's sweeps start from its taught pose; transits between sweeps
+    included)."""
     previous = None
     for sweep in plan:
         if previous is None or previous[0] != sweep.target:
             previous = (sweep.target, taught_T[sweep.target])
-        for j, T in enumerate(sweep.T_base_ee):
-            label = f"{sweep.target} sweep {sweep.pose_id} frame {j}"
+        moves = [(f"transit {j}", T) for j, T in enumerate(sweep.approach)]
+        moves += [(f"frame {j}", T) for j, T in enumerate(sweep.T_base_ee)]
+        for what, T in moves:
+            label = f"{sweep.target} sweep {sweep.pose_id} {what}"
             robot.check_pose(T, label)
             robot.check_step(previous[1], T, label)
             previous = (sweep.target, T)

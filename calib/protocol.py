@@ -96,6 +96,17 @@ class ProtocolConfig:
             "le": 20,
         },
     )
+    transit_step_deg: float = field(
+        default=40.0,
+        metadata={
+            "doc": "A move between sweeps that turns the probe more than this goes through "
+            "intermediate poses, each turning at most this (the paper's plan never turns "
+            "that far; a robot's step limit, e.g. robot.max_step_deg of a hw config, must "
+            "not be below it).",
+            "gt": 0,
+            "le": 180,
+        },
+    )
     plan: str | None = field(
         default=None,
         metadata={
@@ -237,6 +248,9 @@ class PlannedSweep:
     pose_id: int
     pose: SweepPose
     T_base_ee: NDArray[np.float64]  # (n_frames, 4, 4)
+    #: Poses passed through (no frame grabbed) before the first frame: the transit from
+    #: the previous sweep when it turns more than ``transit_step_deg``.
+    approach: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
 
 def in_plane_offsets(translation_mm: float) -> NDArray[np.float64]:
@@ -264,17 +278,29 @@ def plan_sweeps(
         poses = paper_poses(cfg.rotation_deg, cfg.translation_mm)
     depth = cfg.target_depth_mm * 1e-3
     half = cfg.sweep_half_length_mm * 1e-3
-    return [
-        PlannedSweep(
-            target,
-            k,
-            pose,
-            sweep_commands(
-                T_base_ee_taught, T_ee_us_coarse, depth, pose, half, cfg.frames_per_sweep
-            ),
+    plan = []
+    here = np.asarray(T_base_ee_taught, dtype=float)
+    for k, pose in enumerate(poses):
+        frames = sweep_commands(
+            T_base_ee_taught, T_ee_us_coarse, depth, pose, half, cfg.frames_per_sweep
         )
-        for k, pose in enumerate(poses)
-    ]
+        plan.append(
+            PlannedSweep(target, k, pose, frames, transit(here, frames[0], cfg.transit_step_deg))
+        )
+        here = frames[-1]
+    return plan
+
+
+def transit(T_from: ArrayLike, T_to: ArrayLike, max_turn_deg: float) -> NDArray[np.float64]:
+    """Intermediate flange poses (m, 4, 4) of a move that turns more than
+    ``max_turn_deg``: evenly spaced along the geodesic (rotation about one axis, straight
+    translation), so that no step turns more than that; none for a smaller turn."""
+    T0, T1 = np.asarray(T_from, dtype=float), np.asarray(T_to, dtype=float)
+    n = int(np.ceil(float(np.degrees(se3.rotation_angle(T0, T1))) / max_turn_deg - 1e-9))
+    if n <= 1:
+        return np.zeros((0, 4, 4))
+    xi = se3.log(se3.invert(T0) @ T1)
+    return np.array([T0 @ se3.exp(xi * k / n) for k in range(1, n)])
 
 
 def plan_parallel_sweeps(
@@ -301,12 +327,14 @@ def plan_parallel_sweeps(
 
 
 def check_plan(robot: Robot, plan: Sequence[PlannedSweep]) -> None:
-    """Reachability and collision checks of every frame pose before any motion; the
-    error names the sweep and frame that fails."""
+    """Reachability and collision checks of every pose before any motion (transits
+    included, in the order they are moved to); the error names the sweep and frame that
+    fails."""
     poses = [
-        (T, f"{s.target} sweep {s.pose_id} frame {j}")
+        (T, f"{s.target} sweep {s.pose_id} {what}")
         for s in plan
-        for j, T in enumerate(s.T_base_ee)
+        for what, T in [(f"transit {j}", T) for j, T in enumerate(s.approach)]
+        + [(f"frame {j}", T) for j, T in enumerate(s.T_base_ee)]
     ]
     if isinstance(robot, PlanChecker):
         if poses:
@@ -396,6 +424,8 @@ def acquire(
     sweeps = []
     for planned in plan:
         images, qs, poses, spacing = [], [], [], None
+        for j, T in enumerate(planned.approach):
+            robot.move_to(T, f"{planned.target} sweep {planned.pose_id} transit {j}")
         try:
             for j, T in enumerate(planned.T_base_ee):
                 label = f"{planned.target} sweep {planned.pose_id} frame {j}"

@@ -265,3 +265,39 @@ def test_hw_config_mistakes_are_one_line(tmp_path, capsys):
     hw.write_text("robot:\n  host: h\n")
     line = _one_line_error(uscal("acquire", str(hw), "--out", str(tmp_path / "ds"), "--dry-run"))
     assert "no taught pose for sphere_1" in line
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", [("127.0.0.8",)], indirect=True)
+def test_a_planned_acquisition_on_the_loopback_rig(controller, tmp_path):
+    """`uscal plan --optimize --out PLAN` then `uscal acquire` with protocol.plan: the
+    rig acquires the plan's sweeps (a third of the paper's) and calibrates as well; a
+    plan for other spheres is refused before anything moves."""
+    plan, dataset, out = tmp_path / "plan.yaml", tmp_path / "ds", tmp_path / "cal"
+    r = uscal("plan", str(QUICK), *ONE_SPHERE, "--optimize", "--sweeps", "15", "--out", str(plan))
+    assert r.returncode == 0, r.stderr
+    assert "optimized" in r.stdout and plan.exists()
+    use = ["--set", f"protocol.plan={plan}"]
+    wrong = uscal("acquire", str(controller.hw), "--out", str(dataset), "--yes", *use)
+    assert "the plan has sweeps for sphere_1; the protocol scans" in _one_line_error(wrong)
+    assert not dataset.exists()
+    r = uscal("acquire", str(controller.hw), "--out", str(dataset), "--yes", *ONE_SPHERE, *use)
+    assert r.returncode == 0, r.stderr
+    ds, _ = read_dataset(dataset)
+    assert len(ds.sweeps) == 15
+    r = uscal(
+        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
+        "--out", str(out), "--no-rrd",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["localization"]["n_rejected"] == 0
+    T = np.array(m["calibration"]["single"]["T_ee_us"])
+    from bench.acquire_sim import make_twin
+    from bench.config.scenario import load_scenario
+    from bench.truth import image_error_mm
+
+    scenario = load_scenario(QUICK)
+    T_true = make_twin(scenario).truth.T_ee_us
+    assert image_error_mm(scenario, T, T_true) <= 0.5
+    assert np.degrees(se3.rotation_angle(T, T_true)) <= 0.6

@@ -34,6 +34,7 @@ from calib.planning import (
     select_sweeps,
     sweep_commands,
 )
+from calib.protocol import PlannedSweep, check_plan, plan_sweeps
 from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
@@ -74,12 +75,13 @@ class PlanComparison:
     spheres: list[str]
 
 
-def plan_time_s(commands: Sequence[Array], robot: RobotConfig, start: Array) -> float:
-    """Robot time of a sequence of flange commands (each sweep (n, 4, 4), in order) from
-    ``start``: a linear move to every frame at the controller's tool speed and
-    acceleration (its turn at the joint limits), then the settle and the grab — the
-    twin's session clock (:class:`twin.robot.SimRobot`)."""
-    poses = np.concatenate([np.asarray(c, dtype=float) for c in commands])
+def plan_time_s(plan: Sequence[PlannedSweep], robot: RobotConfig, start: Array) -> float:
+    """Robot time of planned sweeps, in order, from ``start``: a linear move to every
+    pose at the controller's tool speed and acceleration (its turn at the joint limits)
+    and the settle, and a grab at every frame — the twin's session clock
+    (:class:`twin.robot.SimRobot`)."""
+    moves = [T for s in plan for T in (*s.approach, *s.T_base_ee)]
+    poses = np.array(moves)
     previous = np.concatenate([np.asarray(start, dtype=float)[None], poses[:-1]])
     total = 0.0
     for T0, T1 in zip(previous, poses, strict=True):
@@ -89,7 +91,8 @@ def plan_time_s(commands: Sequence[Array], robot: RobotConfig, start: Array) -> 
             trapezoid_time_s(path_mm, robot.tool_speed_mm_s, robot.tool_acceleration_mm_s2),
             trapezoid_time_s(turn_deg, robot.joint_speed_deg_s, robot.joint_acceleration_deg_s2),
         )
-    return total + len(poses) * (robot.settle_s + robot.grab_s)
+    frames = sum(len(s.T_base_ee) for s in plan)
+    return total + len(moves) * robot.settle_s + frames * robot.grab_s
 
 
 @dataclass(frozen=True, eq=False)
@@ -211,10 +214,11 @@ def optimize_plan(
     paper_pred = predict(
         _observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias
     )
+    paper_plan = [p for s in spheres for p in plan_sweeps(s.name, s.taught, coarse, proto)]
     paper_choice = PlanChoice(
         {s.name: tuple(paper_poses(proto.rotation_deg, proto.translation_mm)) for s in spheres},
         paper_pred,
-        plan_time_s([C for _, _, C in paper], scenario.robot, start),
+        plan_time_s(paper_plan, scenario.robot, start),
     )
 
     dense = scenario.planning.candidates()
@@ -239,10 +243,15 @@ def optimize_plan(
     poses: dict[str, tuple[SweepPose, ...]] = {
         s.name: tuple(p for t, p, _ in ordered if t.name == s.name) for s in spheres
     }
+    planned = [
+        p for s in spheres if poses[s.name]
+        for p in plan_sweeps(s.name, s.taught, coarse, proto, poses[s.name])
+    ]  # fmt: skip
+    check_plan(twin.robot, planned)  # the transits between sweeps too
     optimized = PlanChoice(
         {k: v for k, v in poses.items() if v},
         prediction,
-        plan_time_s([C for _, _, C in ordered], scenario.robot, start),
+        plan_time_s(planned, scenario.robot, start),
         len(found),
         left,
     )
