@@ -259,6 +259,7 @@ class Candidates:
     A: Array
     B: Array
     target: NDArray[np.int_]
+    prior: Array | None = None  # (m, m) prior information on the nuisance parameters
 
     def __len__(self) -> int:
         return len(self.A)
@@ -272,12 +273,14 @@ class Candidates:
         target: ArrayLike,
         noise: NoiseModel,
         layout: Mapping[int, ArrayLike] | None = None,
+        layout_sigma_mm: float = 0.0,
     ) -> Candidates:
         """Candidates observed at flange poses ``T_ref_base_ee`` (n, 4, 4; each sweep's
         reference frame), the target at ``p_us`` (n, 3, metres) in its image; ``target``
-        (n,) indexes the sphere each one sees. ``layout``: {target: its centre in the
-        phantom (metres)} — the CAD layout, whose one unknown pose the spheres share;
-        without it each target's position is unknown on its own."""
+        (n,) indexes the sphere each one sees. ``layout``: {target: its centre (metres)}
+        — the CAD layout, whose one unknown pose the spheres share, each centre printed
+        off it by ``layout_sigma_mm`` (1 σ per axis; 0: exact, as the fit that takes the
+        CAD as exact); without it each target's position is unknown on its own."""
         T = np.asarray(T_ref_base_ee, dtype=float)
         X = np.asarray(T_ee_us, dtype=float)
         G = jacobians(T, X, p_us)
@@ -292,12 +295,21 @@ class Candidates:
                 B[rows, :, 3 * j : 3 * j + 3] = -W[rows]
         else:
             # c_s = R_φ c_s⁰ + t_φ: ∂c_s/∂(ω_φ rad, t_φ mm) = [−[c_s]_× · 1000 | I] (mm).
-            D = np.zeros((len(T), 3, 6))
-            for name, c in layout.items():
+            # Each centre's print error δ_s (mm) adds to it, with its prior.
+            names = list(layout)
+            free = 3 * len(names) if layout_sigma_mm > 0 else 0
+            D = np.zeros((len(T), 3, 6 + free))
+            for j, name in enumerate(names):
                 rows = idx == name
-                D[rows, :, :3] = -_skew(np.asarray(c, dtype=float)) * _MM
-                D[rows, :, 3:] = np.eye(3)
+                D[rows, :, :3] = -_skew(np.asarray(layout[name], dtype=float)) * _MM
+                D[rows, :, 3:6] = np.eye(3)
+                if free:
+                    D[rows, :, 6 + 3 * j : 9 + 3 * j] = np.eye(3)
             B = -W @ D
+            if free:
+                prior = np.zeros((6 + free, 6 + free))
+                prior[6:, 6:] = np.eye(free) / layout_sigma_mm**2
+                return cls(A, B, idx, prior)
         return cls(A, B, idx)
 
 
@@ -340,6 +352,7 @@ def select_sweeps(
     M: Array | None = None,
     max_passes: int = 10,
     repeats: bool = False,
+    min_per_target: int = 0,
 ) -> list[int]:
     """``n`` of the candidates (indices, in the order chosen) maximizing the criterion:
     greedy (each next sweep the one that adds most), then exchange passes (swap a chosen
@@ -347,7 +360,8 @@ def select_sweeps(
     Without ``repeats`` every sweep is at its own pose: the optimum of a linear model
     repeats its few extreme poses, but a sweep repeated shares its view's localization
     bias (which the model does not hold), and distinct views are what the bounds'
-    jackknife needs."""
+    jackknife needs. ``min_per_target``: each target gets at least that many sweeps (a
+    multi-marker fit needs every sphere seen)."""
     if criterion not in CRITERIA:
         raise ValueError(f"criterion {criterion!r}: one of {', '.join(CRITERIA)}")
     if n < 1:
@@ -359,7 +373,11 @@ def select_sweeps(
     cBB = np.einsum("nij,nik->njk", cands.B, cands.B)
     ridge = 1e-9 * float(np.trace(cAA.mean(axis=0)))  # the first picks: never singular
     m = cands.B.shape[2]
-    sums = [np.zeros((6, 6)), np.zeros((6, m)), np.zeros((m, m))]
+    prior = np.zeros((m, m)) if cands.prior is None else cands.prior
+    sums = [np.zeros((6, 6)), np.zeros((6, m)), prior.copy()]
+    targets = np.unique(cands.target)
+    if min_per_target * len(targets) > n:
+        raise ValueError(f"{n} sweeps cannot give {len(targets)} targets {min_per_target} each")
     chosen: list[int] = []
 
     def scores(base: list[Array]) -> Array:
@@ -375,9 +393,18 @@ def select_sweeps(
     def masked(s: Array) -> Array:
         return s if repeats else np.where(taken, -np.inf, s)
 
+    def counts(ks: list[int]) -> dict[int, int]:
+        return {int(g): sum(1 for k in ks if cands.target[k] == g) for g in targets}
+
     crit: Criterion = "D"
-    for _ in range(n):
-        k = int(np.argmax(masked(scores(sums))))
+    for step in range(n):
+        s = masked(scores(sums))
+        # The targets still short of their minimum when no more sweeps can be spared.
+        have = counts(chosen)
+        short = [g for g in targets if have[g] < min_per_target]
+        if short and sum(min_per_target - have[g] for g in short) >= n - step:
+            s = np.where(np.isin(cands.target, short), s, -np.inf)
+        k = int(np.argmax(s))
         taken[k] = True
         chosen.append(k)
         sums = [sums[0] + cAA[k], sums[1] + cAB[k], sums[2] + cBB[k]]
@@ -389,6 +416,9 @@ def select_sweeps(
             k = chosen[i]
             without = [sums[0] - cAA[k], sums[1] - cAB[k], sums[2] - cBB[k]]
             s = masked(scores(without))
+            if min_per_target and counts(chosen)[int(cands.target[k])] <= min_per_target:
+                # Only a sweep of the same target may take its place.
+                s = np.where(cands.target == cands.target[k], s, -np.inf)
             j = int(np.argmax(s))
             if s[j] > best + 1e-9 * abs(best) and j != k:
                 chosen[i], best, improved = j, float(s[j]), True
@@ -433,6 +463,8 @@ def predict(
     S_AA = np.einsum("nij,nik->jk", A, A)
     S_AB = np.einsum("nij,nik->jk", A, B)
     S_BB = np.einsum("nij,nik->jk", B, B)
+    if cands.prior is not None:
+        S_BB = S_BB + cands.prior
     H = _information(S_AA, S_AB, S_BB)
     w = np.linalg.eigvalsh(0.5 * (H + H.T))
     cov = np.linalg.pinv(H, hermitian=True)

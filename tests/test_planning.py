@@ -29,14 +29,14 @@ DEPTH = 0.02
 NOISE = NoiseModel(0.015, 0.04, 0.055)
 
 
-def _candidates(poses, layout=None, targets=None, taught=(TAUGHT,)) -> Candidates:
+def _candidates(poses, layout=None, taught=(TAUGHT,), layout_sigma_mm=0.0) -> Candidates:
     T_ref, p_us, idx = [], [], []
     for k, T0 in enumerate(taught):
         for pose in poses:
             T_ref.append(sweep_commands(T0, X, DEPTH, pose, 0.01, 3)[1])
             p_us.append(pose.target_in_image(DEPTH))
             idx.append(k)
-    return Candidates.build(np.array(T_ref), X, np.array(p_us), idx, NOISE, layout=layout)
+    return Candidates.build(np.array(T_ref), X, np.array(p_us), idx, NOISE, layout, layout_sigma_mm)
 
 
 def test_the_papers_plan_is_its_sweep_poses_to_the_last_bit():
@@ -135,3 +135,23 @@ def test_the_candidate_grid_is_symmetric_and_complete():
     assert len(poses) == 5**3 * 5 * 3
     assert SweepPose((-20.0, 0.0, 20.0), -4.0, 2.0) in poses
     assert cfg.noise() == NoiseModel(*cfg.localization_noise_mm)
+
+
+def test_a_three_marker_plan_sees_every_sphere_and_a_loose_layout_informs_less():
+    """Jointly planned spheres share the phantom's pose: each keeps the minimum of
+    sweeps, and a layout printed loosely (its centres free within the tolerance) informs
+    T_ee_us less than the exact CAD, and more than free centres."""
+    taught = [TAUGHT @ se3.make(np.eye(3), d) for d in ([0, 0, 0], [0.03, 0, 0], [0, 0.03, 0])]
+    centres = {k: se3.apply(T @ X, [0.0, DEPTH, 0.0]) for k, T in enumerate(taught)}
+    poses = PlanningConfig(max_rotation_deg=20, max_lateral_mm=4, max_axial_mm=4).candidates()
+    M = image_metric(X, np.array([[x, y, 0.0] for x in (-0.01, 0.01) for y in (0.0, 0.03)]))
+    cands = _candidates(poses[::7], centres, taught=taught)
+    chosen = select_sweeps(cands, 18, "D", M, min_per_target=5)
+    per = np.bincount(cands.target[chosen], minlength=3)
+    assert per.min() >= 5 and per.sum() == 18
+    exact = predict(cands, chosen, M).rotation_deg
+    loose = _candidates(poses[::7], centres, taught=taught, layout_sigma_mm=0.1)
+    free = _candidates(poses[::7], None, taught=taught)
+    assert exact <= predict(loose, chosen, M).rotation_deg <= predict(free, chosen, M).rotation_deg
+    with pytest.raises(ValueError, match="cannot give"):
+        select_sweeps(cands, 12, "D", M, min_per_target=5)

@@ -39,9 +39,13 @@ from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
 from ..acquire_sim import coarse_estimate, make_twin, teach_at
-from ..config.scenario import Scenario
+from ..config.scenario import Scenario, layout_sigma_mm
 from ..pipeline import image_points
 from ..sessions import stage_rngs
+
+#: Sweeps of each sphere a three-marker plan keeps at least: the multi-marker fit needs
+#: every sphere seen, and its outlier test a handful of views of each.
+MIN_SWEEPS_PER_SPHERE = 5
 
 __all__ = ["PlanChoice", "PlanComparison", "optimize_plan", "plan_about", "plan_time_s"]
 
@@ -158,7 +162,15 @@ def _observations(scenario, coarse, spheres, found, multi: bool) -> Candidates:
     p_us = np.array([pose.target_in_image(depth) for _, pose, _ in found])
     target = np.array([s.index for s, _, _ in found])
     layout = {s.index: s.centre for s in spheres} if multi else None
-    return Candidates.build(T_ref, coarse, p_us, target, scenario.planning.noise(), layout=layout)
+    return Candidates.build(
+        T_ref,
+        coarse,
+        p_us,
+        target,
+        scenario.planning.noise(),
+        layout=layout,
+        layout_sigma_mm=layout_sigma_mm(scenario),
+    )
 
 
 def _ordered(chosen: list[tuple[_Sphere, SweepPose, Array]], start: Array) -> list:
@@ -186,6 +198,11 @@ def optimize_plan(
     proto = scenario.protocol
     if markers is None:
         markers = 3 if len(proto.spheres) >= 3 else 1
+    if markers == 3 and n_sweeps < 3 * MIN_SWEEPS_PER_SPHERE:
+        raise UscalError(
+            f"--sweeps {n_sweeps}: a three-marker plan needs at least "
+            f"{3 * MIN_SWEEPS_PER_SPHERE} ({MIN_SWEEPS_PER_SPHERE} of each sphere)"
+        )
     if markers == 3 and len(proto.spheres) < 3:
         raise UscalError(
             f"--markers 3: the protocol scans {len(proto.spheres)} sphere(s); three-marker "
@@ -230,7 +247,8 @@ def optimize_plan(
         )
     for _ in range(10):  # replace chosen sweeps that fail the frame-by-frame check
         cands = _observations(scenario, coarse, spheres, found, multi)
-        chosen_idx = select_sweeps(cands, n_sweeps, criterion, M)
+        least = MIN_SWEEPS_PER_SPHERE if multi else 0
+        chosen_idx = select_sweeps(cands, n_sweeps, criterion, M, min_per_target=least)
         bad = {k for k in dict.fromkeys(chosen_idx) if not _clear(scenario, twin, found[k][2])}
         if not bad:
             break
