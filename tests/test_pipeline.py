@@ -28,7 +28,10 @@ from .conftest import QUICK
 def two_spheres_with_touches(tmp_path_factory):
     """quick.yaml on spheres 1 and 2 (7 frames a sweep), with the 24 stylus touches,
     saved as dataset files: (scenario, twin truth, acquisition, dataset directory)."""
-    sc = load_scenario(QUICK, ["protocol.spheres=[1, 2]", "protocol.frames_per_sweep=7"])
+    sc = load_scenario(
+        QUICK,
+        ["protocol.spheres=[1, 2]", "protocol.frames_per_sweep=7", "evaluation.initialisations=2"],
+    )
     twin = make_twin(sc)
     touches = simulate_touches(sc, twin, dataset_rngs(sc, 0)["touch_contact"])
     acq = simulate_acquisition(sc, twin, make_imager(sc, twin), "A", touches=touches)
