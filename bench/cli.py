@@ -56,6 +56,7 @@ from .outputs.budget_report import write_budget
 from .outputs.run_files import run_directory
 from .outputs.sweep_report import write_sweep
 from .progress import reporting
+from .sequential import StopRule
 
 __all__ = ["main"]
 
@@ -126,7 +127,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
             say = lambda msg: bars.console.print(f"[dim]{msg}[/dim]")  # noqa: E731
-            result = run(scenario, say, directory.recording, args.save_dataset)
+            result = run(scenario, say, directory.recording, args.save_dataset, _until(args))
         directory.write(scenario, result)
     print_run(result.metrics, console)
     if result.evaluation is not None:
@@ -140,6 +141,16 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     if args.spawn and directory.recording_path is not None:
         spawn_viewer(directory.recording_path, console)
     return 0
+
+
+def _until(args: argparse.Namespace) -> StopRule | None:
+    """The sequential acquisition's stop rule, when a limit is given."""
+    if args.until_rotation_deg is None and args.until_translation_mm is None:
+        return None
+    inf = float("inf")
+    return StopRule(
+        args.until_rotation_deg or inf, args.until_translation_mm or inf, args.max_sweeps
+    )
 
 
 def _confirm_at_terminal(console: Console):

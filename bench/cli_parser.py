@@ -128,6 +128,16 @@ def parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--spawn", action="store_true", help="open the recording in the rerun viewer at the end"
     )
+    until = run.add_argument_group(
+        "sequential acquisition (one acquisition): each next sweep the most informative, "
+        "until the predicted 1 σ of T_ee_us is within the limits"
+    )
+    until.add_argument("--until-rotation-deg", type=_positive_mm, metavar="DEG")
+    until.add_argument("--until-translation-mm", type=_positive_mm, metavar="MM")
+    until.add_argument(
+        "--max-sweeps", type=_positive_int, default=45, metavar="N",
+        help="sweeps of a sphere at most (default 45)",
+    )  # fmt: skip
     run.add_argument(
         "--save-dataset",
         metavar="DATASET",

@@ -58,6 +58,7 @@ __all__ = [
     "bias_covariance",
     "candidate_poses",
     "image_metric",
+    "next_sweep",
     "paper_poses",
     "predict",
     "select_sweeps",
@@ -427,6 +428,38 @@ def select_sweeps(
         if not improved:
             break
     return chosen
+
+
+def next_sweep(
+    cands: Candidates,
+    chosen: Sequence[int],
+    exclude: Sequence[int] = (),
+    criterion: Criterion = "D",
+    M: Array | None = None,
+) -> int:
+    """The candidate that adds most to the sweeps ``chosen`` so far (the sequential
+    mode's step: the sweeps actually localized, not the ones planned), none of
+    ``exclude`` (tried already, whether they were localized or not)."""
+    M = np.eye(6) if M is None else np.asarray(M, dtype=float)
+    k = np.asarray(chosen, dtype=int)
+    m = cands.B.shape[2]
+    prior = np.zeros((m, m)) if cands.prior is None else cands.prior
+    S_AA = np.einsum("nij,nik->jk", cands.A[k], cands.A[k])
+    S_AB = np.einsum("nij,nik->jk", cands.A[k], cands.B[k])
+    S_BB = np.einsum("nij,nik->jk", cands.B[k], cands.B[k]) + prior
+    cAA = np.einsum("nij,nik->njk", cands.A, cands.A)
+    H = _information(
+        S_AA + cAA,
+        S_AB + np.einsum("nij,nik->njk", cands.A, cands.B),
+        S_BB + np.einsum("nij,nik->njk", cands.B, cands.B),
+    )
+    ridge = 1e-9 * float(np.trace(cAA.mean(axis=0)))
+    # With fewer than a handful of sweeps only D is defined; then the criterion asked for.
+    s = _score(H, criterion if len(k) >= 3 else "D", M, ridge)
+    s[np.asarray(list(exclude), dtype=int)] = -np.inf
+    if not np.isfinite(s).any():
+        raise ValueError("every candidate has been tried")
+    return int(np.argmax(s))
 
 
 @dataclass(frozen=True)

@@ -198,6 +198,8 @@ BENCH_LAYERS = (
         "bench.parallel",
         "bench.recording",
         "bench.snapshot",
+        "bench.candidates",
+        "bench.sequential",
     ),
     ("bench.sessions", "bench.config", "bench.results", "bench.progress", "bench.files"),
 )

@@ -134,3 +134,30 @@ def test_a_planned_run_on_the_twin_takes_the_planned_time_and_calibrates(tmp_pat
     assert m["acquisition"]["robot_time_s"] == pytest.approx(c.optimized.robot_time_s, rel=0.03)
     err = m["calibration"]["single"]["true_error"]
     assert err["image_mm"] <= 0.3 and err["rotation_deg"] <= 0.6
+
+
+@pytest.mark.slow
+def test_the_sequential_acquisition_stops_when_the_predicted_bounds_are_reached():
+    from bench.jobs.single import run
+    from bench.progress import reporting
+    from bench.sequential import StopRule
+
+    scenario = load_scenario(QUICK, ["protocol.spheres=[1]", "seed=2"])
+    with reporting(None):
+        m = run(scenario, until=StopRule(0.25, 0.1)).metrics
+    seq = m["acquisition"]["sequential"]["sphere_1"]
+    assert seq["reached"] and seq["predicted_rotation_deg"] <= 0.25
+    assert seq["predicted_translation_mm"] <= 0.1
+    # It stopped at the first sweep that reached them, well before the paper's 45.
+    history = seq["history"]
+    assert all(h["rotation_deg"] > 0.25 or h["translation_mm"] > 0.1 for h in history[:-1])
+    assert m["acquisition"]["sweeps"] == seq["sweeps"] < 25
+    assert m["acquisition"]["robot_time_s"] < 0.6 * 349.5
+    err = m["calibration"]["single"]["true_error"]
+    # The truth within about twice the predicted 1 σ.
+    assert err["rotation_deg"] <= 0.5 and err["translation_mm"] <= 0.25
+
+
+def test_the_sequential_acquisition_is_one_acquisition(capsys):
+    r = uscal_here(capsys, "run", "--until-rotation-deg", "0.2", "--out", "/nonexistent/x")
+    assert r.returncode == 2 and "the sequential acquisition is one acquisition" in r.stderr

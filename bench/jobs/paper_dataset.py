@@ -1,4 +1,9 @@
-"""TODO docstring."""
+"""One dataset of the paper's experiment (stage 2 of :mod:`bench.jobs.paper`), as a
+process-pool task: simulate its 4 × 45 sweeps (:func:`simulate_dataset`, which needs no
+DH model, so it starts while the touches are refined), recompute every frame's flange
+pose with the dataset's frozen DH model, run its folds (:func:`bench.pipeline.run_folds`),
+bound each fold's error, and score it against the twin's truth (:func:`run_dataset`).
+Frames stay inside the task; it returns metrics and small arrays only."""
 
 from __future__ import annotations
 

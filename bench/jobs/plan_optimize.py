@@ -23,7 +23,6 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.errors import UscalError
 from calib.planning import (
-    Candidates,
     Criterion,
     PlanPrediction,
     SweepPose,
@@ -32,14 +31,14 @@ from calib.planning import (
     paper_poses,
     predict,
     select_sweeps,
-    sweep_commands,
 )
 from calib.protocol import PlannedSweep, check_plan, plan_sweeps
 from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
 from ..acquire_sim import coarse_estimate, make_twin, teach_at
-from ..config.scenario import Scenario, layout_sigma_mm
+from ..candidates import PlanSphere, candidate_sweeps, clear, observations
+from ..config.scenario import Scenario
 from ..pipeline import image_points
 from ..sessions import stage_rngs
 
@@ -99,81 +98,7 @@ def plan_time_s(plan: Sequence[PlannedSweep], robot: RobotConfig, start: Array) 
     return total + len(moves) * robot.settle_s + frames * robot.grab_s
 
 
-@dataclass(frozen=True, eq=False)
-class _Sphere:
-    name: str
-    index: int  # into the plan's spheres
-    taught: Array  # T_base_ee of the taught pose (as the controller reports it)
-    centre: Array  # where the coarse T_ee_us puts the sphere, base frame (m)
-
-
-def _in_image(scenario: Scenario, pose: SweepPose) -> bool:
-    """The sphere, as the coarse mount predicts it, inside the image by the margin."""
-    p = scenario.planning
-    depth = scenario.protocol.target_depth_mm
-    r = scenario.phantom.sphere_radius_mm + p.image_margin_mm
-    x, y = -pose.lateral_mm, depth - pose.axial_mm
-    return abs(x) + r <= scenario.imaging.width_mm / 2 and r <= y <= scenario.imaging.depth_mm - r
-
-
-def _commands(scenario: Scenario, sphere: _Sphere, coarse: Array, pose: SweepPose) -> Array:
-    proto = scenario.protocol
-    return sweep_commands(
-        sphere.taught,
-        coarse,
-        proto.target_depth_mm * 1e-3,
-        pose,
-        proto.sweep_half_length_mm * 1e-3,
-        proto.frames_per_sweep,
-    )
-
-
-def _clear(scenario: Scenario, twin, commands: Array) -> bool:
-    """Every pose reachable, with the clearance (``planning.clearance_mm``) from the tank
-    and the phantom."""
-    need = scenario.planning.clearance_mm * 1e-3
-    return bool(np.all(twin.robot.clearances(commands, need + 1e-3) >= need))
-
-
-def _candidates(scenario, twin, spheres, coarse, poses_of, check: bool):
-    """(sphere, pose, commands) of every candidate that passes the checks, and the
-    count left out by each check (the reach and clearance of every candidate's first,
-    middle and last frames in one batch)."""
-    out, left = [], {"out of the image": 0, "unreachable or too close to the tank or phantom": 0}
-    for s in spheres:
-        for pose in poses_of(s):
-            if check and not _in_image(scenario, pose):
-                left["out of the image"] += 1
-                continue
-            out.append((s, pose, _commands(scenario, s, coarse, pose)))
-    if check and out:
-        ends = np.array([C[[0, len(C) // 2, -1]] for _, _, C in out])
-        need = scenario.planning.clearance_mm * 1e-3
-        room = twin.robot.clearances(ends.reshape(-1, 4, 4), need + 1e-3).reshape(len(out), 3)
-        keep = np.all(room >= need, axis=1)
-        left["unreachable or too close to the tank or phantom"] += int((~keep).sum())
-        out = [c for c, k in zip(out, keep, strict=True) if k]
-    return out, left
-
-
-def _observations(scenario, coarse, spheres, found, multi: bool) -> Candidates:
-    depth = scenario.protocol.target_depth_mm * 1e-3
-    T_ref = np.array([C[len(C) // 2] for _, _, C in found])
-    p_us = np.array([pose.target_in_image(depth) for _, pose, _ in found])
-    target = np.array([s.index for s, _, _ in found])
-    layout = {s.index: s.centre for s in spheres} if multi else None
-    return Candidates.build(
-        T_ref,
-        coarse,
-        p_us,
-        target,
-        scenario.planning.noise(),
-        layout=layout,
-        layout_sigma_mm=layout_sigma_mm(scenario),
-    )
-
-
-def _ordered(chosen: list[tuple[_Sphere, SweepPose, Array]], start: Array) -> list:
+def _ordered(chosen: list[tuple[PlanSphere, SweepPose, Array]], start: Array) -> list:
     """The sweeps sphere by sphere, each sphere's by nearest next start (the move from
     one sweep's last frame to the next's first is what the order changes)."""
     out = []
@@ -218,18 +143,18 @@ def optimize_plan(
     for k, name in enumerate(names):
         taught = teach_at(twin, twin.truth.landmarks_base[name], depth, f"taught at {name}")
         centre = se3.apply(taught.T_base_ee @ coarse, np.array([0.0, depth, 0.0]))
-        spheres.append(_Sphere(name, k, taught.T_base_ee, centre))
+        spheres.append(PlanSphere(name, k, taught.T_base_ee, centre))
     M = image_metric(coarse, image_points(scenario))
     bias = bias_covariance(coarse, scenario.planning.localization_bias_mm)
     start = spheres[0].taught
     multi = markers == 3
 
-    paper, _ = _candidates(
+    paper, _ = candidate_sweeps(
         scenario, twin, spheres, coarse,
         lambda s: paper_poses(proto.rotation_deg, proto.translation_mm), check=False,
     )  # fmt: skip
     paper_pred = predict(
-        _observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias
+        observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias
     )
     paper_plan = [p for s in spheres for p in plan_sweeps(s.name, s.taught, coarse, proto)]
     paper_choice = PlanChoice(
@@ -239,17 +164,17 @@ def optimize_plan(
     )
 
     dense = scenario.planning.candidates()
-    found, left = _candidates(scenario, twin, spheres, coarse, lambda s: dense, check=True)
+    found, left = candidate_sweeps(scenario, twin, spheres, coarse, lambda s: dense, check=True)
     if not found:
         raise UscalError(
             "no candidate sweep keeps the sphere in the image and is reachable without a "
             f"collision ({left}); widen the image or lower planning.image_margin_mm"
         )
     for _ in range(10):  # replace chosen sweeps that fail the frame-by-frame check
-        cands = _observations(scenario, coarse, spheres, found, multi)
+        cands = observations(scenario, coarse, spheres, found, multi)
         least = MIN_SWEEPS_PER_SPHERE if multi else 0
         chosen_idx = select_sweeps(cands, n_sweeps, criterion, M, min_per_target=least)
-        bad = {k for k in dict.fromkeys(chosen_idx) if not _clear(scenario, twin, found[k][2])}
+        bad = {k for k in dict.fromkeys(chosen_idx) if not clear(scenario, twin, found[k][2])}
         if not bad:
             break
         left["unreachable or too close to the tank or phantom"] += len(bad)

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibrate import AlternationResult
+from calib.errors import UscalError
 from calib.kinematics import kinematic_gauge
 from calib.localize import localize_sphere
 from calib.uncertainty import UncertaintyInputs, alternation_bound
@@ -33,6 +34,7 @@ from ..recording.logs import log_acquisition, merge_parts
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
 from ..results import RunResult, calibration_entry
+from ..sequential import StopRule, acquire_until
 from ..truth import localization_errors, mount_error, snapshot_of, transform_difference
 from .paper import run_evaluation
 
@@ -134,6 +136,7 @@ def run(
     progress: Callable[[str], None] | None = None,
     recording: RecordingOptions | None = None,
     save_dataset: str | os.PathLike[str] | None = None,
+    until: StopRule | None = None,
 ) -> RunResult:
     """The whole experiment of a scenario; returns metrics against ground truth.
 
@@ -143,8 +146,16 @@ def run(
     rerun recording of it (:mod:`bench.recording`). ``save_dataset``: a directory to write
     the acquisition to in the dataset format (:mod:`calib.dataset_files`), which
     ``uscal calibrate`` reads back (the paper's experiment: one per dataset,
-    ``<dir>/<name>``, with its touches).
+    ``<dir>/<name>``, with its touches). ``until``: acquire sequentially, each next sweep
+    the most informative, until the predicted bounds are reached (:mod:`bench.sequential`;
+    one acquisition only).
     """
+    if until is not None and len(scenario.evaluation.datasets) >= 2:
+        raise UscalError(
+            "--until-rotation-deg / --until-translation-mm: the sequential acquisition is "
+            f"one acquisition; this scenario runs the paper's experiment on "
+            f"{len(scenario.evaluation.datasets)} datasets (set evaluation.datasets=[A])"
+        )
     if len(scenario.evaluation.datasets) >= 2:
         save = Path(save_dataset) if save_dataset is not None else None
         ev = run_evaluation(scenario, progress, recording, save)
@@ -152,7 +163,11 @@ def run(
     t_start = time.perf_counter()
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
-    acq = simulate_acquisition(scenario, twin, imager, progress="acquire sweeps")
+    scans = []
+    if until is None:
+        acq = simulate_acquisition(scenario, twin, imager, progress="acquire sweeps")
+    else:
+        acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
     t_sim = time.perf_counter() - t_start
     truth = twin.truth
     radius = scenario.phantom.sphere_radius_mm * 1e-3  # the CAD radius: the only prior
@@ -187,7 +202,8 @@ def run(
             "sweeps": len(acq.dataset.sweeps),
             "frames": int(sum(s.n_frames for s in acq.dataset.sweeps)),
             "robot_time_s": acq.robot_time_s,
-            "plan": scenario.protocol.plan or "paper",
+            "plan": "sequential" if until else scenario.protocol.plan or "paper",
+            **({"sequential": {s.target: s.as_dict() for s in scans}} if until else {}),
         },
         "localization": {
             "method": loc_cfg.method,

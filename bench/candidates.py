@@ -1,0 +1,106 @@
+"""The sweeps a plan can be made of, about spheres the twin's arm faces: a dense set of
+sweep poses about each taught pose (``planning`` settings), kept where the sphere stays
+inside the image by the margin (as the coarse mount predicts it) and where the arm
+reaches the sweep's first, middle and last frames with the clearance from the tank and
+the phantom; and their information about ``T_ee_us`` (:class:`calib.planning.
+Candidates`). Used by ``uscal plan --optimize`` and by the sequential acquisition."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.planning import (
+    Candidates,
+    SweepPose,
+    sweep_commands,
+)
+
+from .config.scenario import Scenario, layout_sigma_mm
+
+__all__ = [
+    "PlanSphere",
+    "candidate_sweeps",
+    "clear",
+    "in_image",
+    "observations",
+    "sweep_of",
+]
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class PlanSphere:
+    name: str
+    index: int  # into the plan's spheres
+    taught: Array  # T_base_ee of the taught pose (as the controller reports it)
+    centre: Array  # where the coarse T_ee_us puts the sphere, base frame (m)
+
+
+def in_image(scenario: Scenario, pose: SweepPose) -> bool:
+    """The sphere, as the coarse mount predicts it, inside the image by the margin."""
+    p = scenario.planning
+    depth = scenario.protocol.target_depth_mm
+    r = scenario.phantom.sphere_radius_mm + p.image_margin_mm
+    x, y = -pose.lateral_mm, depth - pose.axial_mm
+    return abs(x) + r <= scenario.imaging.width_mm / 2 and r <= y <= scenario.imaging.depth_mm - r
+
+
+def sweep_of(scenario: Scenario, sphere: PlanSphere, coarse: Array, pose: SweepPose) -> Array:
+    proto = scenario.protocol
+    return sweep_commands(
+        sphere.taught,
+        coarse,
+        proto.target_depth_mm * 1e-3,
+        pose,
+        proto.sweep_half_length_mm * 1e-3,
+        proto.frames_per_sweep,
+    )
+
+
+def clear(scenario: Scenario, twin, commands: Array) -> bool:
+    """Every pose reachable, with the clearance (``planning.clearance_mm``) from the tank
+    and the phantom."""
+    need = scenario.planning.clearance_mm * 1e-3
+    return bool(np.all(twin.robot.clearances(commands, need + 1e-3) >= need))
+
+
+def candidate_sweeps(scenario, twin, spheres, coarse, poses_of, check: bool):
+    """(sphere, pose, commands) of every candidate that passes the checks, and the
+    count left out by each check (the reach and clearance of every candidate's first,
+    middle and last frames in one batch)."""
+    out, left = [], {"out of the image": 0, "unreachable or too close to the tank or phantom": 0}
+    for s in spheres:
+        for pose in poses_of(s):
+            if check and not in_image(scenario, pose):
+                left["out of the image"] += 1
+                continue
+            out.append((s, pose, sweep_of(scenario, s, coarse, pose)))
+    if check and out:
+        ends = np.array([C[[0, len(C) // 2, -1]] for _, _, C in out])
+        need = scenario.planning.clearance_mm * 1e-3
+        room = twin.robot.clearances(ends.reshape(-1, 4, 4), need + 1e-3).reshape(len(out), 3)
+        keep = np.all(room >= need, axis=1)
+        left["unreachable or too close to the tank or phantom"] += int((~keep).sum())
+        out = [c for c, k in zip(out, keep, strict=True) if k]
+    return out, left
+
+
+def observations(scenario, coarse, spheres, found, multi: bool) -> Candidates:
+    depth = scenario.protocol.target_depth_mm * 1e-3
+    T_ref = np.array([C[len(C) // 2] for _, _, C in found])
+    p_us = np.array([pose.target_in_image(depth) for _, pose, _ in found])
+    target = np.array([s.index for s, _, _ in found])
+    layout = {s.index: s.centre for s in spheres} if multi else None
+    return Candidates.build(
+        T_ref,
+        coarse,
+        p_us,
+        target,
+        scenario.planning.noise(),
+        layout=layout,
+        layout_sigma_mm=layout_sigma_mm(scenario),
+    )
