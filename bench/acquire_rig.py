@@ -30,12 +30,17 @@ from calib.errors import (
     RobotStoppedError,
     UscalError,
 )
+from calib.localization import LocalizerConfig
+from calib.localize import localize_sphere
+from calib.planning import Candidates, bias_covariance, paper_poses
 from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan
 from calib.records import Touch
 
 from .config.hw import HwConfig
 from .config.plan_file import sphere_poses
+from .pipeline import axial_scale_of
 from .progress import report
+from .sequential import Chooser, StopRule
 
 _HOLD_S = 0.3  # s between the operator's "done" and the touch reading
 
@@ -171,13 +176,23 @@ def acquire_dataset(
     confirm: Callable[[str], bool] | None = None,
     say: Callable[[str], None] = lambda _m: None,
     operator: Operator | None = None,
+    until: StopRule | None = None,
 ) -> AcquisitionSummary:
     """Run the protocol on the rig of ``cfg`` into the dataset directory ``out``.
 
     ``confirm(message)`` is asked once before the first motion (None: no question).
     ``operator``: after the sweeps, the touches of every cone vertex (the protocol's
-    ``touches_per_vertex`` each), hand-guided by it; None: no touches.
+    ``touches_per_vertex`` each), hand-guided by it; None: no touches. ``until``: the
+    sequential acquisition — about each sphere, the next sweep is the one of the plan
+    (``protocol.plan``, or the paper's) that adds most to the sweeps localized so far,
+    until the predicted 1 σ of ``T_ee_us`` is within the rule's limits
+    (:mod:`bench.sequential`).
     """
+    if until is not None and resume:
+        raise UscalError(
+            "--until-rotation-deg / --until-translation-mm: a sequential acquisition "
+            "chooses each sweep from those before it and starts anew (no --resume)"
+        )
     from hw.grabber import FrameGrabber
     from hw.robot import URRobot
 
@@ -237,6 +252,12 @@ def acquire_dataset(
     try:
         with URRobot(cfg.robot) as robot, FrameGrabber(cfg.grabber) as grabber:
             report("acquire sweeps", skipped, len(plan))
+            if until is not None:
+                for target in spheres:
+                    done += _acquire_until(
+                        cfg, robot, grabber, writer, target, taught_q[target], until, say
+                    )
+                todo = []
             current = None
             for planned in todo:
                 if planned.target != current:
@@ -275,3 +296,50 @@ def acquire_dataset(
         ) from None
     writer.finish()
     return AcquisitionSummary(out, len(plan), done, skipped, False, time.perf_counter() - t0)
+
+
+def _acquire_until(cfg, robot, grabber, writer, target, q_taught, until, say) -> int:
+    """One sphere's sequential scan on the rig: from the taught pose, the plan's sweep
+    that adds most each time, localized with the sweeps before it, until the rule is
+    met. Returns the sweeps acquired."""
+    proto = cfg.protocol
+    say(f"to the taught pose of {target}")
+    robot.move_joints(q_taught, f"taught pose of {target}")
+    T_taught = robot.read().T_base_ee
+    coarse = cfg.rig.T_ee_us_coarse
+    poses = sphere_poses(proto, target) or paper_poses(proto.rotation_deg, proto.translation_mm)
+    single = [plan_sweeps(target, T_taught, coarse, proto, [p])[0] for p in poses]
+    depth = proto.target_depth_mm * 1e-3
+    cands = Candidates.build(
+        np.array([s.T_base_ee[len(s.T_base_ee) // 2] for s in single]),
+        coarse,
+        np.array([p.target_in_image(depth) for p in poses]),
+        np.zeros(len(poses), dtype=int),
+        cfg.planning.noise(),
+    )
+    bias = bias_covariance(coarse, cfg.planning.localization_bias_mm)
+    chooser = Chooser(target, cands, poses, until, np.eye(6), bias)
+    info = cfg.acquisition_info()
+    localizer = LocalizerConfig(expected_depth_mm=proto.target_depth_mm)
+    chosen, mine = [], []
+    while chooser.more():
+        chosen.append(chooser.next())
+        planned = plan_sweeps(target, T_taught, coarse, proto, chosen)[-1]
+        stamps: list[float] = []
+        (sweep,) = acquire(
+            robot, grabber, [planned], on_frame=lambda _p, _j, log=stamps: log.append(time.time())
+        )
+        writer.add_sweep(sweep, np.array(stamps))
+        mine.append(sweep)
+        report("acquire sweeps", writer.n_sweeps, until.max_sweeps * len(proto.spheres))
+        locs = localize_sphere(
+            mine, None, info.sphere_radius_mm * 1e-3, localizer, axial_scale_of(info)
+        )
+        chooser.update([loc.accepted for loc in locs])
+    scan = chooser.scan()
+    say(
+        f"{target}: {scan.sweeps} sweeps ({scan.localized} localized), predicted "
+        f"{scan.rotation_deg:.3f}° / {scan.translation_mm:.3f} mm 1 σ"
+        + ("" if scan.reached else f": the limits not reached in {until.max_sweeps} sweeps")
+    )
+    return scan.sweeps

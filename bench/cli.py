@@ -189,7 +189,7 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
     with progress_bars(console) as bars, reporting(bars.update):
         say = lambda msg: bars.console.print(f"[dim]{msg}[/dim]")  # noqa: E731
         summary = acquire_dataset(
-            cfg, Path(args.out), args.resume, args.dry_run, confirm, say, operator
+            cfg, Path(args.out), args.resume, args.dry_run, confirm, say, operator, _until(args)
         )
     if summary.dry_run:
         console.print(f"dry run: {summary.planned} sweeps planned and checked; nothing moved")

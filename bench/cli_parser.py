@@ -45,6 +45,19 @@ def _add_recording(p: argparse.ArgumentParser, frames_help: str) -> None:
     )
 
 
+def _add_until(p: argparse.ArgumentParser) -> None:
+    until = p.add_argument_group(
+        "sequential acquisition: each next sweep the most informative, until the "
+        "predicted 1 σ of T_ee_us is within the limits"
+    )
+    until.add_argument("--until-rotation-deg", type=_positive_mm, metavar="DEG")
+    until.add_argument("--until-translation-mm", type=_positive_mm, metavar="MM")
+    until.add_argument(
+        "--max-sweeps", type=_positive_int, default=45, metavar="N",
+        help="sweeps of a sphere at most (default 45)",
+    )  # fmt: skip
+
+
 def _add_executor(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (tcp://host:8786)"
@@ -128,16 +141,7 @@ def parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--spawn", action="store_true", help="open the recording in the rerun viewer at the end"
     )
-    until = run.add_argument_group(
-        "sequential acquisition (one acquisition): each next sweep the most informative, "
-        "until the predicted 1 σ of T_ee_us is within the limits"
-    )
-    until.add_argument("--until-rotation-deg", type=_positive_mm, metavar="DEG")
-    until.add_argument("--until-translation-mm", type=_positive_mm, metavar="MM")
-    until.add_argument(
-        "--max-sweeps", type=_positive_int, default=45, metavar="N",
-        help="sweeps of a sphere at most (default 45)",
-    )  # fmt: skip
+    _add_until(run)
     run.add_argument(
         "--save-dataset",
         metavar="DATASET",
@@ -173,6 +177,7 @@ def parser() -> argparse.ArgumentParser:
         "rig's emulated operator (uscal twin serve)",
     )
     _add_set(acquire, "hw config", "protocol.spheres=[1]")
+    _add_until(acquire)
 
     calibrate = sub.add_parser(
         "calibrate",

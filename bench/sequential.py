@@ -20,7 +20,14 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.localize import localize_sphere
-from calib.planning import bias_covariance, image_metric, next_sweep, predict
+from calib.planning import (
+    Candidates,
+    SweepPose,
+    bias_covariance,
+    image_metric,
+    next_sweep,
+    predict,
+)
 from calib.protocol import PlannedSweep, acquire, check_plan, plan_sweeps
 from calib.records import Dataset, Sweep
 from twin.imager import SimImager
@@ -33,7 +40,7 @@ from .pipeline import axial_scale, image_points
 from .progress import report
 from .sessions import stage_rngs
 
-__all__ = ["StopRule", "acquire_until"]
+__all__ = ["Chooser", "SphereScan", "StopRule", "acquire_until"]
 
 Array = NDArray[np.float64]
 
@@ -74,6 +81,59 @@ class SphereScan:
         }
 
 
+class Chooser:
+    """One sphere's sequential choice: the candidates' information, the sweeps tried and
+    those localized; :meth:`next` names the next sweep, :meth:`update` takes the
+    localizations of every sweep so far and says whether the rule is met."""
+
+    def __init__(self, target: str, cands: Candidates, poses, rule: StopRule, M, bias) -> None:
+        self.target, self.cands, self.poses, self.rule = target, cands, list(poses), rule
+        self.M, self.bias = M, bias
+        self.tried: list[int] = []
+        self.localized: list[int] = []
+        self.history: list[dict[str, float]] = []
+        self.prediction = None
+        self.reached = False
+
+    def more(self) -> bool:
+        """Whether another sweep may be taken."""
+        left = len(self.tried) < min(self.rule.max_sweeps, len(self.poses))
+        return left and not self.reached
+
+    def next(self) -> SweepPose:
+        k = next_sweep(self.cands, self.localized, self.tried, "D", self.M)
+        self.tried.append(k)
+        return self.poses[k]
+
+    def update(self, accepted: list[bool]) -> bool:
+        """The localizations of every sweep tried so far, in order; True once the
+        predicted 1 σ is within the rule's limits."""
+        self.localized = [k for k, ok in zip(self.tried, accepted, strict=True) if ok]
+        if len(self.localized) < self.rule.min_sweeps:
+            return False
+        self.prediction = p = predict(self.cands, self.localized, self.M, self.bias)
+        self.history.append(
+            {"sweeps": len(self.tried), "rotation_deg": p.rotation_deg,
+             "translation_mm": p.translation_mm}
+        )  # fmt: skip
+        self.reached = p.rotation_deg <= self.rule.rotation_deg and (
+            p.translation_mm <= self.rule.translation_mm
+        )
+        return self.reached
+
+    def scan(self) -> SphereScan:
+        p = self.prediction
+        return SphereScan(
+            self.target,
+            len(self.tried),
+            len(self.localized),
+            p.rotation_deg if p else float("nan"),
+            p.translation_mm if p else float("nan"),
+            self.reached,
+            self.history,
+        )
+
+
 def acquire_until(
     scenario: Scenario,
     twin: Twin,
@@ -112,13 +172,11 @@ def acquire_until(
         sphere = PlanSphere(target, 0, taught.T_base_ee, centre)
         found, _ = candidate_sweeps(scenario, twin, [sphere], coarse, lambda s: dense, True)
         cands = observations(scenario, coarse, [sphere], found, False)
-        poses, mine, tried, localized, history = [], [], [], [], []
-        reached = False
-        prediction = None
-        while len(poses) < min(rule.max_sweeps, len(found)):
-            k = next_sweep(cands, localized, tried, "D", M)
-            tried.append(k)
-            poses.append(found[k][1])
+        chooser = Chooser(target, cands, [pose for _, pose, _ in found], rule, M, bias)
+        poses: list[SweepPose] = []
+        mine: list[Sweep] = []
+        while chooser.more():
+            poses.append(chooser.next())
             # The new sweep, with its transit from the previous one's last frame.
             planned: PlannedSweep = plan_sweeps(target, taught.T_base_ee, coarse, proto, poses)[-1]
             check_plan(twin.robot, [planned])
@@ -132,35 +190,9 @@ def acquire_until(
             # Every sweep of the sphere so far, localized together (their agreement is
             # part of the test); a sweep counts once it is accepted.
             locs = localize_sphere(mine, None, radius, scenario.localization, scale)
-            localized = [tried[j] for j, loc in enumerate(locs) if loc.accepted]
-            if len(localized) < rule.min_sweeps:
-                continue
-            prediction = predict(cands, localized, M, bias)
-            history.append(
-                {
-                    "sweeps": len(mine),
-                    "rotation_deg": prediction.rotation_deg,
-                    "translation_mm": prediction.translation_mm,
-                }
-            )
-            if (
-                prediction.rotation_deg <= rule.rotation_deg
-                and prediction.translation_mm <= rule.translation_mm
-            ):
-                reached = True
-                break
+            chooser.update([loc.accepted for loc in locs])
         sweeps += mine
-        scans.append(
-            SphereScan(
-                target,
-                len(mine),
-                len(localized),
-                prediction.rotation_deg if prediction else float("nan"),
-                prediction.translation_mm if prediction else float("nan"),
-                reached,
-                history,
-            )
-        )
+        scans.append(chooser.scan())
     meta = {
         "temperature_c": scenario.medium.temperature_c,
         "assumed_speed_m_s": scenario.imaging.assumed_speed_m_s,

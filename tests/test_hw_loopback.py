@@ -301,3 +301,33 @@ def test_a_planned_acquisition_on_the_loopback_rig(controller, tmp_path):
     T_true = make_twin(scenario).truth.T_ee_us
     assert image_error_mm(scenario, T, T_true) <= 0.5
     assert np.degrees(se3.rotation_angle(T, T_true)) <= 0.6
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", [("127.0.0.9",)], indirect=True)
+def test_a_sequential_acquisition_on_the_loopback_rig(controller, tmp_path):
+    """`uscal acquire --until-rotation-deg --until-translation-mm`: the rig takes the
+    paper's sweeps in the order that informs most and stops at the predicted bounds,
+    long before the 45; the dataset calibrates."""
+    dataset, out = tmp_path / "ds", tmp_path / "cal"
+    until = ["--until-rotation-deg", "0.35", "--until-translation-mm", "0.12"]
+    r = uscal("acquire", str(controller.hw), "--out", str(dataset), "--yes", *ONE_SPHERE, *until)
+    assert r.returncode == 0, r.stderr
+    ds, _ = read_dataset(dataset)
+    assert 6 <= len(ds.sweeps) < 30
+    r = uscal(
+        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
+        "--out", str(out), "--no-rrd",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    T = np.array(json.loads((out / "metrics.json").read_text())["calibration"]["single"]["T_ee_us"])
+    from bench.acquire_sim import make_twin
+    from bench.config.scenario import load_scenario
+    from bench.truth import image_error_mm
+
+    scenario = load_scenario(QUICK)
+    T_true = make_twin(scenario).truth.T_ee_us
+    assert image_error_mm(scenario, T, T_true) <= 0.5
+    assert np.degrees(se3.rotation_angle(T, T_true)) <= 0.8
+    again = uscal("acquire", str(controller.hw), "--out", str(dataset), "--resume", *until)
+    assert "starts anew" in _one_line_error(again)

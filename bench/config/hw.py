@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.dataset_files import AcquisitionInfo
 from calib.errors import ScenarioError
+from calib.planning import PlanningConfig
 from calib.protocol import ProtocolConfig
 from hw.config import GrabberConfig, URRobotConfig
 from twin.phantoms import PhantomConfig, build_phantom
@@ -101,6 +102,7 @@ _SECTIONS = {
     "rig": RigConfig,
     "phantom": PhantomConfig,
     "protocol": ProtocolConfig,
+    "planning": PlanningConfig,
 }
 
 
@@ -111,6 +113,7 @@ class HwConfig:
     rig: RigConfig
     phantom: PhantomConfig
     protocol: ProtocolConfig
+    planning: PlanningConfig = field(default_factory=PlanningConfig)
     source: str = "<hw config>"
 
     def acquisition_info(self) -> AcquisitionInfo:
