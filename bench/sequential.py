@@ -34,7 +34,7 @@ from twin.imager import SimImager
 from twin.world import Twin
 
 from .acquire_sim import SimulatedAcquisition, coarse_estimate, teach_at
-from .candidates import PlanSphere, candidate_sweeps, observations
+from .candidates import PlanSphere, candidate_sweeps, clear, observations
 from .config.scenario import Scenario
 from .pipeline import axial_scale, image_points
 from .progress import report
@@ -90,6 +90,7 @@ class Chooser:
         self.target, self.cands, self.poses, self.rule = target, cands, list(poses), rule
         self.M, self.bias = M, bias
         self.tried: list[int] = []
+        self.skipped: list[int] = []  # chosen, then left out unacquired (a transit)
         self.localized: list[int] = []
         self.history: list[dict[str, float]] = []
         self.prediction = None
@@ -97,13 +98,18 @@ class Chooser:
 
     def more(self) -> bool:
         """Whether another sweep may be taken."""
-        left = len(self.tried) < min(self.rule.max_sweeps, len(self.poses))
+        untried = len(self.tried) + len(self.skipped) < len(self.poses)
+        left = len(self.tried) < self.rule.max_sweeps and untried
         return left and not self.reached
 
     def next(self) -> SweepPose:
-        k = next_sweep(self.cands, self.localized, self.tried, "D", self.M)
+        k = next_sweep(self.cands, self.localized, self.tried + self.skipped, "D", self.M)
         self.tried.append(k)
         return self.poses[k]
+
+    def skip(self) -> None:
+        """The sweep :meth:`next` just named is not acquired after all."""
+        self.skipped.append(self.tried.pop())
 
     def update(self, accepted: list[bool]) -> bool:
         """The localizations of every sweep tried so far, in order; True once the
@@ -176,9 +182,16 @@ def acquire_until(
         poses: list[SweepPose] = []
         mine: list[Sweep] = []
         while chooser.more():
-            poses.append(chooser.next())
-            # The new sweep, with its transit from the previous one's last frame.
-            planned: PlannedSweep = plan_sweeps(target, taught.T_base_ee, coarse, proto, poses)[-1]
+            pose = chooser.next()
+            # The new sweep, with its transit from the previous one's last frame, which
+            # keeps the clearance too (else the next best sweep is taken instead).
+            planned: PlannedSweep = plan_sweeps(
+                target, taught.T_base_ee, coarse, proto, [*poses, pose]
+            )[-1]
+            if len(planned.approach) and not clear(scenario, twin, planned.approach):
+                chooser.skip()
+                continue
+            poses.append(pose)
             check_plan(twin.robot, [planned])
 
             def log(p: PlannedSweep, j: int) -> None:

@@ -96,6 +96,28 @@ def _one_line_error(r: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
+def _calibrates_to_the_truth(dataset: Path, out: Path, max_deg: float = 0.6) -> dict:
+    """`uscal calibrate` of a loopback dataset: the served twin's true mount (same
+    scenario and seed), within the tolerance of `uscal run` on it (tests/test_run.py).
+    Returns the metrics."""
+    from bench.acquire_sim import make_twin
+    from bench.config.scenario import load_scenario
+    from bench.truth import image_error_mm
+
+    r = uscal(
+        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
+        "--out", str(out), "--no-rrd",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    T = np.array(m["calibration"]["single"]["T_ee_us"])
+    scenario = load_scenario(QUICK)
+    T_true = make_twin(scenario).truth.T_ee_us
+    assert image_error_mm(scenario, T, T_true) <= 0.5
+    assert np.degrees(se3.rotation_angle(T, T_true)) <= max_deg
+    return m
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("controller", [("127.0.0.3",)], indirect=True)
 def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(controller, tmp_path):
@@ -107,21 +129,7 @@ def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(control
     assert info.source == "hardware"
     # The reported poses are the controller's: RTDE's actual_TCP_pose, the nominal model.
     assert all(np.isfinite(s.T_base_ee).all() for s in ds.sweeps)
-    r = uscal(
-        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
-        "--out", str(out), "--no-rrd",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    T = np.array(json.loads((out / "metrics.json").read_text())["calibration"]["single"]["T_ee_us"])
-    from bench.acquire_sim import make_twin
-    from bench.config.scenario import load_scenario
-    from bench.truth import image_error_mm
-
-    scenario = load_scenario(QUICK)
-    T_true = make_twin(scenario).truth.T_ee_us  # the served twin's truth (same seed)
-    # The tolerance of `uscal run` on the same scenario (tests/test_run.py).
-    assert image_error_mm(scenario, T, T_true) <= 0.5
-    assert np.degrees(se3.rotation_angle(T, T_true)) <= 0.6
+    _calibrates_to_the_truth(dataset, out)
 
 
 @pytest.mark.parametrize("controller", [("127.0.0.4",)], indirect=True)
@@ -285,22 +293,8 @@ def test_a_planned_acquisition_on_the_loopback_rig(controller, tmp_path):
     assert r.returncode == 0, r.stderr
     ds, _ = read_dataset(dataset)
     assert len(ds.sweeps) == 15
-    r = uscal(
-        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
-        "--out", str(out), "--no-rrd",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    m = json.loads((out / "metrics.json").read_text())
+    m = _calibrates_to_the_truth(dataset, out)
     assert m["localization"]["n_rejected"] == 0
-    T = np.array(m["calibration"]["single"]["T_ee_us"])
-    from bench.acquire_sim import make_twin
-    from bench.config.scenario import load_scenario
-    from bench.truth import image_error_mm
-
-    scenario = load_scenario(QUICK)
-    T_true = make_twin(scenario).truth.T_ee_us
-    assert image_error_mm(scenario, T, T_true) <= 0.5
-    assert np.degrees(se3.rotation_angle(T, T_true)) <= 0.6
 
 
 @pytest.mark.slow
@@ -315,19 +309,6 @@ def test_a_sequential_acquisition_on_the_loopback_rig(controller, tmp_path):
     assert r.returncode == 0, r.stderr
     ds, _ = read_dataset(dataset)
     assert 6 <= len(ds.sweeps) < 30
-    r = uscal(
-        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
-        "--out", str(out), "--no-rrd",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    T = np.array(json.loads((out / "metrics.json").read_text())["calibration"]["single"]["T_ee_us"])
-    from bench.acquire_sim import make_twin
-    from bench.config.scenario import load_scenario
-    from bench.truth import image_error_mm
-
-    scenario = load_scenario(QUICK)
-    T_true = make_twin(scenario).truth.T_ee_us
-    assert image_error_mm(scenario, T, T_true) <= 0.5
-    assert np.degrees(se3.rotation_angle(T, T_true)) <= 0.8
+    _calibrates_to_the_truth(dataset, out, max_deg=0.8)
     again = uscal("acquire", str(controller.hw), "--out", str(dataset), "--resume", *until)
     assert "starts anew" in _one_line_error(again)

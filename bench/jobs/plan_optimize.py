@@ -98,16 +98,17 @@ def plan_time_s(plan: Sequence[PlannedSweep], robot: RobotConfig, start: Array) 
     return total + len(moves) * robot.settle_s + frames * robot.grab_s
 
 
-def _ordered(chosen: list[tuple[PlanSphere, SweepPose, Array]], start: Array) -> list:
-    """The sweeps sphere by sphere, each sphere's by nearest next start (the move from
-    one sweep's last frame to the next's first is what the order changes)."""
+def _ordered(chosen: list, start: Array) -> list:
+    """The chosen (index, sphere, pose, commands), sphere by sphere, each sphere's by
+    nearest next start (the move from one sweep's last frame to the next's first is what
+    the order changes)."""
     out = []
-    for name in dict.fromkeys(s.name for s, _, _ in chosen):
-        todo = [c for c in chosen if c[0].name == name]
+    for name in dict.fromkeys(c[1].name for c in chosen):
+        todo = [c for c in chosen if c[1].name == name]
         here = start
         while todo:
-            k = int(np.argmin([np.linalg.norm(c[2][0][:3, 3] - here[:3, 3]) for c in todo]))
-            here = todo[k][2][-1]
+            k = int(np.argmin([np.linalg.norm(c[3][0][:3, 3] - here[:3, 3]) for c in todo]))
+            here = todo[k][3][-1]
             out.append(todo.pop(k))
         start = here
     return out
@@ -170,27 +171,36 @@ def optimize_plan(
             "no candidate sweep keeps the sphere in the image and is reachable without a "
             f"collision ({left}); widen the image or lower planning.image_margin_mm"
         )
-    for _ in range(10):  # replace chosen sweeps that fail the frame-by-frame check
+    for _ in range(20):  # replace chosen sweeps that fail the frame-by-frame check
         cands = observations(scenario, coarse, spheres, found, multi)
         least = MIN_SWEEPS_PER_SPHERE if multi else 0
         chosen_idx = select_sweeps(cands, n_sweeps, criterion, M, min_per_target=least)
         bad = {k for k in dict.fromkeys(chosen_idx) if not clear(scenario, twin, found[k][2])}
         if not bad:
+            # In acquisition order, with the transits between sweeps: a transit must
+            # keep the clearance too (the sweep it leads to is replaced if not).
+            ordered = _ordered([(k, *found[k]) for k in chosen_idx], start)
+            planned = []
+            for s in spheres:
+                mine = [o for o in ordered if o[1].name == s.name]
+                if not mine:
+                    continue
+                steps = plan_sweeps(s.name, s.taught, coarse, proto, [o[2] for o in mine])
+                for (k, *_), step in zip(mine, steps, strict=True):
+                    if len(step.approach) and not clear(scenario, twin, step.approach):
+                        bad.add(k)
+                planned += steps
+        if not bad:
             break
         left["unreachable or too close to the tank or phantom"] += len(bad)
         found = [f for k, f in enumerate(found) if k not in bad]
     else:
-        raise UscalError("could not find a plan whose every frame is reachable and clear")
+        raise UscalError("could not find a plan whose every pose is reachable and clear")
     prediction = predict(cands, chosen_idx, M, bias)
-    ordered = _ordered([found[k] for k in chosen_idx], start)
     poses: dict[str, tuple[SweepPose, ...]] = {
-        s.name: tuple(p for t, p, _ in ordered if t.name == s.name) for s in spheres
+        s.name: tuple(o[2] for o in ordered if o[1].name == s.name) for s in spheres
     }
-    planned = [
-        p for s in spheres if poses[s.name]
-        for p in plan_sweeps(s.name, s.taught, coarse, proto, poses[s.name])
-    ]  # fmt: skip
-    check_plan(twin.robot, planned)  # the transits between sweeps too
+    check_plan(twin.robot, planned)  # every pose, transits included, in order
     optimized = PlanChoice(
         {k: v for k, v in poses.items() if v},
         prediction,
