@@ -2,12 +2,12 @@
 robot time (:mod:`calib.planning`), where the arm can actually put the probe.
 
 For each sphere of the plan: teach the nominal pose (emulated, as ``uscal plan`` does),
-lay the scenario's dense candidate set about it (``planning`` section), keep the
-candidates that hold the sphere inside the image with the margin, whose sweep the arm
-reaches without touching the tank or the phantom (the first, middle and last frames of every
-candidate; every frame of the chosen ones, which are replaced if one fails), and choose
-N of them for the information of the joint problem (one sphere: its centre unknown;
-three spheres: the phantom's pose unknown, the CAD layout known). The paper's plan is
+lay the scenario's candidate sweeps about it (:mod:`bench.candidates`: in the image by
+the margin, reachable with the clearance from the tank and the phantom), and choose N of
+them for the information of the joint problem (one sphere: its centre unknown; three
+spheres: the phantom's pose unknown, the layout the CAD's within the print tolerance).
+Every frame of the chosen sweeps, and every transit between them in acquisition order,
+must keep the clearance too; a sweep that does not is replaced. The paper's plan is
 scored the same way beside it, and both are timed as the twin's controller would move
 (trapezoidal profiles at the configured speeds, settle and grab per frame).
 """
