@@ -16,7 +16,7 @@ import os
 import socket
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ from calib.errors import (
 from calib.localization import LocalizerConfig
 from calib.localize import localize_sphere
 from calib.planning import Candidates, bias_covariance, paper_poses
-from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan
+from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan, transit
 from calib.records import Touch
 
 from .config.hw import HwConfig
@@ -265,7 +265,7 @@ def acquire_dataset(
                     say(f"to the taught pose of {current}")
                     robot.move_joints(taught_q[current], f"taught pose of {current}")
                     # Re-plan this sphere's remaining sweeps from the reported taught pose.
-                    T_taught = robot.read().T_base_ee
+                    T_taught = here = robot.read().T_base_ee
                     replanned = {
                         p.pose_id: p
                         for p in plan_sweeps(
@@ -276,7 +276,14 @@ def acquire_dataset(
                             sphere_poses(cfg.protocol, current),
                         )
                     }
+                # The transit from where the arm is: the taught pose, or the last sweep
+                # recorded (a resumed acquisition skips the sweeps it has).
                 sweep_plan = replanned[planned.pose_id]
+                sweep_plan = replace(
+                    sweep_plan,
+                    approach=transit(here, sweep_plan.T_base_ee[0], cfg.protocol.transit_step_deg),
+                )
+                here = sweep_plan.T_base_ee[-1]
                 stamps: list[float] = []
                 (sweep,) = acquire(
                     robot,

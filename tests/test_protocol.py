@@ -154,3 +154,20 @@ def test_an_interrupted_sweep_leaves_a_deferred_imager_clean():
     assert imager.developed == [2] and imager.noted == 0
     (done,) = acquire(Robot(), imager, [sweep])
     assert done.images.shape == (5, 4, 5) and imager.developed == [2, 5]
+
+
+def test_a_large_turn_between_sweeps_passes_through_transits():
+    from calib.protocol import transit
+
+    T0 = se3.make(np.eye(3), [0.3, 0.1, 0.2])
+    T1 = se3.make(se3.matrix_from_euler(np.radians([70.0, 0.0, 60.0])), [0.32, 0.08, 0.25])
+    path = transit(T0, T1, 40.0)
+    angle = np.degrees(se3.rotation_angle(T0, T1))
+    assert len(path) == int(np.ceil(angle / 40.0)) - 1 >= 1
+    stops = [T0, *path, T1]
+    steps = [np.degrees(se3.rotation_angle(a, b)) for a, b in itertools.pairwise(stops)]
+    assert max(steps) <= 40.0 + 1e-9 and np.isclose(sum(steps), angle)
+    assert len(transit(T0, T0 @ se3.make(np.eye(3), [0.01, 0, 0]), 40.0)) == 0
+    # The paper's plan turns at most 35° between sweeps: no transits, as before.
+    plan = plan_sweeps("sphere_1", T0, np.eye(4), ProtocolConfig())
+    assert all(len(s.approach) == 0 for s in plan)
