@@ -40,6 +40,7 @@ __all__ = [
     "SimulatedAcquisition",
     "acquisition_info",
     "coarse_estimate",
+    "dataset_meta",
     "image_meta",
     "make_imager",
     "make_twin",
@@ -213,17 +214,21 @@ def simulate_acquisition(
         if frames_dir is not None:
             scanned = frames_to_file(scanned, frames_dir / f"{name}_{target}.npy")
         sweeps += scanned
-    meta = {
-        "temperature_c": scenario.medium.temperature_c,
-        "assumed_speed_m_s": scenario.imaging.assumed_speed_m_s,
-        "sphere_radius_mm": scenario.phantom.sphere_radius_mm,
-    }
     return SimulatedAcquisition(
-        Dataset(name, tuple(sweeps), meta, tuple(touches)),
+        Dataset(name, tuple(sweeps), dataset_meta(scenario), tuple(touches)),
         coarse,
         {k: np.array(v) for k, v in truth.items()},
         twin.robot.clock_s - clock_start,
     )
+
+
+def dataset_meta(scenario: Scenario) -> dict[str, float]:
+    """The acquisition settings a simulated dataset carries for its reader."""
+    return {
+        "temperature_c": scenario.medium.temperature_c,
+        "assumed_speed_m_s": scenario.imaging.assumed_speed_m_s,
+        "sphere_radius_mm": scenario.phantom.sphere_radius_mm,
+    }
 
 
 def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> AcquisitionInfo:

@@ -21,6 +21,8 @@ from calib.planning import (
 from .config.scenario import Scenario, layout_sigma_mm
 
 __all__ = [
+    "NOT_CLEAR",
+    "OUT_OF_IMAGE",
     "PlanSphere",
     "candidate_sweeps",
     "clear",
@@ -30,6 +32,9 @@ __all__ = [
 ]
 
 Array = NDArray[np.float64]
+#: Why a candidate sweep is left out.
+OUT_OF_IMAGE = "out of the image"
+NOT_CLEAR = "unreachable or too close to the tank or phantom"
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,11 +77,11 @@ def candidate_sweeps(scenario, twin, spheres, coarse, poses_of, check: bool):
     """(sphere, pose, commands) of every candidate that passes the checks, and the
     count left out by each check (the reach and clearance of every candidate's first,
     middle and last frames in one batch)."""
-    out, left = [], {"out of the image": 0, "unreachable or too close to the tank or phantom": 0}
+    out, left = [], {OUT_OF_IMAGE: 0, NOT_CLEAR: 0}
     for s in spheres:
         for pose in poses_of(s):
             if check and not in_image(scenario, pose):
-                left["out of the image"] += 1
+                left[OUT_OF_IMAGE] += 1
                 continue
             out.append((s, pose, sweep_of(scenario, s, coarse, pose)))
     if check and out:
@@ -84,7 +89,7 @@ def candidate_sweeps(scenario, twin, spheres, coarse, poses_of, check: bool):
         need = scenario.planning.clearance_mm * 1e-3
         room = twin.robot.clearances(ends.reshape(-1, 4, 4), need + 1e-3).reshape(len(out), 3)
         keep = np.all(room >= need, axis=1)
-        left["unreachable or too close to the tank or phantom"] += int((~keep).sum())
+        left[NOT_CLEAR] += int((~keep).sum())
         out = [c for c, k in zip(out, keep, strict=True) if k]
     return out, left
 

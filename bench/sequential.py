@@ -33,7 +33,7 @@ from calib.records import Dataset, Sweep
 from twin.imager import SimImager
 from twin.world import Twin
 
-from .acquire_sim import SimulatedAcquisition, coarse_estimate, teach_at
+from .acquire_sim import SimulatedAcquisition, coarse_estimate, dataset_meta, teach_at
 from .candidates import PlanSphere, candidate_sweeps, clear, observations
 from .config.scenario import Scenario
 from .pipeline import axial_scale, image_points
@@ -206,13 +206,8 @@ def acquire_until(
             chooser.update([loc.accepted for loc in locs])
         sweeps += mine
         scans.append(chooser.scan())
-    meta = {
-        "temperature_c": scenario.medium.temperature_c,
-        "assumed_speed_m_s": scenario.imaging.assumed_speed_m_s,
-        "sphere_radius_mm": scenario.phantom.sphere_radius_mm,
-    }
     acq = SimulatedAcquisition(
-        Dataset(name, tuple(sweeps), meta),
+        Dataset(name, tuple(sweeps), dataset_meta(scenario)),
         coarse,
         {k: np.array(v) for k, v in truth.items()},
         twin.robot.clock_s - clock_start,

@@ -265,6 +265,24 @@ class Candidates:
     def __len__(self) -> int:
         return len(self.A)
 
+    def contributions(self) -> tuple[Array, Array, Array]:
+        """Each candidate's AᵀA (n, 6, 6), AᵀB (n, 6, m) and BᵀB (n, m, m)."""
+        return (
+            np.einsum("nij,nik->njk", self.A, self.A),
+            np.einsum("nij,nik->njk", self.A, self.B),
+            np.einsum("nij,nik->njk", self.B, self.B),
+        )
+
+    def sums(self, chosen: Sequence[int]) -> list[Array]:
+        """ΣAᵀA, ΣAᵀB and ΣBᵀB (with the nuisance prior) over the sweeps ``chosen``
+        (repeats count twice)."""
+        k = np.asarray(chosen, dtype=int)
+        A, B = self.A[k], self.B[k]
+        S_BB = np.einsum("nij,nik->jk", B, B)
+        if self.prior is not None:
+            S_BB = S_BB + self.prior
+        return [np.einsum("nij,nik->jk", A, A), np.einsum("nij,nik->jk", A, B), S_BB]
+
     @classmethod
     def build(
         cls,
@@ -369,13 +387,9 @@ def select_sweeps(
         raise ValueError(f"n = {n}: a plan needs at least one sweep")
     M = np.eye(6) if M is None else np.asarray(M, dtype=float)
     # Per candidate: its contributions to the three sums.
-    cAA = np.einsum("nij,nik->njk", cands.A, cands.A)
-    cAB = np.einsum("nij,nik->njk", cands.A, cands.B)
-    cBB = np.einsum("nij,nik->njk", cands.B, cands.B)
+    cAA, cAB, cBB = cands.contributions()
     ridge = 1e-9 * float(np.trace(cAA.mean(axis=0)))  # the first picks: never singular
-    m = cands.B.shape[2]
-    prior = np.zeros((m, m)) if cands.prior is None else cands.prior
-    sums = [np.zeros((6, 6)), np.zeros((6, m)), prior.copy()]
+    sums = cands.sums([])
     targets = np.unique(cands.target)
     if min_per_target * len(targets) > n:
         raise ValueError(f"{n} sweeps cannot give {len(targets)} targets {min_per_target} each")
@@ -441,21 +455,12 @@ def next_sweep(
     mode's step: the sweeps actually localized, not the ones planned), none of
     ``exclude`` (tried already, whether they were localized or not)."""
     M = np.eye(6) if M is None else np.asarray(M, dtype=float)
-    k = np.asarray(chosen, dtype=int)
-    m = cands.B.shape[2]
-    prior = np.zeros((m, m)) if cands.prior is None else cands.prior
-    S_AA = np.einsum("nij,nik->jk", cands.A[k], cands.A[k])
-    S_AB = np.einsum("nij,nik->jk", cands.A[k], cands.B[k])
-    S_BB = np.einsum("nij,nik->jk", cands.B[k], cands.B[k]) + prior
-    cAA = np.einsum("nij,nik->njk", cands.A, cands.A)
-    H = _information(
-        S_AA + cAA,
-        S_AB + np.einsum("nij,nik->njk", cands.A, cands.B),
-        S_BB + np.einsum("nij,nik->njk", cands.B, cands.B),
-    )
+    S_AA, S_AB, S_BB = cands.sums(chosen)
+    cAA, cAB, cBB = cands.contributions()
+    H = _information(S_AA + cAA, S_AB + cAB, S_BB + cBB)
     ridge = 1e-9 * float(np.trace(cAA.mean(axis=0)))
     # With fewer than a handful of sweeps only D is defined; then the criterion asked for.
-    s = _score(H, criterion if len(k) >= 3 else "D", M, ridge)
+    s = _score(H, criterion if len(chosen) >= 3 else "D", M, ridge)
     s[np.asarray(list(exclude), dtype=int)] = -np.inf
     if not np.isfinite(s).any():
         raise ValueError("every candidate has been tried")
@@ -491,14 +496,7 @@ def predict(
     """The prediction of the sweeps ``chosen`` (indices into ``cands``, repeats
     allowed), with the covariance ``bias`` of a session's shared offset added
     (:func:`bias_covariance`)."""
-    k = np.asarray(chosen, dtype=int)
-    A, B = cands.A[k], cands.B[k]
-    S_AA = np.einsum("nij,nik->jk", A, A)
-    S_AB = np.einsum("nij,nik->jk", A, B)
-    S_BB = np.einsum("nij,nik->jk", B, B)
-    if cands.prior is not None:
-        S_BB = S_BB + cands.prior
-    H = _information(S_AA, S_AB, S_BB)
+    H = _information(*cands.sums(chosen))
     w = np.linalg.eigvalsh(0.5 * (H + H.T))
     cov = np.linalg.pinv(H, hermitian=True)
     if bias is not None:

@@ -37,7 +37,7 @@ from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
 from ..acquire_sim import coarse_estimate, make_twin, teach_at
-from ..candidates import PlanSphere, candidate_sweeps, clear, observations
+from ..candidates import NOT_CLEAR, PlanSphere, candidate_sweeps, clear, observations
 from ..config.scenario import Scenario
 from ..pipeline import image_points
 from ..sessions import stage_rngs
@@ -192,7 +192,7 @@ def optimize_plan(
                 planned += steps
         if not bad:
             break
-        left["unreachable or too close to the tank or phantom"] += len(bad)
+        left[NOT_CLEAR] += len(bad)
         found = [f for k, f in enumerate(found) if k not in bad]
     else:
         raise UscalError("could not find a plan whose every pose is reachable and clear")
