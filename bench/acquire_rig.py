@@ -27,6 +27,7 @@ from calib.dh import NOMINAL_TABLES, forward_kinematics
 from calib.errors import (
     FrameGrabberError,
     RobotConnectionError,
+    RobotSetupError,
     RobotStoppedError,
     UscalError,
 )
@@ -177,6 +178,7 @@ def acquire_dataset(
     say: Callable[[str], None] = lambda _m: None,
     operator: Operator | None = None,
     until: StopRule | None = None,
+    set_tcp_zero: bool = False,
 ) -> AcquisitionSummary:
     """Run the protocol on the rig of ``cfg`` into the dataset directory ``out``.
 
@@ -186,7 +188,9 @@ def acquire_dataset(
     sequential acquisition — about each sphere, the next sweep is the one of the plan
     (``protocol.plan``, or the paper's) that adds most to the sweeps localized so far,
     until the predicted 1 σ of ``T_ee_us`` is within the rule's limits
-    (:mod:`bench.sequential`).
+    (:mod:`bench.sequential`). ``set_tcp_zero``: a controller whose active TCP offset is
+    not zero has it set to zero (else it is refused before anything moves, and a dataset
+    directory this call created is removed again).
     """
     if until is not None and resume:
         raise UscalError(
@@ -250,7 +254,18 @@ def acquire_dataset(
         raise UscalError("acquisition cancelled before any motion")
     done = 0
     try:
-        with URRobot(cfg.robot) as robot, FrameGrabber(cfg.grabber) as grabber:
+        try:
+            robot = URRobot(cfg.robot, set_tcp_zero=set_tcp_zero)
+        except RobotSetupError:
+            writer.discard_if_empty()
+            raise
+        if robot.tcp_offset_cleared is not None:
+            tcp = robot.tcp_offset_cleared
+            say(
+                f"the controller's TCP offset was {np.round(tcp[:3] * 1e3, 3).tolist()} mm, "
+                f"{np.round(np.degrees(tcp[3:]), 3).tolist()}°: set to zero (--set-tcp-zero)"
+            )
+        with robot, FrameGrabber(cfg.grabber) as grabber:
             report("acquire sweeps", skipped, len(plan))
             if until is not None:
                 for target in spheres:

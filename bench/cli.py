@@ -16,10 +16,12 @@ import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 from rich.console import Console
 from rich.logging import RichHandler
 
 from calib.errors import UscalError
+from calib.plus_import import import_plus
 from twin.ur_controller import ControllerFaults
 
 from .acquire_rig import acquire_dataset, console_operator, dashboard_operator
@@ -31,6 +33,7 @@ from .config.scenario import load_scenario
 from .console import (
     print_cached_run,
     print_evaluation,
+    print_import,
     print_plan,
     print_plan_comparison,
     print_reconstruction,
@@ -85,7 +88,8 @@ def _cmd_plan(args: argparse.Namespace, console: Console) -> int:
 def _cmd_twin_serve(args: argparse.Namespace, console: Console) -> int:
     scenario = load_scenario(args.scenario, args.overrides)
     faults = ControllerFaults(args.fault_drop_at_move, args.fault_protective_stop_at_move)
-    controller = serve_twin(scenario, args.host, args.frames, args.hw_config, faults)
+    tcp = [*(v * 1e-3 for v in args.tcp_offset[:3]), *np.radians(args.tcp_offset[3:])]
+    controller = serve_twin(scenario, args.host, args.frames, args.hw_config, faults, tcp)
     console.print(
         f"loopback UR controller (the twin of {scenario.source}) on {args.host}: RTDE 30004, "
         f"dashboard 29999, script 30003"
@@ -189,8 +193,9 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
     with progress_bars(console) as bars, reporting(bars.update):
         say = lambda msg: bars.console.print(f"[dim]{msg}[/dim]")  # noqa: E731
         summary = acquire_dataset(
-            cfg, Path(args.out), args.resume, args.dry_run, confirm, say, operator, _until(args)
-        )
+            cfg, Path(args.out), args.resume, args.dry_run, confirm, say, operator, _until(args),
+            args.set_tcp_zero,
+        )  # fmt: skip
     if summary.dry_run:
         console.print(f"dry run: {summary.planned} sweeps planned and checked; nothing moved")
     else:
@@ -214,6 +219,24 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
         directory.write(settings, recorded_run_result(result, settings))
     print_recorded(result.metrics, console)
     print_written(out, directory.written, console)
+    return 0
+
+
+def _cmd_import_plus(args: argparse.Namespace, console: Console) -> int:
+    with console.status(f"importing {len(args.files)} PLUS file(s)"):
+        summary = import_plus(
+            args.files,
+            args.pose_transform,
+            args.target,
+            args.out,
+            args.radius_mm,
+            None if args.no_speed_correction else args.temperature_c,
+            tuple(args.spacing_mm) if args.spacing_mm else None,
+            args.frames_per_sweep,
+            args.max_turn_deg,
+            args.assumed_speed_m_s,
+        )
+    print_import(summary, console)
     return 0
 
 
@@ -276,6 +299,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "sweep": _cmd_sweep,
     }
     try:
+        if args.command == "import":
+            return _cmd_import_plus(args, console)
         if args.command == "twin":
             if args.twin_command == "serve":
                 return _cmd_twin_serve(args, console)

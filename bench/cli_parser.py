@@ -168,6 +168,12 @@ def parser() -> argparse.ArgumentParser:
         "--yes", action="store_true", help="do not ask for confirmation before the first motion"
     )
     acquire.add_argument(
+        "--set-tcp-zero",
+        action="store_true",
+        help="if the controller's active TCP offset is not zero, set it to zero (uscal's "
+        "poses are the flange's); without it such a controller is refused before any motion",
+    )
+    acquire.add_argument(
         "--touches",
         nargs="?",
         const="console",
@@ -301,6 +307,15 @@ def parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="also write a hw config for `uscal acquire` against this controller",
     )
+    serve.add_argument(
+        "--tcp-offset",
+        type=float,
+        nargs=6,
+        default=[0.0] * 6,
+        metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
+        help="the installation's active TCP offset (mm, and a rotation vector in degrees; "
+        "default zero): reported poses and linear moves are then of the TCP",
+    )
     serve.add_argument("--fault-drop-at-move", type=_non_negative_int, default=0, metavar="N")
     serve.add_argument(
         "--fault-protective-stop-at-move", type=_non_negative_int, default=0, metavar="N"
@@ -311,6 +326,62 @@ def parser() -> argparse.ArgumentParser:
     _add_scenario_args(export)
     export.add_argument("outdir", help="output directory (created atomically)")
     export.add_argument("--force", action="store_true", help="replace an existing OUTDIR")
+
+    imports = sub.add_parser("import", help="turn other tools' recordings into a uscal dataset")
+    import_sub = imports.add_subparsers(dest="import_command", required=True)
+    plus = import_sub.add_parser(
+        "plus",
+        help="PLUS sequence metafiles (.mha, as PLUS and 3D Slicer write them): one linear "
+        "sweep of a sphere per file (or per --frames-per-sweep frames), the probe's pose "
+        "from a per-frame transform (a tracked probe: the tracker plays the robot base)",
+    )
+    plus.add_argument("files", nargs="+", metavar="FILE.mha", help="PLUS sequence files")
+    plus.add_argument(
+        "--pose-transform",
+        required=True,
+        metavar="NAME",
+        help="per-frame transform giving the probe's pose, e.g. ProbeToTrackerTransform "
+        "(T_tracker_probe; the calibration is then T_probe_image)",
+    )
+    plus.add_argument(
+        "--target", default="sphere_1", help="what the sweeps image (default sphere_1)"
+    )
+    plus.add_argument("--out", required=True, help="new dataset directory")
+    plus.add_argument(
+        "--radius-mm", type=_positive_mm, required=True, help="the sphere's CAD radius (mm)"
+    )
+    speed = plus.add_mutually_exclusive_group(required=True)
+    speed.add_argument(
+        "--temperature-c",
+        type=float,
+        metavar="C",
+        help="the water's temperature: the axial spacing is corrected from the scanner's "
+        "assumed speed of sound to water's",
+    )
+    speed.add_argument(
+        "--no-speed-correction",
+        action="store_true",
+        help="the medium's speed of sound is the scanner's: no axial correction",
+    )
+    plus.add_argument(
+        "--assumed-speed-m-s", type=_positive_mm, default=1540.0, metavar="C",
+        help="the scanner's assumed speed of sound (default 1540)",
+    )  # fmt: skip
+    plus.add_argument(
+        "--spacing-mm",
+        nargs=2,
+        type=_positive_mm,
+        metavar=("SX", "SY"),
+        help="pixel spacing (columns, rows); needed when the files hold PLUS's default 1 1",
+    )
+    plus.add_argument(
+        "--frames-per-sweep", type=_positive_int, metavar="N",
+        help="split each file into sweeps of N frames (default: one sweep per file)",
+    )  # fmt: skip
+    plus.add_argument(
+        "--max-turn-deg", type=_positive_mm, default=1.0, metavar="DEG",
+        help="refuse a sweep whose probe turns more than this (default 1°)",
+    )  # fmt: skip
 
     image = sub.add_parser(
         "image", help="render a gallery of B-mode frames at the paper's representative poses"

@@ -23,6 +23,7 @@ from rich.table import Table
 
 from calib import se3
 from calib.evaluate import PaperTable, table_iii, tables_i_ii
+from calib.plus_import import ImportSummary
 
 from .config.scenario import Scenario
 
@@ -430,3 +431,16 @@ def print_cached_run(what: str, n: int, result, files: Sequence[Path], console) 
         f"{result.failed} failed, in {result.seconds:.0f} s"
     )
     console.print(f"wrote {', '.join(str(f) for f in files[:-1])} and {files[-1]}")
+
+
+def print_import(summary: ImportSummary, console: Console) -> None:
+    """What ``uscal import plus`` wrote: each sweep, the frames skipped and why."""
+    for line in summary.sweep_lines:
+        console.print(line)
+    skipped = sum(summary.skipped.values())
+    why = ", ".join(f"{n} with {reason}" for reason, n in sorted(summary.skipped.items()))
+    console.print(
+        f"wrote {summary.directory}: {summary.sweeps} sweeps, {summary.frames} frames; "
+        + (f"skipped {skipped} frames ({why})" if skipped else "no frame skipped")
+        + f". Next: uscal calibrate {summary.directory} --markers 1"
+    )

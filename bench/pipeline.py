@@ -112,14 +112,15 @@ class MethodInputs:
     """What the method takes besides the sweeps: the CAD sphere radius (m; the only
     prior on a sphere), the localizer's settings, the images' axial scale, the CAD
     sphere centres (phantom frame, m; for multi-marker fits and the folds' references),
-    the coarse ``T_ee_us`` to start from, the alternation's limit and the printed
+    the coarse ``T_ee_us`` to check the start against (None: none known, e.g. a tracked
+    probe's import), the alternation's limit and the printed
     layout's prior (1 σ per axis, mm; 0 takes the CAD layout as exact)."""
 
     radius: float
     localizer: LocalizerConfig
     axial_scale: float
     cad_centres: Mapping[str, Array]
-    T_coarse: Array
+    T_coarse: Array | None
     max_alternations: int
     layout_sigma_mm: float = 0.0
 
@@ -130,7 +131,7 @@ class MethodInputs:
         radius_mm: float,
         axial_scale: float,
         cad_centres: Mapping[str, Array],
-        T_coarse: Array,
+        T_coarse: Array | None,
     ) -> MethodInputs:
         """The inputs with the localizer, alternation and layout settings of a scenario
         (a twin's own, or the settings ``uscal calibrate`` runs a recorded dataset with)."""

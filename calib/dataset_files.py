@@ -11,10 +11,12 @@ A dataset is a directory:
 ``sweeps/<target>_pose<NN>.mha``
     One PLUS sequence metafile per sweep (opens in 3D Slicer's Sequences module and in
     PLUS): the frames as one ``MET_UCHAR`` volume (columns, rows, frames), the pixel
-    spacing in millimetres, ``UltrasoundImageOrientation = MF`` (columns lateral, rows
-    away from the transducer) and per frame ``EEToBaseTransform`` (the controller's
-    flange pose ``T_base_ee``, row-major, millimetres), its status, a timestamp and the
-    reported joint angles (``JointAnglesRad``, radians).
+    spacing in millimetres, ``UltrasoundImageOrientation = MFA`` (columns toward the
+    transducer's marked side, rows away from it; the third letter PLUS writes for a
+    sequence), ``Kinds = domain domain list`` and per frame ``EEToBaseTransform`` (the
+    controller's flange pose ``T_base_ee``, row-major, millimetres, as PLUS writes its
+    ``<From>To<To>Transform`` fields), its status, a timestamp and, from a robot, the
+    reported joint angles (``JointAnglesRad``, radians; absent for a tracked probe).
 
 Writing is atomic per file (write to a temporary name, then rename), and the manifest
 is rewritten after each sweep: a crash loses at most the sweep in progress, and an
@@ -51,7 +53,9 @@ __all__ = [
     "VERSION",
     "AcquisitionInfo",
     "DatasetWriter",
+    "Metafile",
     "read_dataset",
+    "read_metafile",
     "read_sequence",
     "write_sequence",
 ]
@@ -128,6 +132,7 @@ def write_sequence(path: str | os.PathLike[str], sweep: Sweep, timestamps: Array
     images = np.ascontiguousarray(sweep.images, dtype=np.uint8)
     n, H, W = images.shape
     sx, sy = (_mm_text(v) for v in sweep.spacing)
+    known_q = np.all(np.isfinite(np.asarray(sweep.q, dtype=float)), axis=1)
     lines = [
         "ObjectType = Image",
         "NDims = 3",
@@ -140,9 +145,10 @@ def write_sequence(path: str | os.PathLike[str], sweep: Sweep, timestamps: Array
         "ElementNumberOfChannels = 1",
         f"ElementSpacing = {sx} {sy} 1",
         "ElementType = MET_UCHAR",
+        "Kinds = domain domain list",
         "Offset = 0 0 0",
         "TransformMatrix = 1 0 0 0 1 0 0 0 1",
-        "UltrasoundImageOrientation = MF",
+        "UltrasoundImageOrientation = MFA",
         "UltrasoundImageType = BRIGHTNESS",
         f"uscal_Target = {sweep.target}",
         f"uscal_PoseId = {int(sweep.pose_id)}",
@@ -152,7 +158,7 @@ def write_sequence(path: str | os.PathLike[str], sweep: Sweep, timestamps: Array
         lines += [
             f"{p}EEToBaseTransform = {_pose_text(np.asarray(sweep.T_base_ee[j], float))}",
             f"{p}EEToBaseTransformStatus = OK",
-            f"{p}JointAnglesRad = {_fmt(sweep.q[j])}",
+            *([f"{p}JointAnglesRad = {_fmt(sweep.q[j])}"] if known_q[j] else []),
             f"{p}Timestamp = {float(timestamps[j])!r}",
             f"{p}ImageStatus = OK",
         ]
@@ -215,16 +221,71 @@ def _flange_pose(path: Path, key: str, text: str | None) -> Array:
     return _rigid(path, key, T)
 
 
-def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
-    """Read a sweep written by :func:`write_sequence` (or by PLUS, with the same frame
-    fields); returns the sweep and its timestamps (s).
+@dataclass(frozen=True)
+class Metafile:
+    """A sequence metafile as read: its header fields (frame fields included, as
+    ``Seq_FrameNNNN_<name>``) and its frames turned to ``MF`` (columns toward the marked
+    side, rows away from the transducer), ``(n, H, W)`` uint8."""
+
+    path: Path
+    fields: dict[str, str]
+    images: NDArray[np.uint8]
+
+    def frame_field(self, j: int, name: str, default: str | None = None) -> str | None:
+        return self.fields.get(f"Seq_Frame{j:04d}_{name}", default)
+
+    def transform(self, j: int, name: str) -> Array:
+        """Frame ``j``'s transform ``name`` (PLUS: row-major, mm), metres; checked rigid."""
+        key = f"Seq_Frame{j:04d}_{name}"
+        return _flange_pose(self.path, key, self.fields.get(key))
+
+    def timestamp(self, j: int) -> float:
+        """Frame ``j``'s timestamp (s; NaN when not recorded)."""
+        key = f"Seq_Frame{j:04d}_Timestamp"
+        return float(_numbers(self.path, key, self.fields.get(key, "nan"), 1)[0])
+
+    def spacing_mm(self) -> tuple[float, float]:
+        """The frames' pixel spacing (columns, rows) as the header gives it, mm."""
+        v = _numbers(self.path, "ElementSpacing", self.fields.get("ElementSpacing", "1 1 1"), 3)
+        if not np.all(v[:2] > 0):
+            raise DatasetError(f"{self.path}: ElementSpacing must be positive")
+        return float(v[0]), float(v[1])
+
+    def frame_names(self) -> list[str]:
+        """The names of the per-frame fields of frame 0 (``ProbeToTrackerTransform`` …)."""
+        p = "Seq_Frame0000_"
+        return [k[len(p) :] for k in self.fields if k.startswith(p)]
+
+
+def _mirror_to_mf(path: Path, orientation: str) -> tuple[bool, bool]:
+    """Which axes of a frame to reverse to turn ``orientation`` into ``MF``: (columns,
+    rows).
+
+    PLUS writes two letters or, for a sequence, three (``MFA`` is ``MF``): the first says
+    where the image's x axis points (``M`` the transducer's marked side, ``U`` the other),
+    the second its y axis (``F`` away from the transducer, ``N`` toward it), the third
+    the slice axis within a frame (``A``/``D``), which a stack of 2-D frames does not
+    have: the frames are time, never reversed (as PLUS reads them)."""
+    o = orientation.upper()
+    if len(o) in (2, 3) and o[0] in "MU" and o[1] in "FN" and o[2:] in ("", "A", "D"):
+        return o[0] == "U", o[1] == "N"
+    raise DatasetError(
+        f"{path}: UltrasoundImageOrientation = {orientation!r}; this reader takes B-mode "
+        "frames with columns lateral and rows axial: MF, MN, UF, UN, with or without the "
+        "sequence's third letter (A or D); transposed (RF) orientations are not supported"
+    )
+
+
+def read_metafile(path: str | os.PathLike[str]) -> Metafile:
+    """Read a sequence metafile as PLUS and uscal write it: a stack of single-channel
+    ``MET_UCHAR`` frames, raw or zlib-compressed, in any B-mode orientation.
 
     Raises
     ------
     DatasetError
-        Naming the file: not a metafile, unsupported element type or layout, a missing
-        or malformed frame field, a frame whose transform status is not OK, or fewer
-        (or more) image bytes than the header announces.
+        Naming the file: not a metafile, no images (a tracking-only recording), an
+        unsupported element type, channel count or orientation, or fewer (or more) image
+        bytes than the header announces.
     """
     path = Path(path)
     try:
@@ -233,26 +294,34 @@ def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
         raise DatasetError(f"{path}: cannot open ({e.strerror})") from None
     with f:
         fields, _ = _read_header(path, f)
-        expect = {
-            "ObjectType": "Image",
-            "NDims": "3",
-            "ElementType": "MET_UCHAR",
-            "ElementDataFile": "LOCAL",
-        }
-        for key, value in expect.items():
+        for key, value in {"ObjectType": "Image", "NDims": "3"}.items():
             if fields.get(key) != value:
                 raise DatasetError(
-                    f"{path}: {key} = {fields.get(key)!r}; this reader needs {value!r}"
+                    f"{path}: {key} = {fields.get(key)!r}; this reader needs {value!r} "
+                    "(a stack of 2-D frames)"
                 )
+        dims = _numbers(path, "DimSize", fields.get("DimSize"), 3)
+        if fields.get("ElementType") == "MET_OTHER" or np.any(dims[:2] == 0):
+            raise DatasetError(
+                f"{path}: holds no images (ElementType = {fields.get('ElementType')}, "
+                f"DimSize = {' '.join(fields.get('DimSize', '').split())}): a tracking-only "
+                "recording; calibration needs the B-mode frames"
+            )
+        if fields.get("ElementType") != "MET_UCHAR":
+            raise DatasetError(
+                f"{path}: ElementType = {fields.get('ElementType')!r}; this reader takes "
+                "8-bit grey frames (MET_UCHAR)"
+            )
+        if fields.get("ElementDataFile") != "LOCAL":
+            raise DatasetError(
+                f"{path}: ElementDataFile = {fields.get('ElementDataFile')!r}; this reader "
+                "needs the frames in the same file ('LOCAL')"
+            )
         if fields.get("ElementNumberOfChannels", "1") != "1":
             raise DatasetError(f"{path}: only single-channel (grey) images are supported")
-        orientation = fields.get("UltrasoundImageOrientation", "MF")
-        if orientation not in ("MF", "UF"):
-            raise DatasetError(
-                f"{path}: UltrasoundImageOrientation = {orientation!r}; rows must run away "
-                "from the transducer (MF or UF)"
-            )
-        dims = _numbers(path, "DimSize", fields.get("DimSize"), 3)
+        flip_columns, flip_rows = _mirror_to_mf(
+            path, fields.get("UltrasoundImageOrientation", "MF")
+        )
         W, H, n = (int(v) for v in dims)
         if not (
             np.all(dims == np.round(dims))
@@ -261,9 +330,6 @@ def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
             and 0 < n <= _MAX_FRAMES
         ):
             raise DatasetError(f"{path}: DimSize = {fields['DimSize']!r} is not a frame stack")
-        spacing = _numbers(path, "ElementSpacing", fields.get("ElementSpacing"), 3)
-        if not np.all(spacing[:2] > 0):
-            raise DatasetError(f"{path}: ElementSpacing must be positive")
         size = W * H * n
         if fields.get("CompressedData", "False").lower() == "true":
             data = _decompress(path, f, size)
@@ -276,16 +342,39 @@ def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
                 + ("truncated" if len(data) < size else "longer than announced")
             )
     images = np.frombuffer(data, dtype=np.uint8).reshape(n, H, W)
-    if orientation == "UF":  # lateral axis flipped: mirror to MF
+    if flip_columns:
         images = images[:, :, ::-1]
-    T, q, t = np.empty((n, 4, 4)), np.empty((n, 6)), np.empty(n)
+    if flip_rows:
+        images = images[:, ::-1, :]
+    return Metafile(path, fields, np.ascontiguousarray(images))
+
+
+def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
+    """Read a sweep written by :func:`write_sequence` (or by PLUS, with the same frame
+    fields); returns the sweep and its timestamps (s). Joint angles are optional (a
+    tracked probe has none: NaN).
+
+    Raises
+    ------
+    DatasetError
+        Naming the file: see :func:`read_metafile`; also a missing or malformed frame
+        field, or a frame whose transform status is not OK.
+    """
+    meta = read_metafile(path)
+    path, fields, images = meta.path, meta.fields, meta.images
+    n = len(images)
+    spacing = _numbers(path, "ElementSpacing", fields.get("ElementSpacing"), 3)
+    if not np.all(spacing[:2] > 0):
+        raise DatasetError(f"{path}: ElementSpacing must be positive")
+    T, q, t = np.empty((n, 4, 4)), np.full((n, 6), np.nan), np.empty(n)
     for j in range(n):
         p = f"Seq_Frame{j:04d}_"
         status = fields.get(f"{p}EEToBaseTransformStatus", "OK")
         if status != "OK":
             raise DatasetError(f"{path}: frame {j}: EEToBaseTransformStatus = {status}")
         T[j] = _flange_pose(path, f"{p}EEToBaseTransform", fields.get(f"{p}EEToBaseTransform"))
-        q[j] = _numbers(path, f"{p}JointAnglesRad", fields.get(f"{p}JointAnglesRad"), 6)
+        if f"{p}JointAnglesRad" in fields:
+            q[j] = _numbers(path, f"{p}JointAnglesRad", fields[f"{p}JointAnglesRad"], 6)
         t[j] = _numbers(path, f"{p}Timestamp", fields.get(f"{p}Timestamp", "nan"), 1)[0]
     target = fields.get("uscal_Target", path.stem)
     try:
@@ -294,7 +383,7 @@ def read_sequence(path: str | os.PathLike[str]) -> tuple[Sweep, Array]:
         raise DatasetError(f"{path}: uscal_PoseId = {fields['uscal_PoseId']!r}") from None
     sx_text, sy_text = fields["ElementSpacing"].split()[:2]
     spacing_m = (_metres(sx_text), _metres(sy_text))
-    return Sweep(target, pose_id, np.array(images), spacing_m, q, T), t
+    return Sweep(target, pose_id, images, spacing_m, q, T), t
 
 
 def _decompress(path: Path, f, size: int) -> bytes:
@@ -323,7 +412,9 @@ def _decompress(path: Path, f, size: int) -> bytes:
 class AcquisitionInfo:
     """What a reader needs besides the frames and poses (the manifest's settings).
 
-    ``T_ee_us_coarse`` (4, 4) metres: the holder's CAD estimate; ``landmarks`` name ->
+    ``T_ee_us_coarse`` (4, 4) metres: the holder's CAD estimate (None: none known, as
+    for an imported tracked probe; the calibration's closed-form start needs none);
+    ``landmarks`` name ->
     (3,) metres in the phantom's CAD frame (``sphere_i``, ``vertex_j``);
     ``sphere_radius_mm`` the CAD radius; ``temperature_c`` the medium's;
     ``assumed_speed_m_s`` the scanner's; ``sound_speed_correction`` whether the axial
@@ -333,7 +424,7 @@ class AcquisitionInfo:
     not recorded, the whole image); ``extra`` anything else.
     """
 
-    T_ee_us_coarse: Array
+    T_ee_us_coarse: Array | None
     landmarks: dict[str, Array]
     sphere_radius_mm: float
     temperature_c: float
@@ -353,9 +444,10 @@ class AcquisitionInfo:
             "assumed_speed_m_s": float(self.assumed_speed_m_s),
             "sound_speed_correction": bool(self.sound_speed_correction),
             "sphere_radius_mm": float(self.sphere_radius_mm),
-            "T_ee_us_coarse_mm": _matrix_mm(self.T_ee_us_coarse),
-            "landmarks_mm": {k: [_mm(x) for x in v] for k, v in self.landmarks.items()},
         }
+        if self.T_ee_us_coarse is not None:
+            out["T_ee_us_coarse_mm"] = _matrix_mm(self.T_ee_us_coarse)
+        out["landmarks_mm"] = {k: [_mm(x) for x in v] for k, v in self.landmarks.items()}
         if self.stylus_tip_cad_mm is not None:
             out["stylus_tip_cad_mm"] = [float(v) for v in self.stylus_tip_cad_mm]
         if self.target_depth_mm is not None:
@@ -412,6 +504,7 @@ class DatasetWriter:
             self._touches = list(old.get("touches") or [])
         elif self.directory.exists() and any(self.directory.iterdir()):
             raise DatasetError(f"{self.directory}: directory exists and is not a dataset")
+        self._created = not self.directory.exists()
         (self.directory / "sweeps").mkdir(parents=True, exist_ok=True)
         self._head = {
             "format": FORMAT,
@@ -467,6 +560,17 @@ class DatasetWriter:
                 }
             )
         self._write_manifest()
+
+    def discard_if_empty(self) -> None:
+        """Remove the dataset again if it holds no sweep and no touch yet and this writer
+        created its directory (an acquisition refused before its first sweep leaves
+        nothing behind)."""
+        if self._sweeps or self._touches or not self._created:
+            return
+        (self.directory / MANIFEST).unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            (self.directory / "sweeps").rmdir()
+            self.directory.rmdir()
 
     def finish(self) -> None:
         """Mark the acquisition complete."""
@@ -585,8 +689,11 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
             raise DatasetError(
                 f"{path}: acquisition.target_depth_mm = {depth} is out of range (0, 200]"
             )
+    coarse = acq.get("T_ee_us_coarse_mm")
     return AcquisitionInfo(
-        T_ee_us_coarse=_matrix(path, "acquisition.T_ee_us_coarse_mm", acq.get("T_ee_us_coarse_mm")),
+        T_ee_us_coarse=(
+            None if coarse is None else _matrix(path, "acquisition.T_ee_us_coarse_mm", coarse)
+        ),
         landmarks={
             str(k): np.array(
                 [_metres(x) for x in _vector(path, f"acquisition.landmarks_mm.{k}", v, 3, raw=True)]

@@ -89,6 +89,11 @@ class RobotConnectionError(UscalError):
     """The robot controller cannot be reached, or the connection was lost."""
 
 
+class RobotSetupError(UscalError):
+    """The controller is set up in a way the method cannot use (e.g. a non-zero TCP
+    offset, which makes every reported pose the TCP's instead of the flange's)."""
+
+
 class RobotStoppedError(UscalError):
     """The robot stopped on its own: a protective or emergency stop, or its program ended."""
 

@@ -125,14 +125,26 @@ class PlanningConfig:
         },
     )
     localization_noise_mm: tuple[float, float, float] = field(
-        default=(0.015, 0.04, 0.055),
+        default=(0.018, 0.04, 0.055),
         metadata={
             "doc": "1 σ of a localized centre along the image's lateral, axial and "
             "elevational axes, independent between sweeps, which a plan is chosen for "
-            "(the twin's refined localizer on quick.yaml, scatter within a session: "
-            "0.014, 0.039, 0.054 mm).",
+            "(the twin's refined localizer on quick.yaml, scatter within a session over "
+            "16 seeds: 0.017, 0.036, 0.057 mm with the paper's plan, 0.019, 0.042, "
+            "0.051 mm with an optimized 45-sweep plan).",
             "len": 3,
             "gt": 0,
+            "le": 5,
+        },
+    )
+    pose_noise_mm: float = field(
+        default=0.007,
+        metadata={
+            "doc": "1 σ per axis of where a sweep's reported flange pose puts the sphere, "
+            "independent between sweeps, added to the localization noise: joint "
+            "repeatability and encoder noise through the arm (the twin's 0.002° and "
+            "0.001°: 0.007 mm, measured; scale it with a rig's repeatability).",
+            "ge": 0,
             "le": 5,
         },
     )
@@ -150,7 +162,9 @@ class PlanningConfig:
     )
 
     def noise(self) -> NoiseModel:
-        return NoiseModel(*self.localization_noise_mm)
+        """Each sweep's centre noise in the image frame: the localizer's and the arm's
+        (isotropic, so the same in every frame)."""
+        return NoiseModel(*np.hypot(self.localization_noise_mm, self.pose_noise_mm))
 
     def candidates(self) -> list[SweepPose]:
         """The dense candidate set: every angle, lateral and axial shift of the grid."""
@@ -244,6 +258,12 @@ class NoiseModel:
     axial_mm: float
     elevation_mm: float
 
+    def covariance(self, R_base_us: Array) -> Array:
+        """(n, 3, 3) covariance (mm²) of a centre in the base frame, for images at
+        orientations ``R_base_us`` (n, 3, 3)."""
+        var = np.square([self.lateral_mm, self.axial_mm, self.elevation_mm])
+        return np.einsum("nij,j,nkj->nik", R_base_us, var, R_base_us)
+
     def whitening(self, R_base_us: Array) -> Array:
         """W (n, 3, 3) with WᵀW the inverse covariance of a centre in the base frame,
         for images at orientations ``R_base_us`` (n, 3, 3)."""
@@ -255,12 +275,18 @@ class NoiseModel:
 class Candidates:
     """Sweeps to choose from, as observations: the whitened Jacobians ``A`` (n, 3, 6)
     with respect to θ and ``B`` (n, 3, m) with respect to the nuisance parameters (the
-    targets' positions, or the phantom's pose), and each sweep's target."""
+    targets' positions, or the phantom's pose), and each sweep's target. ``G``, ``D`` are
+    the same Jacobians unwhitened (mm) and ``S`` (n, 3, 3) each centre's noise
+    covariance in the base frame (mm²): what :func:`predict` needs for the spread of
+    the fit :mod:`calib.calibrate` makes, which weighs every axis alike."""
 
     A: Array
     B: Array
     target: NDArray[np.int_]
     prior: Array | None = None  # (m, m) prior information on the nuisance parameters
+    G: Array | None = None
+    D: Array | None = None
+    S: Array | None = None
 
     def __len__(self) -> int:
         return len(self.A)
@@ -303,15 +329,17 @@ class Candidates:
         T = np.asarray(T_ref_base_ee, dtype=float)
         X = np.asarray(T_ee_us, dtype=float)
         G = jacobians(T, X, p_us)
-        W = noise.whitening(T[:, :3, :3] @ X[:3, :3])
+        R = T[:, :3, :3] @ X[:3, :3]
+        W = noise.whitening(R)
         A = W @ G
+        S = noise.covariance(R)
         idx = np.asarray(target, dtype=int)
         if layout is None:
             names = np.unique(idx)
-            B = np.zeros((len(T), 3, 3 * len(names)))
+            D = np.zeros((len(T), 3, 3 * len(names)))
             for j, name in enumerate(names):
-                rows = idx == name
-                B[rows, :, 3 * j : 3 * j + 3] = -W[rows]
+                D[idx == name, :, 3 * j : 3 * j + 3] = -np.eye(3)
+            return cls(A, W @ D, idx, None, G, D, S)
         else:
             # c_s = R_φ c_s⁰ + t_φ: ∂c_s/∂(ω_φ rad, t_φ mm) = [−[c_s]_× · 1000 | I] (mm).
             # Each centre's print error δ_s (mm) adds to it, with its prior.
@@ -324,12 +352,11 @@ class Candidates:
                 D[rows, :, 3:6] = np.eye(3)
                 if free:
                     D[rows, :, 6 + 3 * j : 9 + 3 * j] = np.eye(3)
-            B = -W @ D
+            prior = None
             if free:
                 prior = np.zeros((6 + free, 6 + free))
                 prior[6:, 6:] = np.eye(free) / layout_sigma_mm**2
-                return cls(A, B, idx, prior)
-        return cls(A, B, idx)
+            return cls(A, -W @ D, idx, prior, G, -D, S)
 
 
 def _skew(v: Array) -> Array:
@@ -480,6 +507,28 @@ class PlanPrediction:
     covariance: Array
 
 
+def _fit_covariance(cands: Candidates, chosen: Sequence[int]) -> Array:
+    """(6, 6) covariance of θ as :func:`calib.calibrate.calibrate` estimates it: least
+    squares of the centres' base-frame residuals, every axis weighed alike, under the
+    anisotropic noise ``S`` — the sandwich N⁻¹ (Σ Jᵀ S J) N⁻¹, N = Σ JᵀJ. It exceeds the
+    inverse information (the efficient, noise-weighted fit) the more the plan turns the
+    image's noisy elevation axis about. The layout prior acts as the fit applies it: at
+    the weight of a typical centre's variance."""
+    assert cands.G is not None and cands.D is not None and cands.S is not None
+    k = np.asarray(chosen, dtype=int)
+    J = np.concatenate([cands.G[k], cands.D[k]], axis=2)
+    S = cands.S[k]
+    N = np.einsum("nij,nik->jk", J, J)
+    mid = np.einsum("nji,njk,nkl->il", J, S, J)
+    if cands.prior is not None:
+        s2 = float(np.mean(np.trace(S, axis1=1, axis2=2))) / 3
+        P = np.zeros_like(N)
+        P[6:, 6:] = cands.prior
+        N, mid = N + s2 * P, mid + s2**2 * P
+    Ninv = np.linalg.pinv(N, hermitian=True)
+    return (Ninv @ mid @ Ninv)[:6, :6]
+
+
 def bias_covariance(T_ee_us: ArrayLike, bias_mm: Sequence[float]) -> Array:
     """(6, 6) covariance of θ from an offset shared by every centre of a session (1 σ
     per image axis, mm): the fit moves ``t_X`` by −R_X δ, whatever the plan, and leaves
@@ -498,7 +547,7 @@ def predict(
     (:func:`bias_covariance`)."""
     H = _information(*cands.sums(chosen))
     w = np.linalg.eigvalsh(0.5 * (H + H.T))
-    cov = np.linalg.pinv(H, hermitian=True)
+    cov = np.linalg.pinv(H, hermitian=True) if cands.G is None else _fit_covariance(cands, chosen)
     if bias is not None:
         cov = cov + bias
     return PlanPrediction(

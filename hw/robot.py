@@ -1,8 +1,10 @@
 """The real UR3 behind the :class:`calib.protocol.Robot` protocol, through ``ur_rtde``.
 
 Poses cross this boundary as UR controllers speak them ([x, y, z, rx, ry, rz]: metres and
-a rotation vector) and become (4, 4) ``T_base_ee`` here; the controller's TCP offset must
-be zero (the flange is the tool frame). Every move is checked first against the
+a rotation vector) and become (4, 4) ``T_base_ee`` here. The controller reports and moves
+its TCP, so its active TCP offset must be zero (the flange is the tool frame): it is read
+on connecting, and a non-zero one is refused before anything moves, or set to zero when
+asked (``set_tcp_zero``). Every move is checked first against the
 configured workspace box and maximum step, blocks until the controller reports it done,
 then waits ``settle_s`` before the pose is read. A protective or emergency stop, the
 controller's program ending, or a lost connection raise one clear error; the caller
@@ -18,7 +20,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calib import se3
-from calib.errors import RobotConnectionError, RobotStoppedError, UnreachablePoseError
+from calib.errors import (
+    RobotConnectionError,
+    RobotSetupError,
+    RobotStoppedError,
+    UnreachablePoseError,
+)
 from calib.records import RobotReading
 
 from .config import URRobotConfig
@@ -29,6 +36,8 @@ __all__ = ["URRobot", "check_reachable"]
 Array = NDArray[np.float64]
 _RTDE_PORT = 30004
 _SAFETY_WAIT_S = 0.5
+# A TCP offset below 1 µm and 1 µrad is zero (the controller stores what was typed).
+_TCP_ZERO_TOL = 1e-6
 
 
 def check_reachable(host: str, timeout_s: float) -> None:
@@ -62,23 +71,63 @@ class URRobot:
     cfg : URRobotConfig
     dry_run : bool
         Plan and check only: no connection, no motion (``read`` then fails).
+    set_tcp_zero : bool
+        A non-zero active TCP offset is set to zero (``tcp_offset_cleared`` keeps what it
+        was); otherwise it is refused with :class:`RobotSetupError`.
     """
 
-    def __init__(self, cfg: URRobotConfig, dry_run: bool = False) -> None:
+    def __init__(
+        self, cfg: URRobotConfig, dry_run: bool = False, set_tcp_zero: bool = False
+    ) -> None:
         self.cfg = cfg
         self.dry_run = dry_run
         self._rtde: RtdeProcess | None = None
         self._last: Array | None = None  # the last commanded (or read) flange pose
+        self.tcp_offset_cleared: Array | None = None
         if dry_run:
             return
         check_reachable(cfg.host, cfg.connect_timeout_s)
         self._rtde = RtdeProcess(cfg.host)
-        if self._rtde.call("receive", "isProtectiveStopped"):
+        try:
+            if self._call("receive", "isProtectiveStopped", what="connecting"):
+                raise RobotStoppedError(
+                    f"robot {cfg.host} is in a protective stop: release it on the teach pendant"
+                )
+            self._check_tcp(set_tcp_zero)
+            self._last = self.read().T_base_ee
+        except BaseException:
             self.close()
-            raise RobotStoppedError(
-                f"robot {cfg.host} is in a protective stop: release it on the teach pendant"
+            raise
+
+    def tcp_offset(self) -> Array:
+        """The controller's active TCP offset [x, y, z, rx, ry, rz] (m, rotation vector)."""
+        tcp = np.asarray(
+            self._call("control", "getTCPOffset", what="reading the TCP offset"), dtype=float
+        )
+        if tcp.shape != (6,) or not np.all(np.isfinite(tcp)):
+            raise RobotConnectionError(f"robot controller {self.cfg.host}: no TCP offset received")
+        return tcp
+
+    def _check_tcp(self, set_zero: bool) -> None:
+        tcp = self.tcp_offset()
+        if np.all(np.abs(tcp) <= _TCP_ZERO_TOL):
+            return
+        what = (
+            f"{np.round(tcp[:3] * 1e3, 3).tolist()} mm, rotation vector "
+            f"{np.round(np.degrees(tcp[3:]), 3).tolist()}°"
+        )
+        if not set_zero:
+            raise RobotSetupError(
+                f"robot {self.cfg.host}: the active TCP offset is {what}; uscal reads and moves "
+                "the flange, so it must be zero (every pose would be the TCP's): set it to "
+                "zero in the installation, or pass --set-tcp-zero; nothing moved"
             )
-        self._last = self.read().T_base_ee
+        self._call("control", "setTcp", [0.0] * 6, what="setting the TCP offset to zero")
+        if np.any(np.abs(self.tcp_offset()) > _TCP_ZERO_TOL):
+            raise RobotSetupError(
+                f"robot {self.cfg.host}: the TCP offset stays {what} after setting it to zero"
+            )
+        self.tcp_offset_cleared = tcp
 
     # ---------------------------------------------------------------- checks
 

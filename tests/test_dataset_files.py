@@ -67,7 +67,7 @@ def test_sequence_round_trip_is_exact_and_plus_shaped(tmp_path, rng):
     fields = dict(line.split(" = ", 1) for line in header.splitlines())
     assert fields["DimSize"] == "30 40 5" and fields["ElementType"] == "MET_UCHAR"
     assert fields["ElementSpacing"].split()[:2] == ["0.25", "0.125"]
-    assert fields["UltrasoundImageOrientation"] == "MF"
+    assert fields["UltrasoundImageOrientation"] == "MFA"
     # The PLUS transform field: row-major, millimetres, EE → base.
     T0 = np.array(fields["Seq_Frame0000_EEToBaseTransform"].split(), float).reshape(4, 4)
     assert np.allclose(T0[:3, 3], sweep.T_base_ee[0][:3, 3] * 1e3)

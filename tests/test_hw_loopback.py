@@ -20,7 +20,7 @@ import pytest
 
 from calib import se3
 from calib.dataset_files import read_dataset
-from calib.errors import FrameGrabberError, RobotConnectionError
+from calib.errors import FrameGrabberError, RobotConnectionError, RobotSetupError
 from hw.config import GrabberConfig, URRobotConfig
 from hw.grabber import FrameGrabber
 from hw.robot import URRobot
@@ -312,3 +312,54 @@ def test_a_sequential_acquisition_on_the_loopback_rig(controller, tmp_path):
     _calibrates_to_the_truth(dataset, out, max_deg=0.8)
     again = uscal("acquire", str(controller.hw), "--out", str(dataset), "--resume", *until)
     assert "starts anew" in _one_line_error(again)
+
+
+# ------------------------------------------------------------- the controller's TCP
+
+TCP_150 = ("--tcp-offset", "0", "0", "150", "0", "0", "20")
+
+
+@pytest.mark.parametrize("controller", [("127.0.0.10", *TCP_150)], indirect=True)
+def test_a_non_zero_tcp_is_refused_before_anything_moves(controller, tmp_path):
+    from calib.dh import NOMINAL_TABLES, forward_kinematics
+    from hw.rtde_process import RtdeProcess
+
+    # What the controller reports with this TCP: the TCP's pose, 150 mm beyond the flange
+    # (the poses a calibration would silently get wrong).
+    raw = RtdeProcess(controller.host)
+    try:
+        q0 = np.array(raw.call("receive", "getActualQ"))
+        T_tcp = se3.matrix_from_pose6(raw.call("receive", "getActualTCPPose"))
+    finally:
+        raw.close()
+    T_flange = forward_kinematics(NOMINAL_TABLES["ur3"], q0)
+    assert abs(se3.translation_distance(T_tcp, T_flange) - 0.150) < 1e-4
+    r = uscal("acquire", str(controller.hw), "--out", str(tmp_path / "ds"), "--yes", *SHORT)
+    line = _one_line_error(r)
+    assert "active TCP offset is [0.0, 0.0, 150.0] mm" in line and "--set-tcp-zero" in line
+    assert "nothing moved" in line and not (tmp_path / "ds").exists()
+    cfg = URRobotConfig(host=controller.host, settle_s=0.0)
+    with pytest.raises(RobotSetupError, match="must be zero"):
+        URRobot(cfg)
+    # Asked to, the adapter sets it to zero and says what it was; the poses are the
+    # flange's again, and the arm has not moved.
+    with URRobot(cfg, set_tcp_zero=True) as robot:
+        assert np.allclose(robot.tcp_offset_cleared, [0, 0, 0.15, 0, 0, np.radians(20)])
+        assert np.all(robot.tcp_offset() == 0)
+        reading = robot.read()
+        assert np.allclose(reading.q, q0, atol=1e-4)  # encoder noise only
+        T_model = forward_kinematics(NOMINAL_TABLES["ur3"], reading.q)
+        assert se3.translation_distance(reading.T_base_ee, T_model) < 1e-6
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", [("127.0.0.11", *TCP_150)], indirect=True)
+def test_acquire_with_set_tcp_zero_records_the_flange_and_calibrates(controller, tmp_path):
+    dataset = tmp_path / "ds"
+    r = uscal(
+        "acquire", str(controller.hw), "--out", str(dataset), "--yes", "--set-tcp-zero",
+        *ONE_SPHERE, "--set", "protocol.frames_per_sweep=7",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "TCP offset was [0.0, 0.0, 150.0] mm" in " ".join(r.stdout.split())
+    _calibrates_to_the_truth(dataset, tmp_path / "cal")

@@ -137,6 +137,25 @@ def test_localizes_rendered_sweeps_against_truth(rendered_sweeps, method, tol_mm
         assert r.f_shell > r.f_interior
 
 
+def test_a_sphere_cut_by_the_lateral_edge_is_rejected_with_the_reason(rendered_sweeps):
+    """Cropped about its centre line, the image loses the side of a sphere 3 mm off it:
+    the centre fitted to what is left would be pulled inward, so it is not accepted."""
+    sweeps, truths, _, scale = rendered_sweeps
+    sweep, p_true = sweeps[2], truths[2]
+    W = sweep.images.shape[2]
+    x_mm = p_true[0] / MM
+    for half_mm, kept in ((abs(x_mm) + 5.5, True), (abs(x_mm) + 4.0, False)):
+        half = round(half_mm * MM / sweep.spacing[0])
+        cols = slice(W // 2 - half, W // 2 + half + 1)
+        cropped = replace(sweep, images=np.ascontiguousarray(sweep.images[:, :, cols]))
+        (r,) = localize_sphere([cropped], None, 5 * MM, LocalizerConfig(), scale)
+        assert r.accepted == kept, r.reason
+        if kept:
+            assert np.linalg.norm(r.centre - p_true) < 0.25 * MM
+        else:
+            assert "cut by the image's lateral edge" in r.reason and np.isnan(r.centre).all()
+
+
 def test_sweep_without_a_sphere_is_rejected(rendered_sweeps):
     sweeps, _, _, scale = rendered_sweeps
     empty = sweeps[0]

@@ -55,16 +55,19 @@ def test_the_papers_plan_is_its_sweep_poses_to_the_last_bit():
 
 
 def _monte_carlo(cands: Candidates, chosen, trials=400, seed=1):
-    """Sample covariance of θ from the linearized fit of noisy observations (θ and the
-    nuisance solved jointly, ordinary weighted least squares)."""
+    """Sample covariance of θ from the linearized fit calib.calibrate makes: centres with
+    the candidates' anisotropic noise S, fitted (θ and the nuisance together) by least
+    squares that weighs every axis alike."""
+    assert cands.prior is None  # an exact layout, or free centres
     rng = np.random.default_rng(seed)
-    A, B = cands.A[chosen], cands.B[chosen]
-    J = np.concatenate([A, B], axis=2).reshape(-1, A.shape[2] + B.shape[2])
+    k = np.asarray(chosen)
+    G, D, S = cands.G[k], cands.D[k], cands.S[k]
+    L = np.linalg.cholesky(S)
+    J = np.concatenate([G, D], axis=2).reshape(-1, G.shape[2] + D.shape[2])
     thetas = []
     for _ in range(trials):
-        r = rng.normal(size=J.shape[0])  # whitened noise: unit variance
-        x = np.linalg.lstsq(J, r, rcond=None)[0]
-        thetas.append(x[:6])
+        r = np.einsum("nij,nj->ni", L, rng.normal(size=(len(k), 3))).ravel()
+        thetas.append(np.linalg.lstsq(J, r, rcond=None)[0][:6])
     return np.cov(np.array(thetas).T)
 
 
@@ -85,6 +88,24 @@ def test_predicted_covariance_is_the_least_squares_fits(multi):
     # The rotation and translation variances agree within the Monte Carlo's spread.
     np.testing.assert_allclose(np.diag(mc), np.diag(p.covariance), rtol=0.12)
     assert p.rotation_deg == pytest.approx(np.degrees(np.sqrt(np.trace(mc[:3, :3]))), rel=0.08)
+
+
+def test_the_fits_spread_is_the_inverse_information_for_isotropic_noise():
+    """Sanity: with the same noise on every axis, the fit that weighs the axes alike is
+    the efficient one, and the prediction is the inverse of the information; with the
+    image's anisotropic noise it is larger."""
+    poses = PlanningConfig(max_rotation_deg=20, max_lateral_mm=4, max_axial_mm=4).candidates()
+    T_ref = np.array([sweep_commands(TAUGHT, X, DEPTH, q, 0.01, 3)[1] for q in poses[::9]])
+    p_us = np.array([q.target_in_image(DEPTH) for q in poses[::9]])
+    idx = np.zeros(len(p_us), dtype=int)
+    M = np.eye(6)
+    iso = Candidates.build(T_ref, X, p_us, idx, NoiseModel(0.04, 0.04, 0.04))
+    chosen = range(len(iso))
+    fisher = np.linalg.inv(predict(Candidates(iso.A, iso.B, iso.target), chosen, M).covariance)
+    np.testing.assert_allclose(predict(iso, chosen, M).covariance @ fisher, np.eye(6), atol=1e-8)
+    aniso = Candidates.build(T_ref, X, p_us, idx, NOISE)
+    efficient = predict(Candidates(aniso.A, aniso.B, aniso.target), chosen, M)
+    assert predict(aniso, chosen, M).rotation_deg > efficient.rotation_deg
 
 
 def test_a_shared_offset_moves_the_translation_by_the_mount():
@@ -134,7 +155,8 @@ def test_the_candidate_grid_is_symmetric_and_complete():
     poses = cfg.candidates()
     assert len(poses) == 5**3 * 5 * 3
     assert SweepPose((-20.0, 0.0, 20.0), -4.0, 2.0) in poses
-    assert cfg.noise() == NoiseModel(*cfg.localization_noise_mm)
+    # The localizer's noise and the arm's pose noise, added in quadrature.
+    assert cfg.noise() == NoiseModel(*np.hypot(cfg.localization_noise_mm, cfg.pose_noise_mm))
 
 
 def test_a_three_marker_plan_sees_every_sphere_and_a_loose_layout_informs_less():

@@ -46,7 +46,7 @@ import socketserver
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,6 +72,9 @@ _V, _v, _O, _I, _S, _P, _U, _M = 86, 118, 79, 73, 83, 80, 85, 77
 
 # Command codes of ur_rtde's control script (lower register range).
 _NO_CMD, _MOVEJ, _MOVEL, _STOP_SCRIPT = 0, 1, 3, 255
+# ur_rtde's setTcp / getTCPOffset (its control script: set_tcp(pose); get_tcp_offset()
+# written to output_double_register_0..5).
+_SET_TCP, _GET_TCP_OFFSET = 29, 40
 _STOPL, _STOPJ, _WATCHDOG = 33, 34, 99
 
 _RUNTIME_STOPPED, _RUNTIME_PLAYING = 1, 2
@@ -178,6 +181,9 @@ class LoopbackController:
         Renders the frame after each settled move into ``frame_path``.
     host : str
         Address to listen on (127.0.0.x for tests).
+    tcp_offset : (6,) [x, y, z, rx, ry, rz], metres and a rotation vector
+        The active TCP offset, as a controller's installation sets it: the reported
+        ``actual_TCP_pose`` and a ``moveL`` target are of the TCP, not of the flange.
     """
 
     def __init__(
@@ -188,8 +194,10 @@ class LoopbackController:
         host: str = "127.0.0.1",
         faults: ControllerFaults = ControllerFaults(),
         operator: Callable[[list[str]], str] | None = None,
+        tcp_offset: Sequence[float] = (0.0,) * 6,
     ) -> None:
         self.robot = robot
+        self.tcp_offset = tuple(float(v) for v in tcp_offset)
         self.operator = operator
         self.imager = imager
         self.frame_path = Path(frame_path) if frame_path else None
@@ -289,9 +297,10 @@ class LoopbackController:
         """What the controller reports, refreshed after each motion (the arm is still in
         between; the stream packs these cached tuples hundreds of times a second)."""
         r = self.robot.read()
+        T_ee_tcp = se3.matrix_from_pose6(self.tcp_offset)
         q, pose = (
             tuple(float(v) for v in r.q),
-            tuple(float(v) for v in se3.pose6_from_matrix(r.T_base_ee)),
+            tuple(float(v) for v in se3.pose6_from_matrix(r.T_base_ee @ T_ee_tcp)),
         )
         with self._lock:
             self._q, self._pose = q, pose
@@ -382,8 +391,9 @@ class LoopbackController:
             try:
                 if cmd == _MOVEJ:
                     self.robot.move_joints(np.array(args[:6]))
-                else:
-                    self.robot.move_to(se3.matrix_from_pose6(args[:6]))
+                else:  # the target is the TCP's pose
+                    T_tcp_ee = se3.invert(se3.matrix_from_pose6(self.tcp_offset))
+                    self.robot.move_to(se3.matrix_from_pose6(args[:6]) @ T_tcp_ee)
             except UscalError as e:  # unreachable or a collision: the arm stops
                 log.warning("move %d refused: %s", self._moves, e)
                 self._protective_stop()
@@ -393,6 +403,13 @@ class LoopbackController:
             # Signal done only once every stream has carried the settled pose: a client
             # reading actual_q right after the move (another RTDE session) gets the new one.
             time.sleep(3.0 / _MAX_STREAM_HZ)
+        elif cmd == _SET_TCP:
+            log.warning("TCP offset set to %s", np.round(args[:6], 6).tolist())
+            self.tcp_offset = tuple(args[:6])
+            self._update_reading()
+        elif cmd == _GET_TCP_OFFSET:
+            with self._lock:
+                self._out_double[:6] = list(self.tcp_offset)
         elif cmd == _STOP_SCRIPT:
             with self._lock:
                 self._runtime = _RUNTIME_STOPPED

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,6 +57,17 @@ class OutputConfig:
     """Where and what a run writes."""
 
     dir: str = field(default="out", metadata={"doc": "Output directory of a run."})
+    ros_parent_link: str = field(
+        default="tool0",
+        metadata={
+            "doc": "The flange link of the robot's URDF that us_probe.urdf.xacro and the "
+            "static_transform_publisher line attach the image to (ur_description: tool0)."
+        },
+    )
+    ros_image_link: str = field(
+        default="us_image",
+        metadata={"doc": "The link (TF frame) us_probe.urdf.xacro gives the image frame."},
+    )
 
 
 #: Scenario sections in file order and the settings class each maps onto.
@@ -217,9 +229,22 @@ def validate_overrides(
 # --------------------------------------------------------------------------- geometry
 
 
+_LINK_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
 def _check_consistency(s: Scenario) -> None:
     """Cross-key checks that need no kinematics."""
     src = s.source
+    for key in ("ros_parent_link", "ros_image_link"):
+        name = getattr(s.output, key)
+        if not _LINK_NAME.fullmatch(name):
+            raise ScenarioError(
+                "not a URDF link / TF frame name",
+                source=src,
+                key=f"output.{key}",
+                value=name,
+                allowed="letters, digits and _ (not first), parts joined by /",
+            )
     p = s.phantom
     if p.water_level_mm > p.tank_inner_mm[2]:
         raise ScenarioError(

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,13 +36,15 @@ def serve_twin(
     frames: str | None,
     hw_config: str | None,
     faults: ControllerFaults,
+    tcp_offset: Sequence[float] = (0.0,) * 6,
 ) -> LoopbackController:
     """A started loopback controller whose arm is the scenario's twin (and, with
-    ``hw_config``, the hw config that reaches it written)."""
+    ``hw_config``, the hw config that reaches it written); ``tcp_offset`` its installation's
+    active TCP ([x, y, z, rx, ry, rz], metres and a rotation vector)."""
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin) if frames else None
     controller = LoopbackController(
-        twin.robot, imager, frames, host, faults, emulated_operator(scenario, twin)
+        twin.robot, imager, frames, host, faults, emulated_operator(scenario, twin), tcp_offset
     )
     controller.start()
     if hw_config:

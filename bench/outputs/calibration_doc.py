@@ -1,6 +1,6 @@
 """``calibration.yaml``: the estimated ``T_ee_us`` (metres and mm, rotation matrix and
 angles), its 1 σ and 95 % bounds, the DH table it holds with, PLUS's ``ImageToProbe``
-matrix, and where it came from."""
+matrix, ROS 2's static transform, and where it came from."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from calib.evaluate import METHOD_TITLES
 
 from ..config.scenario import Scenario
 from ..results import RunResult
+from .ros import URDF_FILE, static_transform_command
 
 Array = NDArray[np.float64]
 _MM = 1e3
@@ -59,7 +60,7 @@ def _dh_doc(table: DHTable, source: str) -> dict[str, Any]:
     }
 
 
-def _chosen(metrics: dict[str, Any]) -> str:
+def chosen_calibration(metrics: dict[str, Any]) -> str:
     """The calibration the document recommends: three-marker when it ran (it also
     anchors the phantom; the paper's recommended use), else single-marker."""
     return "three" if "three" in metrics["calibration"] else "single"
@@ -90,7 +91,7 @@ def _bound_doc(cal: dict[str, Any]) -> dict[str, Any]:
 def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any]:
     """``calibration.yaml``'s content."""
     m = result.metrics
-    method = _chosen(m)
+    method = chosen_calibration(m)
     cal = m["calibration"][method]
     T = np.array(cal["T_ee_us"])
     cov = np.array(cal["covariance_rotvec_rad_translation_m"])
@@ -158,6 +159,18 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
             "note": (
                 "PLUS / 3D Slicer: image pixel (i, j) → probe (= flange) mm, pixel spacing "
                 "included; put it in the PLUS device set as the ImageToProbe transform."
+            ),
+        },
+        "ros": {
+            "urdf": URDF_FILE,
+            "parent_link": scenario.output.ros_parent_link,
+            "child_link": scenario.output.ros_image_link,
+            "static_transform_publisher": static_transform_command(
+                T, scenario.output.ros_parent_link, scenario.output.ros_image_link
+            ),
+            "note": (
+                f"ROS 2: {URDF_FILE} adds the image frame to the robot description as a "
+                "fixed joint (xyz m, rpy rad); or publish it with the command."
             ),
         },
         "dh_table": dh,

@@ -22,7 +22,7 @@ from calib.evaluate import METHOD_TITLES
 from ..config.scenario import Scenario
 from ..results import RunResult
 from ..snapshot import LocalizationSnapshot
-from .calibration_doc import calibration_yaml
+from .calibration_doc import calibration_yaml, chosen_calibration
 from .figures import (
     convergence_figure,
     observability_eigenvalues,
@@ -31,6 +31,7 @@ from .figures import (
     profile_figure,
     reconstruction_heatmaps,
 )
+from .ros import URDF_FILE, static_transform_command, urdf_xacro
 
 __all__ = ["report_html", "report_markdown", "write_report"]
 
@@ -302,7 +303,10 @@ def report_markdown(scenario: Scenario, result: RunResult, figures: dict[str, st
         _calibration_md(m),
         "",
         "The transform to copy into robot software, with the DH table and PLUS's "
-        "`ImageToProbe`, is in [`calibration.yaml`](calibration.yaml).",
+        "`ImageToProbe`, is in [`calibration.yaml`](calibration.yaml); for ROS 2, "
+        f"[`{URDF_FILE}`]({URDF_FILE}) adds it to the robot description, or publish it:",
+        "",
+        f"```\n{_ros_command(scenario, m)}\n```",
         "",
         _figure_md(figures, "convergence", "Loss and change of T_ee_us per alternation."),
         _figure_md(
@@ -334,7 +338,8 @@ def report_markdown(scenario: Scenario, result: RunResult, figures: dict[str, st
         "## Files",
         "",
         "`metrics.json` (every figure, ground truth kept apart), `tables.md` / `tables.csv` "
-        "(evaluation runs), `calibration.yaml`, `figures/`, and `recording.rrd` (open with "
+        f"(evaluation runs), `calibration.yaml`, `{URDF_FILE}`, `figures/`, and "
+        "`recording.rrd` (open with "
         "`rerun recording.rrd`) when recorded.",
         "",
     ]
@@ -375,4 +380,15 @@ def write_report(
     (out / "report.md").write_text(md, encoding="utf-8")
     (out / "report.html").write_text(report_html(md), encoding="utf-8")
     (out / "calibration.yaml").write_text(calibration_yaml(scenario, result), encoding="utf-8")
-    return ["report.md", "report.html", "calibration.yaml", *figures.values()]
+    T = np.array(result.metrics["calibration"][chosen_calibration(result.metrics)]["T_ee_us"])
+    o = scenario.output
+    (out / URDF_FILE).write_text(
+        urdf_xacro(T, o.ros_parent_link, o.ros_image_link), encoding="utf-8"
+    )
+    return ["report.md", "report.html", "calibration.yaml", URDF_FILE, *figures.values()]
+
+
+def _ros_command(scenario: Scenario, m: dict[str, Any]) -> str:
+    T = np.array(m["calibration"][chosen_calibration(m)]["T_ee_us"])
+    o = scenario.output
+    return static_transform_command(T, o.ros_parent_link, o.ros_image_link)

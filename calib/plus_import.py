@@ -1,0 +1,235 @@
+"""PLUS recordings as uscal datasets: the method on a tracked probe.
+
+A PLUS sequence metafile holds B-mode frames and, per frame, the transforms PLUS
+recorded (``ProbeToTrackerTransform`` …: row-major, millimetres, each with a status).
+The method needs one pose per frame that maps the probe's rigid body into a fixed frame;
+it does not care whether a robot or a tracker measured it. With a tracked probe the
+pose transform is ``ProbeToTrackerTransform`` (``T_tracker_probe``): the tracker plays the
+robot base, the probe's marker body plays the flange, and the calibration is
+``T_probe_image`` (PLUS's ``ImageToProbe`` without the pixel spacing).
+
+Each sweep is one file, or each run of ``frames_per_sweep`` frames of a file: a linear
+sweep at a fixed orientation, as the method localizes a sphere from the section radius
+along the sweep. A sweep that turns more than ``max_turn_deg`` or does not move is
+refused with one line naming it. Frames whose pose or image status is not ``OK`` are
+skipped and counted. Writing goes to a temporary sibling directory renamed at the end:
+a failed import leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import se3
+from .dataset_files import AcquisitionInfo, DatasetWriter, Metafile, read_metafile
+from .errors import DatasetError
+from .records import Sweep
+
+__all__ = ["ImportSummary", "PlusFrames", "import_plus", "plus_frames"]
+
+Array = NDArray[np.float64]
+
+#: A sweep needs enough frames to follow the section radius across the sphere.
+MIN_FRAMES_PER_SWEEP = 5
+#: PLUS's default ElementSpacing: PLUS keeps the pixel spacing in ImageToProbe instead.
+_PLUS_DEFAULT_SPACING = (1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class PlusFrames:
+    """The usable frames of one file: images (MF), poses (metres) of the transform
+    ``pose_name``, timestamps (s), the file's pixel spacing (None: PLUS's default, not
+    the image's) and how many frames were skipped for which reason."""
+
+    path: Path
+    pose_name: str
+    images: NDArray[np.uint8]
+    T_base_probe: Array
+    timestamps: Array
+    spacing_mm: tuple[float, float] | None
+    skipped: Counter[str] = field(default_factory=Counter)
+
+
+def _transform_name(meta: Metafile, name: str) -> str:
+    """``name`` as a frame field (``ProbeToTracker`` or ``ProbeToTrackerTransform``), or
+    one line listing the file's transforms."""
+    full = name if name.endswith("Transform") else name + "Transform"
+    names = meta.frame_names()
+    if full not in names:
+        known = sorted(n for n in names if n.endswith("Transform"))
+        raise DatasetError(
+            f"{meta.path}: no per-frame transform {full!r}; the file records "
+            + (", ".join(known) if known else "none")
+        )
+    return full
+
+
+def plus_frames(path: str | os.PathLike[str], pose_transform: str) -> PlusFrames:
+    """Read one PLUS file's frames with the per-frame transform ``pose_transform`` as
+    the probe's pose; frames whose pose or image status is not OK are skipped."""
+    meta = read_metafile(path)
+    name = _transform_name(meta, pose_transform)
+    keep, poses, times = [], [], []
+    skipped: Counter[str] = Counter()
+    for j in range(len(meta.images)):
+        status = meta.frame_field(j, f"{name}Status", "OK")
+        image_status = meta.frame_field(j, "ImageStatus", "OK")
+        if str(image_status).upper() != "OK":
+            skipped[f"ImageStatus {image_status}"] += 1
+            continue
+        if str(status).upper() != "OK":
+            skipped[f"{name}Status {status}"] += 1
+            continue
+        poses.append(meta.transform(j, name))
+        times.append(meta.timestamp(j))
+        keep.append(j)
+    spacing = meta.spacing_mm()
+    return PlusFrames(
+        meta.path,
+        name,
+        meta.images[keep],
+        np.array(poses).reshape(-1, 4, 4),
+        np.array(times),
+        None if spacing == _PLUS_DEFAULT_SPACING else spacing,
+        skipped,
+    )
+
+
+@dataclass(frozen=True)
+class ImportSummary:
+    """What an import wrote: the dataset, its sweeps and frames, the frames skipped (by
+    reason) and each sweep's length and turn."""
+
+    directory: Path
+    sweeps: int
+    frames: int
+    skipped: Counter[str]
+    sweep_lines: list[str]
+
+
+def _check_sweep(label: str, T: Array, max_turn_deg: float) -> tuple[float, float]:
+    """The sweep's length (mm) and largest turn (°) from its first frame; one line if it
+    is not a linear sweep at a fixed orientation."""
+    if len(T) < MIN_FRAMES_PER_SWEEP:
+        raise DatasetError(
+            f"{label}: {len(T)} usable frames; a sweep needs at least {MIN_FRAMES_PER_SWEEP}"
+        )
+    turn = float(np.degrees(max(se3.rotation_angle(T[0], Tj) for Tj in T)))
+    if turn > max_turn_deg:
+        raise DatasetError(
+            f"{label}: the probe turns by {turn:.2f}° within the sweep; the method needs a "
+            f"linear sweep at a fixed orientation (at most --max-turn-deg {max_turn_deg:g}°)"
+        )
+    length_mm = 1e3 * float(np.linalg.norm(T[-1, :3, 3] - T[0, :3, 3]))
+    if length_mm < 1.0:
+        raise DatasetError(
+            f"{label}: the probe moves {length_mm:.2f} mm from the first frame to the last; "
+            "a sweep must pass through the sphere"
+        )
+    return length_mm, turn
+
+
+def import_plus(
+    files: Sequence[str | os.PathLike[str]],
+    pose_transform: str,
+    target: str,
+    out: str | os.PathLike[str],
+    radius_mm: float,
+    temperature_c: float | None,
+    spacing_mm: tuple[float, float] | None = None,
+    frames_per_sweep: int | None = None,
+    max_turn_deg: float = 1.0,
+    assumed_speed_m_s: float = 1540.0,
+) -> ImportSummary:
+    """Turn PLUS recordings into a uscal dataset at ``out`` (which must not exist).
+
+    ``temperature_c``: the water's (the axial spacing is corrected from the scanner's
+    ``assumed_speed_m_s``); None: no correction (the medium matches the scanner).
+    ``spacing_mm`` overrides the files' pixel spacing (needed when they hold PLUS's
+    default 1 × 1, the spacing then being in PLUS's ImageToProbe).
+    """
+    out = Path(out)
+    if out.exists():
+        raise DatasetError(f"{out}: already exists; choose a new dataset directory")
+    if not files:
+        raise DatasetError("no PLUS files to import")
+    read = [plus_frames(f, pose_transform) for f in files]
+    shape = read[0].images.shape[1:]
+    for r in read[1:]:
+        if r.images.shape[1:] != shape:
+            raise DatasetError(
+                f"{r.path}: frames of {r.images.shape[2]} × {r.images.shape[1]} px; "
+                f"{read[0].path} has {shape[1]} × {shape[0]}"
+            )
+    spacing = spacing_mm
+    if spacing is None:
+        found = {r.spacing_mm for r in read}
+        if None in found or len(found) != 1:
+            raise DatasetError(
+                f"{read[0].path}: the pixel spacing is not in the files (ElementSpacing is "
+                "PLUS's default 1 1, or differs between files): give --spacing-mm SX SY"
+            )
+        spacing = found.pop()
+    sweeps: list[tuple[Sweep, Array]] = []
+    lines = []
+    for r in read:
+        n = len(r.images)
+        step = frames_per_sweep or max(n, 1)
+        for start in range(0, max(n, 1), step):
+            sl = slice(start, start + step)
+            part = f" frames {start}–{min(n, start + step) - 1}" if step < n else ""
+            label = f"{r.path}{part}"
+            length, turn = _check_sweep(label, r.T_base_probe[sl], max_turn_deg)
+            pose_id = len(sweeps)
+            images = r.images[sl]
+            sweeps.append(
+                (
+                    Sweep(
+                        target,
+                        pose_id,
+                        images,
+                        (spacing[0] * 1e-3, spacing[1] * 1e-3),
+                        np.full((len(images), 6), np.nan),
+                        r.T_base_probe[sl],
+                    ),
+                    r.timestamps[sl],
+                )
+            )
+            lines.append(
+                f"sweep {pose_id}: {label}, {len(images)} frames, {length:.1f} mm, turn {turn:.2f}°"
+            )
+    info = AcquisitionInfo(
+        T_ee_us_coarse=None,
+        landmarks={},
+        sphere_radius_mm=radius_mm,
+        temperature_c=20.0 if temperature_c is None else temperature_c,
+        assumed_speed_m_s=assumed_speed_m_s,
+        sound_speed_correction=temperature_c is not None,
+        source="plus",
+        extra={
+            "imported_from": [str(Path(f)) for f in files],
+            "pose_transform": read[0].pose_name,
+        },
+    )
+    tmp = out.with_name(f".{out.name}.importing-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        writer = DatasetWriter(tmp, out.name, info, {"spacing_mm": list(spacing)})
+        for sweep, t in sweeps:
+            writer.add_sweep(sweep, t)
+        writer.finish()
+        os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    skipped: Counter[str] = Counter()
+    for r in read:
+        skipped.update(r.skipped)
+    return ImportSummary(out, len(sweeps), sum(len(s.images) for s, _ in sweeps), skipped, lines)
