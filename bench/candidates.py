@@ -43,6 +43,7 @@ class PlanSphere:
     index: int  # into the plan's spheres
     taught: Array  # T_base_ee of the taught pose (as the controller reports it)
     centre: Array  # where the coarse T_ee_us puts the sphere, base frame (m)
+    taught_q: Array | None = None  # the taught joint angles (where its sweeps start from)
 
 
 def in_image(scenario: Scenario, pose: SweepPose) -> bool:
@@ -71,6 +72,13 @@ def clear(scenario: Scenario, twin, commands: Array) -> bool:
     and the phantom."""
     need = scenario.planning.clearance_mm * 1e-3
     return bool(np.all(twin.robot.clearances(commands, need + 1e-3) >= need))
+
+
+def path_clear(scenario: Scenario, twin, commands: Array, q_start: Array) -> Array:
+    """Per pose of ``commands`` (moved through in order from ``q_start``), whether the
+    arm reaches it with the clearance, on the way the acquisition takes."""
+    need = scenario.planning.clearance_mm * 1e-3
+    return twin.robot.path_clearances(commands, need + 1e-3, q_start) >= need
 
 
 def candidate_sweeps(scenario, twin, spheres, coarse, poses_of, check: bool):

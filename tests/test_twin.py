@@ -114,6 +114,25 @@ def test_arm_into_tank_wall_collides():
     assert twin.scene.collisions(np.radians([180, -30, 0, -90, 90, 0])) == []
 
 
+def test_clearances_measure_the_room_and_a_path_follows_the_arm():
+    """The room a pose leaves (MuJoCo's geom distances, up to ``within``): the probe a
+    few mm above a sphere has about that much; a probe pushed into it has less than none;
+    a pose the controller cannot reach has −inf. Moved through in order, each pose is
+    solved from the one before, and everything after an unreachable pose is −inf."""
+    twin = make(RobotConfig(dh_error_scale=0))
+    above = probe_pose_above(twin, "sphere_4", depth=20 * MM)
+    deep = probe_pose_above(twin, "sphere_4", depth=2 * MM)
+    far = se3.make(np.eye(3), [2.0, 0.0, 0.5])
+    room = twin.robot.clearances(np.array([above, deep, far]), 0.05)
+    assert 0 < room[0] <= 0.05 and room[1] < 0 and room[2] == -np.inf
+    q0 = twin.robot.read().q
+    way = np.array([above, above @ se3.make(np.eye(3), [0, 0, 0.002]), far, above])
+    path = twin.robot.path_clearances(way, 0.05, q0)
+    assert path[0] == pytest.approx(room[0], abs=1e-9) and np.isfinite(path[1])
+    assert np.all(path[2:] == -np.inf)
+    assert np.array_equal(twin.robot.read().q, q0)  # nothing moved
+
+
 def test_stylus_tool_has_true_tip_site():
     twin = make(tools=ToolsConfig(mounted="stylus"))
     q = np.radians(RobotConfig().home_deg)

@@ -469,6 +469,25 @@ class SimRobot:
             out[k] = self.scene.clearance(q, within)
         return out
 
+    def path_clearances(self, T_base_ee: ArrayLike, within: float, q_start: ArrayLike) -> Array:
+        """:meth:`clearances` of poses moved through in order from the joint angles
+        ``q_start``, each solved nearest the one before as the controller's moves solve
+        them: the arm's configuration depends on the way it came (a wrist that wraps on
+        the way may meet a wall the same pose taught directly clears). −inf from the
+        first pose the controller cannot reach."""
+        T = np.asarray(T_base_ee, dtype=float).reshape(-1, 4, 4)
+        out = np.full(len(T), -np.inf)
+        q = np.asarray(q_start, dtype=float)
+        for k, pose in enumerate(T):
+            if k % 4096 == 0:
+                solve_poses(self.nominal, T[k : k + 4096])
+            try:
+                q = solve_ik(self.nominal, pose, q)
+            except UnreachablePoseError:
+                break
+            out[k] = self.scene.clearance(q, within)
+        return out
+
     def check_poses(self, T_base_ee: ArrayLike, pose_labels: Sequence[str]) -> None:
         """:meth:`check_pose` of many poses (n, 4, 4) in order, their inverse kinematics
         solved at once (kept for the moves to them)."""

@@ -1,13 +1,15 @@
 """``uscal plan --optimize``: choose the sweeps that determine ``T_ee_us`` best for the
 robot time (:mod:`calib.planning`), where the arm can actually put the probe.
 
-For each sphere of the plan: teach the nominal pose (emulated, as ``uscal plan`` does),
+For each sphere of the plan: teach the nominal pose (emulated as the session's
+acquisition teaches it, its teaching error included: a rig plans from its taught pose),
 lay the scenario's candidate sweeps about it (:mod:`bench.candidates`: in the image by
 the margin, reachable with the clearance from the tank and the phantom), and choose N of
 them for the information of the joint problem (one sphere: its centre unknown; three
 spheres: the phantom's pose unknown, the layout the CAD's within the print tolerance).
 Every frame of the chosen sweeps, and every transit between them in acquisition order,
-must keep the clearance too; a sweep that does not is replaced. The paper's plan is
+must keep the clearance too, each pose solved from the one before as the controller
+moves (from the taught joint angles); a sweep that does not is replaced. The paper's plan is
 scored the same way beside it, and both are timed as the twin's controller would move
 (trapezoidal profiles at the configured speeds, settle and grab per frame).
 """
@@ -37,7 +39,14 @@ from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
 from ..acquire_sim import coarse_estimate, make_twin, teach_at
-from ..candidates import NOT_CLEAR, PlanSphere, candidate_sweeps, clear, observations
+from ..candidates import (
+    NOT_CLEAR,
+    PlanSphere,
+    candidate_sweeps,
+    clear,
+    observations,
+    path_clear,
+)
 from ..config.scenario import Scenario
 from ..pipeline import image_points
 from ..sessions import stage_rngs
@@ -136,15 +145,24 @@ def optimize_plan(
         )
     names = [f"sphere_{i}" for i in proto.spheres[:markers]]
     twin = make_twin(scenario)
-    coarse = coarse_estimate(
-        twin.truth.T_ee_us, scenario.calibration, stage_rngs(scenario)["calibration"]
-    )
+    rngs = stage_rngs(scenario)
+    coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
     depth = proto.target_depth_mm * 1e-3
     spheres = []
     for k, name in enumerate(names):
-        taught = teach_at(twin, twin.truth.landmarks_base[name], depth, f"taught at {name}")
+        # Taught as the session's acquisition teaches it (its teaching error drawn from
+        # the same stream): a rig plans from the pose it was taught, and the twin's plan
+        # is then the one its acquisition checks and moves through.
+        taught = teach_at(
+            twin,
+            twin.truth.landmarks_base[name],
+            depth,
+            f"taught at {name}",
+            rngs["protocol"],
+            proto.teaching_error_mm,
+        )
         centre = se3.apply(taught.T_base_ee @ coarse, np.array([0.0, depth, 0.0]))
-        spheres.append(PlanSphere(name, k, taught.T_base_ee, centre))
+        spheres.append(PlanSphere(name, k, taught.T_base_ee, centre, taught.q))
     M = image_metric(coarse, image_points(scenario))
     bias = bias_covariance(coarse, scenario.planning.localization_bias_mm)
     start = spheres[0].taught
@@ -177,8 +195,9 @@ def optimize_plan(
         chosen_idx = select_sweeps(cands, n_sweeps, criterion, M, min_per_target=least)
         bad = {k for k in dict.fromkeys(chosen_idx) if not clear(scenario, twin, found[k][2])}
         if not bad:
-            # In acquisition order, with the transits between sweeps: a transit must
-            # keep the clearance too (the sweep it leads to is replaced if not).
+            # In acquisition order, with the transits between sweeps, each sphere's
+            # moves from its taught joint angles as the acquisition makes them: every
+            # pose keeps the clearance on that way (the sweep is replaced if not).
             ordered = _ordered([(k, *found[k]) for k in chosen_idx], start)
             planned = []
             for s in spheres:
@@ -186,9 +205,11 @@ def optimize_plan(
                 if not mine:
                     continue
                 steps = plan_sweeps(s.name, s.taught, coarse, proto, [o[2] for o in mine])
-                for (k, *_), step in zip(mine, steps, strict=True):
-                    if len(step.approach) and not clear(scenario, twin, step.approach):
-                        bad.add(k)
+                owner = [k for (k, *_), st in zip(mine, steps, strict=True)
+                         for _ in (*st.approach, *st.T_base_ee)]  # fmt: skip
+                way = np.array([T for st in steps for T in (*st.approach, *st.T_base_ee)])
+                ok = path_clear(scenario, twin, way, s.taught_q)
+                bad |= {owner[i] for i in np.flatnonzero(~ok)}
                 planned += steps
         if not bad:
             break
