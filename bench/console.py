@@ -368,7 +368,8 @@ def print_plan_comparison(c, scenario: Scenario, console: Console) -> None:
     noise = scenario.planning.localization_noise_mm
     table = Table(
         title="predicted for localization noise "
-        f"{noise[0]:g} / {noise[1]:g} / {noise[2]:g} mm (lateral / axial / elevation, 1 σ)"
+        f"{noise[0]:g} / {noise[1]:g} / {noise[2]:g} mm (lateral / axial / elevation, 1 σ) "
+        f"and the arm's {scenario.planning.pose_noise_mm:g} mm, fitted as calib.calibrate fits"
     )
     for col in ("plan", "sweeps", "rot° 1σ", "mm 1σ", "image mm", "cond.", "robot time"):
         table.add_column(col, justify="left" if col == "plan" else "right")

@@ -1002,7 +1002,7 @@ def localize_sphere(
                 score, fs, fi, fo = arc.score, arc.f_shell, arc.f_interior, arc.f_outer
                 seed = vol.position(*arc.voxel.astype(float))
                 centre, z_sigma = _refine_centre(vol, seed, radius)
-        if accepted:
+        if accepted and cfg.method == "refined":  # the paper's method as published
             edge = _cut_by_lateral_edge(sweep, centre, radius)
             if edge:
                 accepted, reason = False, edge
@@ -1035,6 +1035,9 @@ def localize_sphere(
     return out
 
 
+_CUT_BY_EDGE = "sphere cut by the image's lateral edge"
+
+
 def _cut_by_lateral_edge(sweep: Sweep, centre: Array, radius: float) -> str:
     """Why a centre cannot be trusted if the sphere reaches past a lateral edge of the
     image (else ""): its sections there are cut off, and the centre fitted to what is
@@ -1045,7 +1048,7 @@ def _cut_by_lateral_edge(sweep: Sweep, centre: Array, radius: float) -> str:
     if abs(x) + radius <= half_width:
         return ""
     return (
-        f"sphere cut by the image's lateral edge: its centre is {x / _M_PER_MM:+.1f} mm "
+        f"{_CUT_BY_EDGE}: its centre is {x / _M_PER_MM:+.1f} mm "
         f"from the centre line, its radius {radius / _M_PER_MM:g} mm, the image reaches "
         f"± {half_width / _M_PER_MM:.1f} mm (the centre of a cut sphere is biased)"
     )
@@ -1057,7 +1060,8 @@ def _reject_if_rarely_seen(locs: list[SweepLocalization]) -> list[SweepLocalizat
     gain), where the few detections are the ones noise happened to shape; none of them
     is accepted, each with that reason."""
     n = len(locs)
-    found = sum(r.accepted for r in locs)
+    # A sphere cut by the image's edge was seen, only not where it can be measured.
+    found = sum(r.accepted or r.reason.startswith(_CUT_BY_EDGE) for r in locs)
     if n < _MIN_SWEEPS_SEEN or 2 * found >= n:
         return locs
     reason = (

@@ -358,7 +358,7 @@ def test_acquire_with_set_tcp_zero_records_the_flange_and_calibrates(controller,
     dataset = tmp_path / "ds"
     r = uscal(
         "acquire", str(controller.hw), "--out", str(dataset), "--yes", "--set-tcp-zero",
-        *ONE_SPHERE, "--set", "protocol.frames_per_sweep=7",
+        *ONE_SPHERE,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert "TCP offset was [0.0, 0.0, 150.0] mm" in " ".join(r.stdout.split())

@@ -252,6 +252,7 @@ def plan_about(comparison: PlanComparison, scenario: Scenario) -> dict:
         "criterion": comparison.criterion,
         "markers": len(comparison.spheres),
         "localization_noise_mm": list(scenario.planning.localization_noise_mm),
+        "pose_noise_mm": scenario.planning.pose_noise_mm,
         "predicted": figures(comparison.optimized),
         "paper_plan": figures(comparison.paper),
     }
