@@ -319,6 +319,7 @@ def test_a_sequential_acquisition_on_the_loopback_rig(controller, tmp_path):
 TCP_150 = ("--tcp-offset", "0", "0", "150", "0", "0", "20")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", [("127.0.0.10", *TCP_150)], indirect=True)
 def test_a_non_zero_tcp_is_refused_before_anything_moves(controller, tmp_path):
     from calib.dh import NOMINAL_TABLES, forward_kinematics

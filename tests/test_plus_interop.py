@@ -71,18 +71,18 @@ def test_real_plus_files_read_as_itk_reads_them(path, transform, shape, spacing)
 
 
 @needs_plus_data
-def test_the_real_freehand_file_is_refused_as_a_sweep_then_imported_when_allowed(tmp_path):
+def test_the_real_freehand_file_is_refused_as_a_sweep_then_imported_when_allowed(capsys, tmp_path):
     args = [
         "import", "plus", str(NWIRE), "--pose-transform", "ProbeToTracker",
         "--out", str(tmp_path / "d"), "--radius-mm", "5", "--no-speed-correction",
     ]  # fmt: skip
-    r = uscal(*args)
+    r = uscal_here(capsys, *args)
     assert r.returncode == 2 and r.stderr.count("\n") == 1
     assert "--spacing-mm" in r.stderr and not (tmp_path / "d").exists()
-    r = uscal(*args, "--spacing-mm", "0.2", "0.2")
+    r = uscal_here(capsys, *args, "--spacing-mm", "0.2", "0.2")
     assert r.returncode == 2 and "turns by 2.35°" in r.stderr and not (tmp_path / "d").exists()
     assert not list(tmp_path.iterdir())  # nothing half-written
-    r = uscal(*args, "--spacing-mm", "0.2", "0.2", "--max-turn-deg", "3")
+    r = uscal_here(capsys, *args, "--spacing-mm", "0.2", "0.2", "--max-turn-deg", "3")
     assert r.returncode == 0, r.stderr
     dataset, info = read_dataset(tmp_path / "d")
     (sweep,) = dataset.sweeps
