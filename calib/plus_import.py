@@ -157,6 +157,10 @@ def import_plus(
     default 1 × 1, the spacing then being in PLUS's ImageToProbe).
     """
     out = Path(out)
+    if temperature_c is not None and not 0.0 <= temperature_c <= 60.0:
+        raise DatasetError(
+            f"--temperature-c {temperature_c:g}: the water's temperature in °C, 0 to 60"
+        )
     if out.exists():
         raise DatasetError(f"{out}: already exists; choose a new dataset directory")
     if not files:

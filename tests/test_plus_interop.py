@@ -110,6 +110,11 @@ def test_tracking_only_file_and_unknown_transform_are_one_line(capsys, tmp_path)
     )  # fmt: skip
     # The synthetic buffer's tool never moves: not a sweep.
     assert r.returncode == 2 and "moves 0.00 mm" in r.stderr
+    r = uscal_here(
+        capsys, "import", "plus", str(SYNTHETIC), "--pose-transform", "ToolToTracker",
+        "--out", str(tmp_path / "d"), "--radius-mm", "5", "--temperature-c", "200",
+    )  # fmt: skip
+    assert r.returncode == 2 and "0 to 60" in r.stderr and r.stderr.count("\n") == 1
     assert not (tmp_path / "d").exists()
 
 
