@@ -34,6 +34,11 @@ the image's points, so that rotation and translation are weighed by what a user 
 - ``D``: maximize log det H (the volume of the confidence ellipsoid; unit-free);
 - ``A``: minimize the predicted mean squared image error, trace(M H⁻¹);
 - ``E``: minimize its worst direction, λ_max(M^½ H⁻¹ M^½).
+
+The prediction (:func:`predict`) is the spread of the fit :mod:`calib.calibrate` makes,
+which weighs every axis alike: the sandwich N⁻¹ (Σ Jᵀ S J) N⁻¹ of that least squares
+under the anisotropic noise S, a little above H⁻¹ (the noise-weighted fit's); the noise
+is the localizer's and the arm's pose noise, added.
 """
 
 from __future__ import annotations
