@@ -12,12 +12,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from calib import se3
 from calib.planning import (
     Candidates,
     SweepPose,
     sweep_commands,
 )
 
+from .acquire_sim import teach_at
 from .config.scenario import Scenario, layout_sigma_mm
 
 __all__ = [
@@ -28,7 +30,9 @@ __all__ = [
     "clear",
     "in_image",
     "observations",
+    "path_clear",
     "sweep_of",
+    "taught_sphere",
 ]
 
 Array = NDArray[np.float64]
@@ -44,6 +48,27 @@ class PlanSphere:
     taught: Array  # T_base_ee of the taught pose (as the controller reports it)
     centre: Array  # where the coarse T_ee_us puts the sphere, base frame (m)
     taught_q: Array | None = None  # the taught joint angles (where its sweeps start from)
+
+
+def taught_sphere(
+    scenario: Scenario, twin, coarse: Array, name: str, index: int, rng: np.random.Generator
+) -> PlanSphere:
+    """Teach the nominal pose at sphere ``name`` as the session's acquisition teaches it
+    (its teaching error drawn from ``rng``, the session's protocol stream): a rig plans
+    from the pose it was taught, so the twin's plan is the one its acquisition checks
+    and moves through."""
+    proto = scenario.protocol
+    depth = proto.target_depth_mm * 1e-3
+    taught = teach_at(
+        twin,
+        twin.truth.landmarks_base[name],
+        depth,
+        f"taught pose at {name}",
+        rng,
+        proto.teaching_error_mm,
+    )
+    centre = se3.apply(taught.T_base_ee @ coarse, np.array([0.0, depth, 0.0]))
+    return PlanSphere(name, index, taught.T_base_ee, centre, taught.q)
 
 
 def in_image(scenario: Scenario, pose: SweepPose) -> bool:

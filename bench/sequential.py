@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from calib import se3
 from calib.localize import localize_sphere
 from calib.planning import (
     Candidates,
@@ -33,8 +32,8 @@ from calib.records import Dataset, Sweep
 from twin.imager import SimImager
 from twin.world import Twin
 
-from .acquire_sim import SimulatedAcquisition, coarse_estimate, dataset_meta, teach_at
-from .candidates import PlanSphere, candidate_sweeps, clear, observations
+from .acquire_sim import SimulatedAcquisition, coarse_estimate, dataset_meta
+from .candidates import candidate_sweeps, clear, observations, taught_sphere
 from .config.scenario import Scenario
 from .pipeline import axial_scale, image_points
 from .progress import report
@@ -153,7 +152,6 @@ def acquire_until(
     rngs = stage_rngs(scenario)
     proto = scenario.protocol
     coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
-    depth = proto.target_depth_mm * 1e-3
     radius = scenario.phantom.sphere_radius_mm * 1e-3
     scale = axial_scale(scenario)
     M = image_metric(coarse, image_points(scenario))
@@ -166,16 +164,7 @@ def acquire_until(
     scans = []
     for index in proto.spheres:
         target = f"sphere_{index}"
-        taught = teach_at(
-            twin,
-            twin.truth.landmarks_base[target],
-            depth,
-            f"taught pose at {target}",
-            rngs["protocol"],
-            proto.teaching_error_mm,
-        )
-        centre = se3.apply(taught.T_base_ee @ coarse, np.array([0.0, depth, 0.0]))
-        sphere = PlanSphere(target, 0, taught.T_base_ee, centre)
+        sphere = taught_sphere(scenario, twin, coarse, target, 0, rngs["protocol"])
         found, _ = candidate_sweeps(scenario, twin, [sphere], coarse, lambda s: dense, True)
         cands = observations(scenario, coarse, [sphere], found, False)
         chooser = Chooser(target, cands, [pose for _, pose, _ in found], rule, M, bias)
@@ -186,7 +175,7 @@ def acquire_until(
             # The new sweep, with its transit from the previous one's last frame, which
             # keeps the clearance too (else the next best sweep is taken instead).
             planned: PlannedSweep = plan_sweeps(
-                target, taught.T_base_ee, coarse, proto, [*poses, pose]
+                target, sphere.taught, coarse, proto, [*poses, pose]
             )[-1]
             if len(planned.approach) and not clear(scenario, twin, planned.approach):
                 chooser.skip()

@@ -38,14 +38,14 @@ from calib.protocol import PlannedSweep, check_plan, plan_sweeps
 from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
-from ..acquire_sim import coarse_estimate, make_twin, teach_at
+from ..acquire_sim import coarse_estimate, make_twin
 from ..candidates import (
     NOT_CLEAR,
-    PlanSphere,
     candidate_sweeps,
     clear,
     observations,
     path_clear,
+    taught_sphere,
 )
 from ..config.scenario import Scenario
 from ..pipeline import image_points
@@ -147,22 +147,10 @@ def optimize_plan(
     twin = make_twin(scenario)
     rngs = stage_rngs(scenario)
     coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
-    depth = proto.target_depth_mm * 1e-3
-    spheres = []
-    for k, name in enumerate(names):
-        # Taught as the session's acquisition teaches it (its teaching error drawn from
-        # the same stream): a rig plans from the pose it was taught, and the twin's plan
-        # is then the one its acquisition checks and moves through.
-        taught = teach_at(
-            twin,
-            twin.truth.landmarks_base[name],
-            depth,
-            f"taught at {name}",
-            rngs["protocol"],
-            proto.teaching_error_mm,
-        )
-        centre = se3.apply(taught.T_base_ee @ coarse, np.array([0.0, depth, 0.0]))
-        spheres.append(PlanSphere(name, k, taught.T_base_ee, centre, taught.q))
+    spheres = [
+        taught_sphere(scenario, twin, coarse, name, k, rngs["protocol"])
+        for k, name in enumerate(names)
+    ]
     M = image_metric(coarse, image_points(scenario))
     bias = bias_covariance(coarse, scenario.planning.localization_bias_mm)
     start = spheres[0].taught
