@@ -198,7 +198,7 @@ def acquire_dataset(
             "chooses each sweep from those before it and starts anew (no --resume)"
         )
     from hw.grabber import FrameGrabber
-    from hw.robot import URRobot
+    from hw.robot import URRobot, describe_tcp
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -260,11 +260,8 @@ def acquire_dataset(
             writer.discard_if_empty()
             raise
         if robot.tcp_offset_cleared is not None:
-            tcp = robot.tcp_offset_cleared
-            say(
-                f"the controller's TCP offset was {np.round(tcp[:3] * 1e3, 3).tolist()} mm, "
-                f"{np.round(np.degrees(tcp[3:]), 3).tolist()}°: set to zero (--set-tcp-zero)"
-            )
+            was = describe_tcp(robot.tcp_offset_cleared)
+            say(f"the controller's TCP offset was {was}: set to zero (--set-tcp-zero)")
         with robot, FrameGrabber(cfg.grabber) as grabber:
             report("acquire sweeps", skipped, len(plan))
             if until is not None:

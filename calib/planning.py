@@ -345,23 +345,22 @@ class Candidates:
             for j, name in enumerate(names):
                 D[idx == name, :, 3 * j : 3 * j + 3] = -np.eye(3)
             return cls(A, W @ D, idx, None, G, D, S)
-        else:
-            # c_s = R_φ c_s⁰ + t_φ: ∂c_s/∂(ω_φ rad, t_φ mm) = [−[c_s]_× · 1000 | I] (mm).
-            # Each centre's print error δ_s (mm) adds to it, with its prior.
-            names = list(layout)
-            free = 3 * len(names) if layout_sigma_mm > 0 else 0
-            D = np.zeros((len(T), 3, 6 + free))
-            for j, name in enumerate(names):
-                rows = idx == name
-                D[rows, :, :3] = -_skew(np.asarray(layout[name], dtype=float)) * _MM
-                D[rows, :, 3:6] = np.eye(3)
-                if free:
-                    D[rows, :, 6 + 3 * j : 9 + 3 * j] = np.eye(3)
-            prior = None
+        # c_s = R_φ c_s⁰ + t_φ: ∂c_s/∂(ω_φ rad, t_φ mm) = [−[c_s]_× · 1000 | I] (mm).
+        # Each centre's print error δ_s (mm) adds to it, with its prior.
+        names = list(layout)
+        free = 3 * len(names) if layout_sigma_mm > 0 else 0
+        D = np.zeros((len(T), 3, 6 + free))
+        for j, name in enumerate(names):
+            rows = idx == name
+            D[rows, :, :3] = -_skew(np.asarray(layout[name], dtype=float)) * _MM
+            D[rows, :, 3:6] = np.eye(3)
             if free:
-                prior = np.zeros((6 + free, 6 + free))
-                prior[6:, 6:] = np.eye(free) / layout_sigma_mm**2
-            return cls(A, -W @ D, idx, prior, G, -D, S)
+                D[rows, :, 6 + 3 * j : 9 + 3 * j] = np.eye(3)
+        prior = None
+        if free:
+            prior = np.zeros((6 + free, 6 + free))
+            prior[6:, 6:] = np.eye(free) / layout_sigma_mm**2
+        return cls(A, -W @ D, idx, prior, G, -D, S)
 
 
 def _skew(v: Array) -> Array:

@@ -31,13 +31,22 @@ from calib.records import RobotReading
 from .config import URRobotConfig
 from .rtde_process import RtdeProcess
 
-__all__ = ["URRobot", "check_reachable"]
+__all__ = ["URRobot", "check_reachable", "describe_tcp"]
 
 Array = NDArray[np.float64]
 _RTDE_PORT = 30004
 _SAFETY_WAIT_S = 0.5
 # A TCP offset below 1 µm and 1 µrad is zero (the controller stores what was typed).
 _TCP_ZERO_TOL = 1e-6
+
+
+def describe_tcp(tcp: ArrayLike) -> str:
+    """A TCP offset [x, y, z, rx, ry, rz] (m, rotation vector) as a user reads it."""
+    tcp = np.asarray(tcp, dtype=float)
+    return (
+        f"{np.round(tcp[:3] * 1e3, 3).tolist()} mm, rotation vector "
+        f"{np.round(np.degrees(tcp[3:]), 3).tolist()}°"
+    )
 
 
 def check_reachable(host: str, timeout_s: float) -> None:
@@ -112,10 +121,7 @@ class URRobot:
         tcp = self.tcp_offset()
         if np.all(np.abs(tcp) <= _TCP_ZERO_TOL):
             return
-        what = (
-            f"{np.round(tcp[:3] * 1e3, 3).tolist()} mm, rotation vector "
-            f"{np.round(np.degrees(tcp[3:]), 3).tolist()}°"
-        )
+        what = describe_tcp(tcp)
         if not set_zero:
             raise RobotSetupError(
                 f"robot {self.cfg.host}: the active TCP offset is {what}; uscal reads and moves "

@@ -181,11 +181,13 @@ def optimize_plan(
         cands = observations(scenario, coarse, spheres, found, multi)
         least = MIN_SWEEPS_PER_SPHERE if multi else 0
         chosen_idx = select_sweeps(cands, n_sweeps, criterion, M, min_per_target=least)
+        # Every frame from the taught joint angles, as the acquisition checks the plan
+        # before it moves (calib.protocol.check_plan) ...
         bad = {k for k in dict.fromkeys(chosen_idx) if not clear(scenario, twin, found[k][2])}
         if not bad:
-            # In acquisition order, with the transits between sweeps, each sphere's
-            # moves from its taught joint angles as the acquisition makes them: every
-            # pose keeps the clearance on that way (the sweep is replaced if not).
+            # ... and along the way it then moves: in acquisition order, with the
+            # transits between sweeps, each sphere's moves from its taught joint angles;
+            # every pose keeps the clearance on that way (the sweep is replaced if not).
             ordered = _ordered([(k, *found[k]) for k in chosen_idx], start)
             planned = []
             for s in spheres:
