@@ -594,7 +594,9 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         total = w.sum()
         if total <= 0:
             break
+        # Each slice's frame sits off its integer stacking shift by up to half a pixel.
         x_new = float(w.sum(axis=(0, 1)) @ xs / total)
+        x_new += float(vol.residual_shift(ks, w.sum(axis=(1, 2)))[0])
         z_mean = float(w.sum(axis=(1, 2)) @ zs / total)
         near_x = np.abs(xs - x_new) <= 0.5 * _M_PER_MM
         near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _M_PER_MM
@@ -631,6 +633,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         if wt.sum() <= 0:
             break
         y_top = _axial_peak(vol.intensity(ks[frames], rs, cs[col], level), 255.0 - level, ys, wt)
+        y_top += float(vol.residual_shift(ks[frames], w[frames][:, :, col].sum(axis=(1, 2)))[1])
         new = np.array([x_new, y_top + radius, z_new])
         moved = np.linalg.norm(new - current)
         current = new

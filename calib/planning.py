@@ -7,8 +7,8 @@ the target by three angles about the image axes, then shifted in its image plane
 paper's plan does with its 9 orientations × 5 positions (:func:`paper_poses`). Each sweep
 yields one localized centre; its information about θ = (ω rad, t mm) of ``T_ee_us`` is
 that of :mod:`calib.observability`, whitened by the localizer's noise in the image frame
-(anisotropic: laterally a few hundredths of a millimetre, axially and in elevation a
-tenth, :class:`NoiseModel`).
+(anisotropic: laterally under a hundredth of a millimetre, axially one or two, in elevation
+about five hundredths, :class:`NoiseModel`).
 
 The target's own position is unknown (one sphere: its centre; several spheres with the
 CAD layout: the phantom's pose), so the information of a set of sweeps is the Schur
@@ -130,13 +130,13 @@ class PlanningConfig:
         },
     )
     localization_noise_mm: tuple[float, float, float] = field(
-        default=(0.018, 0.04, 0.055),
+        default=(0.007, 0.013, 0.055),
         metadata={
             "doc": "1 σ of a localized centre along the image's lateral, axial and "
             "elevational axes, independent between sweeps, which a plan is chosen for "
             "(the twin's refined localizer on quick.yaml, scatter within a session over "
-            "16 seeds: 0.017, 0.036, 0.057 mm with the paper's plan, 0.019, 0.042, "
-            "0.051 mm with an optimized 45-sweep plan).",
+            "20 seeds: 0.0070, 0.0132, 0.057 mm with the paper's plan, 0.0073, 0.0128, "
+            "0.054 mm with an optimized 45-sweep plan).",
             "len": 3,
             "gt": 0,
             "le": 5,

@@ -79,6 +79,7 @@ class SweepVolume:
         nearest: NDArray[np.int64],
         frame_rows: NDArray[np.int64],
         frame_cols: NDArray[np.int64],
+        frame_residuals: Array | None = None,
     ) -> None:
         self.bits = bits
         self.column_step = bits.shape[1]
@@ -90,6 +91,18 @@ class SweepVolume:
         self.col0 = col0
         self._frames, self._levels, self._nearest = frames, levels, nearest
         self._frame_rows, self._frame_cols = frame_rows, frame_cols
+        if frame_residuals is None:
+            frame_residuals = np.zeros((len(frames), 2))
+        self.frame_residuals = frame_residuals
+
+    def residual_shift(self, k: NDArray[np.int64], weights: Array) -> Array:
+        """(x, y) metres: the mean, over slices ``k`` weighted by ``weights``, of how far
+        each slice's frame sits from the integer pixel shift it is stacked at — what a
+        position measured on the stack is off by there (:func:`stack_sweep`)."""
+        total = float(np.sum(weights))
+        if total <= 0:
+            return np.zeros(2)
+        return np.asarray(weights, dtype=float) @ self.frame_residuals[self._nearest[k]] / total
 
     def position(self, k: Array, r: Array, c: Array) -> Array:
         """Reference-frame points (..., 3) of voxel indices."""
@@ -138,6 +151,7 @@ class SweepVolume:
             self._nearest,
             self._frame_rows,
             self._frame_cols,
+            self.frame_residuals,
         )
 
     def intensity(
@@ -387,9 +401,14 @@ def stack_sweep(
     nearest = order[np.argmin(np.abs(slice_z[:, None] - z[order][None, :]), axis=1)]
     levels = frame_levels(images, noise_floor)
     # Integer pixel shift of each frame's in-plane offset (nearest voxel); the grid spans
-    # every shifted frame.
+    # every shifted frame. What the rounding leaves (up to half a pixel) is kept: a sweep
+    # whose axis is a few degrees off the image normal (the coarse mount's error) shifts
+    # its frames in plane by z·tan α, and near the sphere the rounding differs from sweep
+    # to sweep with the pose — an error of up to half a pixel that the refinement of the
+    # cap corrects (:meth:`SweepVolume.residual_shift`).
     shift_c = np.rint(offsets[:, 0] / sx).astype(np.int64)
     shift_r = np.rint(offsets[:, 1] / sy).astype(np.int64)
+    residuals = offsets[:, :2] - np.column_stack([shift_c * sx, shift_r * sy])
     col0, row0 = int(min(0, shift_c.min())), int(min(0, shift_r.min()))
     width = W - col0 + int(max(0, shift_c.max()))
     height = H - row0 + int(max(0, shift_r.max()))
@@ -406,6 +425,7 @@ def stack_sweep(
         nearest.astype(np.int64),
         (shift_r - row0).astype(np.int64),
         (shift_c - col0).astype(np.int64),
+        residuals,
     )
 
 

@@ -664,3 +664,43 @@ def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():
     assert all(np.isnan(r.centre).all() for r in few)
     half = locs(5)
     assert _reject_if_rarely_seen(half) == half
+
+
+def test_a_sweep_off_the_image_normal_is_localized_between_the_pixels():
+    """A sweep whose axis is a few degrees off the image normal (a coarse mount's error)
+    shifts its frames in plane by z·tan α; stacked at whole pixels, the cap's echo near
+    the sphere sits off by up to half a pixel, by a phase that follows the sphere's
+    elevation in the sweep. The refinement adds back what the rounding left: laterally
+    and axially the centre stays within a few hundredths of a millimetre at every phase
+    (half a pixel, 0.1 mm, before)."""
+    from bench.acquire_sim import make_imager, make_twin
+    from bench.config.scenario import load_scenario
+    from calib.protocol import facing_pose
+
+    s = load_scenario(None, ["robot.dh_error_scale=0", "imaging.pixel_spacing_mm=[0.2, 0.2]"])
+    twin = make_twin(s)
+    imager = make_imager(s, twin)
+    T_ee_us = twin.truth.T_ee_us
+    centre = twin.truth.landmarks_base["sphere_1"]
+    skew = np.array([np.tan(np.radians(5.0)), np.tan(np.radians(-6.0)), 1.0])
+    sweeps, truths = [], []
+    for k, dz in enumerate([-2.4, -1.3, -0.5, 0.6, 1.5, 2.3]):
+        T_face = facing_pose(centre, 0.02) @ se3.make(np.eye(3), [0, 0, dz * MM])
+        images, poses = [], []
+        for z in np.linspace(-0.01, 0.01, 21):
+            reading = twin.robot.move_to(
+                T_face @ se3.make(np.eye(3), z * skew) @ se3.invert(T_ee_us)
+            )
+            images.append(imager.grab().image)
+            poses.append(reading.T_base_ee)
+        poses = np.array(poses)
+        joints = np.zeros((21, 6))
+        sweeps.append(Sweep("sphere_1", k, np.array(images), imager.spacing, joints, poses))
+        truths.append(se3.apply(se3.invert(poses[10] @ T_ee_us), centre))
+    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, LocalizerConfig(), 1482.3 / 1540.0)
+    err = np.array([(r.centre - p)[:2] / MM for r, p in zip(locs, truths, strict=True)])
+    assert all(r.accepted for r in locs)
+    # The axial offset common to every sweep (where in the cap's echo the top lands) is
+    # not this test's concern: the spread about it is.
+    err[:, 1] -= err[:, 1].mean()
+    assert np.abs(err).max() < 0.035, err.round(3)
