@@ -687,7 +687,9 @@ def _elevation_vertex(
     (its vertex through them), more where it is wide beyond the elevation focus (there the
     three-slice vertex is a difference of nearly equal noisy peaks). Slices clipped at 255
     (high gain) are left out: the flanks on both sides still fix the vertex of a symmetric
-    profile. Without a usable fit, the midpoint of the half-maximum crossings.
+    profile. Without a clipped slice, the fit is then refined in a window centred on its
+    own vertex (:func:`_centred_vertex`). Without a usable fit, the midpoint of the
+    half-maximum crossings.
     """
     if w.size == 0:
         return z_mean, 0.0
@@ -730,7 +732,7 @@ def _centred_vertex(
     centre moves between two frames, and the shape's departure from a parabola then
     pulls the vertex towards the middle between frames (measured on the twin: ± 0.044 mm
     with the centre's phase between frames 1 mm apart, within 0.057 mm of scatter). A
-    window centred on the vertex is symmetric about it whatever the phase: 0.017 mm, and
+    window centred on the vertex is symmetric about it whatever the phase: 0.015 mm, and
     0.048 mm of scatter. Where the refit cannot be made (too few slices, a clipped slice
     in the window, a parabola that does not open downwards, a vertex that jumps by more
     than a slice), ``start``."""
