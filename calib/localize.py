@@ -772,10 +772,11 @@ def _parabola_vertex(
     if a >= 0:
         return None
     vertex = -b / (2 * a)
-    dof = wt.sum() - 3.0 * np.sum(wt**2) / wt.sum()  # n − 3 for equal weights
-    if wt.sum() ** 2 / np.sum(wt**2) - 3 < 2:  # Kish's effective number of points
+    n_effective = wt.sum() ** 2 / np.sum(wt**2)  # Kish's; n for equal weights
+    if n_effective - 3 < 2:
         return float(vertex), 0.0
-    s2 = float(np.sum(wt * (V @ coef - y) ** 2)) / dof
+    # The residuals' degrees of freedom under the window: n − 3 for equal weights.
+    s2 = float(np.sum(wt * (V @ coef - y) ** 2)) / (wt.sum() * (1 - 3 / n_effective))
     cov = s2 * (Minv @ (V.T @ ((wt**2)[:, None] * V)) @ Minv)[:2, :2]
     g = np.array([b / (2 * a * a), -1 / (2 * a)])  # ∂vertex / ∂(a, b)
     return float(vertex), float(np.sqrt(max(g @ cov @ g, 0.0)))

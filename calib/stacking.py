@@ -79,7 +79,7 @@ class SweepVolume:
         nearest: NDArray[np.int64],
         frame_rows: NDArray[np.int64],
         frame_cols: NDArray[np.int64],
-        frame_residuals: Array | None = None,
+        frame_residuals: Array,
     ) -> None:
         self.bits = bits
         self.column_step = bits.shape[1]
@@ -91,9 +91,7 @@ class SweepVolume:
         self.col0 = col0
         self._frames, self._levels, self._nearest = frames, levels, nearest
         self._frame_rows, self._frame_cols = frame_rows, frame_cols
-        if frame_residuals is None:
-            frame_residuals = np.zeros((len(frames), 2))
-        self.frame_residuals = frame_residuals
+        self.frame_residuals = frame_residuals  # (frames, 2) metres: see stack_sweep
 
     def residual_shift(self, k: NDArray[np.int64], weights: Array) -> Array:
         """(x, y) metres: the mean, over slices ``k`` weighted by ``weights``, of how far
