@@ -31,15 +31,14 @@ from calib.errors import (
     RobotStoppedError,
     UscalError,
 )
-from calib.localization import LocalizerConfig
-from calib.localize import localize_sphere
+from calib.localize import LocalizerConfig, localize_sphere
+from calib.pipeline import axial_scale as axial_scale_of
 from calib.planning import Candidates, bias_covariance, paper_poses
 from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan, transit
 from calib.records import Touch
 
 from .config.hw import HwConfig
 from .config.plan_file import sphere_poses
-from .pipeline import axial_scale_of
 from .progress import report
 from .sequential import Chooser, StopRule
 
@@ -68,7 +67,7 @@ def _plans(cfg: HwConfig, taught_T: dict[str, np.ndarray]) -> list[PlannedSweep]
     plan: list[PlannedSweep] = []
     for target, T in taught_T.items():
         poses = sphere_poses(cfg.protocol, target)
-        plan += plan_sweeps(target, T, cfg.rig.T_ee_us_coarse, cfg.protocol, poses)
+        plan += plan_sweeps(target, T, cfg.rig.T_ee_us_coarse, cfg.protocol, poses=poses)
     return plan
 
 
@@ -285,7 +284,7 @@ def acquire_dataset(
                             T_taught,
                             cfg.rig.T_ee_us_coarse,
                             cfg.protocol,
-                            sphere_poses(cfg.protocol, current),
+                            poses=sphere_poses(cfg.protocol, current),
                         )
                     }
                 # The transit from where the arm is: the taught pose, or the last sweep
@@ -303,7 +302,7 @@ def acquire_dataset(
                     [sweep_plan],
                     on_frame=lambda _p, _j, log=stamps: log.append(time.time()),
                 )
-                writer.add_sweep(sweep, np.array(stamps))
+                writer.add_sweep(sweep, timestamps=np.array(stamps))
                 done += 1
                 report("acquire sweeps", skipped + done, len(plan))
             if operator is not None:
@@ -327,7 +326,7 @@ def _acquire_until(cfg, robot, grabber, writer, target, q_taught, until, say) ->
     T_taught = robot.read().T_base_ee
     coarse = cfg.rig.T_ee_us_coarse
     poses = sphere_poses(proto, target) or paper_poses(proto.rotation_deg, proto.translation_mm)
-    single = [plan_sweeps(target, T_taught, coarse, proto, [p])[0] for p in poses]
+    single = [plan_sweeps(target, T_taught, coarse, proto, poses=[p])[0] for p in poses]
     depth = proto.target_depth_mm * 1e-3
     cands = Candidates.build(
         np.array([s.T_base_ee[len(s.T_base_ee) // 2] for s in single]),
@@ -343,16 +342,16 @@ def _acquire_until(cfg, robot, grabber, writer, target, q_taught, until, say) ->
     chosen, mine = [], []
     while chooser.more():
         chosen.append(chooser.next())
-        planned = plan_sweeps(target, T_taught, coarse, proto, chosen)[-1]
+        planned = plan_sweeps(target, T_taught, coarse, proto, poses=chosen)[-1]
         stamps: list[float] = []
         (sweep,) = acquire(
             robot, grabber, [planned], on_frame=lambda _p, _j, log=stamps: log.append(time.time())
         )
-        writer.add_sweep(sweep, np.array(stamps))
+        writer.add_sweep(sweep, timestamps=np.array(stamps))
         mine.append(sweep)
         report("acquire sweeps", writer.n_sweeps, until.max_sweeps * len(proto.spheres))
         locs = localize_sphere(
-            mine, None, info.sphere_radius_mm * 1e-3, localizer, axial_scale_of(info)
+            mine, None, info.sphere_radius_mm * 1e-3, localizer, axial_scale=axial_scale_of(info)
         )
         chooser.update([loc.accepted for loc in locs])
     scan = chooser.scan()

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
+from calib.calibrate import CalibrationConfig
 from calib.dataset_files import AcquisitionInfo, DatasetWriter
 from calib.protocol import (
     PlannedSweep,
@@ -24,7 +25,6 @@ from calib.protocol import (
     touch_plan,
 )
 from calib.records import Dataset, Sweep, Touch
-from calib.settings import CalibrationConfig
 from twin.arm_errors import robot_stream
 from twin.imager import SimImager
 from twin.touch import SimTouchGuide
@@ -118,7 +118,7 @@ def simulate_touches(
     vertices = {k: v for k, v in twin.truth.landmarks_base.items() if k.startswith("vertex_")}
     middle = np.mean(list(vertices.values()), axis=0)
     lean = {k: (middle - v) * np.array([1.0, 1.0, 0.0]) for k, v in vertices.items()}
-    plan = touch_plan(sorted(vertices), scenario.protocol, lean)
+    plan = touch_plan(sorted(vertices), scenario.protocol, lean=lean)
     guide = SimTouchGuide(
         twin.robot,
         vertices,
@@ -129,7 +129,7 @@ def simulate_touches(
     )
     twin.mount("stylus")
     try:
-        return acquire_touches(twin.robot, guide, plan, on_touch)
+        return acquire_touches(twin.robot, guide, plan, on_touch=on_touch)
     finally:
         twin.mount("probe")
 
@@ -151,7 +151,7 @@ def teach_at(
     miss = np.zeros(3)
     if miss_rng is not None:
         miss = miss_rng.normal(0.0, teaching_error_mm * 1e-3, 3)
-    T_face = facing_pose(point + miss, depth, lateral_axis)
+    T_face = facing_pose(point + miss, depth, lateral_axis=lateral_axis)
     return twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), label)
 
 
@@ -200,7 +200,9 @@ def simulate_acquisition(
             rngs["protocol"],
             proto.teaching_error_mm,
         )
-        plan = plan_sweeps(target, taught.T_base_ee, coarse, proto, sphere_poses(proto, target))
+        plan = plan_sweeps(
+            target, taught.T_base_ee, coarse, proto, poses=sphere_poses(proto, target)
+        )
         check_plan(twin.robot, plan)
 
         def log(planned: PlannedSweep, j: int) -> None:
@@ -280,7 +282,7 @@ def save_dataset(
     period = 0.5  # s per frame: settle and grab
     n = 0
     for sweep in acq.dataset.sweeps:
-        writer.add_sweep(sweep, period * (n + np.arange(sweep.n_frames)))
+        writer.add_sweep(sweep, timestamps=period * (n + np.arange(sweep.n_frames)))
         n += sweep.n_frames
     writer.add_touches(acq.dataset.touches)
     writer.finish()

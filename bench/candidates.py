@@ -87,8 +87,8 @@ def sweep_of(scenario: Scenario, sphere: PlanSphere, coarse: Array, pose: SweepP
         coarse,
         proto.target_depth_mm * 1e-3,
         pose,
-        proto.sweep_half_length_mm * 1e-3,
-        proto.frames_per_sweep,
+        half_length=proto.sweep_half_length_mm * 1e-3,
+        n_frames=proto.frames_per_sweep,
     )
 
 

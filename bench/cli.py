@@ -226,15 +226,15 @@ def _cmd_import_plus(args: argparse.Namespace, console: Console) -> int:
     with console.status(f"importing {len(args.files)} PLUS file(s)"):
         summary = import_plus(
             args.files,
-            args.pose_transform,
-            args.target,
-            args.out,
-            args.radius_mm,
-            None if args.no_speed_correction else args.temperature_c,
-            tuple(args.spacing_mm) if args.spacing_mm else None,
-            args.frames_per_sweep,
-            args.max_turn_deg,
-            args.assumed_speed_m_s,
+            pose_transform=args.pose_transform,
+            target=args.target,
+            out=args.out,
+            radius_mm=args.radius_mm,
+            temperature_c=None if args.no_speed_correction else args.temperature_c,
+            spacing_mm=tuple(args.spacing_mm) if args.spacing_mm else None,
+            frames_per_sweep=args.frames_per_sweep,
+            max_turn_deg=args.max_turn_deg,
+            assumed_speed_m_s=args.assumed_speed_m_s,
         )
     print_import(summary, console)
     return 0
@@ -259,7 +259,7 @@ def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
     spec = plan_budget(args.scenario, args.overrides, sources, args.seeds)
     out = Path(args.out or Path("out") / f"{Path(args.scenario).stem}-budget")
     with progress_bars(console) as bars, reporting(bars.update):
-        result = run_budget(spec, out, args.scheduler, args.workers or None)
+        result = run_budget(spec, out, run, args.scheduler, args.workers or None)
     files = write_budget(out, result)
     print_cached_run("runs", len(result.runs), result, files, console)
     return 1 if result.failed else 0

@@ -1,6 +1,8 @@
 """Parallel execution: the paper run's process pool (its workers' initializer, one BLAS
 thread per process, memory given back after each task), and the local-pool-or-Dask
-executor of sweeps and budgets with their per-point cache (:func:`run_cached`)."""
+executor that grids of runs use (:func:`executor`, :func:`as_completed`; the grids
+themselves, with their per-point cache, are :mod:`bench.grid`). The only module that
+imports Dask."""
 
 from __future__ import annotations
 
@@ -8,7 +10,6 @@ import concurrent.futures as cf
 import contextlib
 import ctypes
 import gc
-import json
 import multiprocessing
 import os
 from collections.abc import Callable
@@ -22,15 +23,14 @@ from twin.printing import forget_parts, use_disk_cache
 
 from . import progress as progress_report
 from .config.scenario import Scenario
-from .files import make_directory, write_text_atomic
 
 __all__ = [
     "SchedulerError",
+    "as_completed",
     "executor",
     "one_blas_thread",
     "pool_task",
     "release_memory",
-    "run_cached",
     "start_worker",
     "worker_initializer",
     "workers_for",
@@ -126,42 +126,3 @@ def as_completed(futures, dask: bool):
 
         return as_completed(list(futures))
     return cf.as_completed(futures)
-
-
-def run_cached(
-    tasks: dict[str, tuple[Callable[..., dict[str, Any]], tuple[Any, ...], dict[str, Any]]],
-    points: Path,
-    scheduler: str | None,
-    workers: int | None,
-    label: str,
-) -> tuple[dict[str, dict[str, Any]], int]:
-    """Run the tasks (key → (function, arguments, what the point's file records besides
-    its result)) whose ``points/<key>.json`` does not exist yet, on a local pool of
-    ``workers`` (default one per core) or the Dask cluster at ``scheduler``; each result
-    is written to its file as it comes (an interrupted sweep resumes). Returns every
-    key's document and how many came from the files."""
-    make_directory(points)
-    done: dict[str, dict[str, Any]] = {}
-    todo = {}
-    for key, task in tasks.items():
-        cached = points / f"{key}.json"
-        if cached.is_file():
-            done[key] = json.loads(cached.read_text(encoding="utf-8"))
-        else:
-            todo[key] = task
-    n_cached = len(done)
-    progress_report.report(label, n_cached, len(tasks))
-    if todo:
-        submit, close = executor(scheduler, workers)
-        try:
-            futures = {submit(fn, *args): key for key, (fn, args, _) in todo.items()}
-            for future in as_completed(futures, scheduler is not None):
-                key = futures[future]
-                doc = dict(todo[key][2])
-                doc.update(future.result())
-                write_text_atomic(points / f"{key}.json", json.dumps(doc, indent=1))
-                done[key] = doc
-                progress_report.report(label, len(done), len(tasks))
-        finally:
-            close()
-    return done, n_cached

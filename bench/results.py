@@ -15,20 +15,21 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.calibrate import AlternationResult
+from calib.alternation import AlternationResult
 from calib.dataset_files import AcquisitionInfo
 from calib.dh import DHTable
 from calib.evaluate import FoldResult, training_precision
 from calib.kinematics import DHRefinement, TouchReference
-from calib.localization import SweepLocalization
+from calib.localize import SweepLocalization
 from calib.records import Dataset, Sweep
 from calib.uncertainty import Bound95, UncertaintyInputs
 
 from .files import with_frames
 
 if TYPE_CHECKING:  # types only: the results layer loads neither the twin nor the pipeline
+    from calib.pipeline import MarkerCalibrations
+
     from .acquire_sim import SimulatedAcquisition
-    from .pipeline import MarkerCalibrations
     from .snapshot import LocalizationSnapshot
 
 __all__ = [

@@ -34,8 +34,8 @@ from twin.world import Twin
 
 from .acquire_sim import SimulatedAcquisition, coarse_estimate, dataset_meta
 from .candidates import candidate_sweeps, clear, observations, taught_sphere
+from .config.method import axial_scale, image_points
 from .config.scenario import Scenario
-from .pipeline import axial_scale, image_points
 from .progress import report
 from .sessions import stage_rngs
 
@@ -102,7 +102,9 @@ class Chooser:
         return left and not self.reached
 
     def next(self) -> SweepPose:
-        k = next_sweep(self.cands, self.localized, self.tried + self.skipped, "D", self.M)
+        k = next_sweep(
+            self.cands, self.localized, exclude=self.tried + self.skipped, criterion="D", M=self.M
+        )
         self.tried.append(k)
         return self.poses[k]
 
@@ -116,7 +118,7 @@ class Chooser:
         self.localized = [k for k, ok in zip(self.tried, accepted, strict=True) if ok]
         if len(self.localized) < self.rule.min_sweeps:
             return False
-        self.prediction = p = predict(self.cands, self.localized, self.M, self.bias)
+        self.prediction = p = predict(self.cands, self.localized, self.M, bias=self.bias)
         self.history.append(
             {"sweeps": len(self.tried), "rotation_deg": p.rotation_deg,
              "translation_mm": p.translation_mm}
@@ -175,7 +177,7 @@ def acquire_until(
             # The new sweep, with its transit from the previous one's last frame, which
             # keeps the clearance too (else the next best sweep is taken instead).
             planned: PlannedSweep = plan_sweeps(
-                target, sphere.taught, coarse, proto, [*poses, pose]
+                target, sphere.taught, coarse, proto, poses=[*poses, pose]
             )[-1]
             if len(planned.approach) and not clear(scenario, twin, planned.approach):
                 chooser.skip()
@@ -191,7 +193,7 @@ def acquire_until(
             report(label, len(sweeps) + len(mine), total)
             # Every sweep of the sphere so far, localized together (their agreement is
             # part of the test); a sweep counts once it is accepted.
-            locs = localize_sphere(mine, None, radius, scenario.localization, scale)
+            locs = localize_sphere(mine, None, radius, scenario.localization, axial_scale=scale)
             chooser.update([loc.accepted for loc in locs])
         sweeps += mine
         scans.append(chooser.scan())

@@ -11,8 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.image import sphere_section, us_to_pixel
-from calib.localization import SweepLocalization, frame_offsets
-from calib.localize import SphereProfile, sphere_profile
+from calib.localize import SphereProfile, SweepLocalization, frame_offsets, sphere_profile
 from calib.records import Sweep
 
 __all__ = ["Circle3", "LocalizationSnapshot", "dataset_snapshot", "localization_snapshot"]
@@ -64,7 +63,7 @@ def dataset_snapshot(
     if i is None:
         return None
     truth = true_centres(target, sweeps[i]) if true_centres is not None else None
-    profile = sphere_profile(sweeps, locs, T, radius, cfg, axial_scale)
+    profile = sphere_profile(sweeps, locs, T, radius, cfg, axial_scale=axial_scale)
     return localization_snapshot(sweeps[i], locs[i], T, radius, axial_scale, profile, truth)
 
 

@@ -12,13 +12,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.calibrate import AlternationResult
-from calib.localization import SweepLocalization
+from calib.alternation import AlternationResult
+from calib.localize import SweepLocalization
 from calib.records import Sweep
 
 from .acquire_sim import SimulatedAcquisition
+from .config.method import axial_scale, image_points
 from .config.scenario import Scenario
-from .pipeline import axial_scale, image_points
 from .snapshot import LocalizationSnapshot, dataset_snapshot
 
 __all__ = [

@@ -37,11 +37,12 @@ def one(seed: int, tolerance_mm: float) -> dict:
     from dataclasses import replace
 
     from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
+    from bench.config.method import method_inputs
     from bench.config.scenario import load_scenario
     from bench.parallel import one_blas_thread
-    from bench.pipeline import MethodInputs, axial_scale, calibrate_markers
     from bench.truth import image_error_mm
     from calib import se3
+    from calib.pipeline import calibrate_markers
 
     sc = load_scenario(
         BASE, [f"seed={seed}", f"phantom.tolerance_position_mm={tolerance_mm}"], check_reach=False
@@ -51,11 +52,17 @@ def one(seed: int, tolerance_mm: float) -> dict:
         acq = simulate_acquisition(sc, twin, make_imager(sc, twin), f"layout-{seed}")
         truth = twin.truth
         cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
-        inputs = MethodInputs.of(
-            sc, sc.phantom.sphere_radius_mm, axial_scale(sc), cad, acq.T_ee_us_coarse
+        inputs = method_inputs(
+            sc, radius_mm=sc.phantom.sphere_radius_mm, cad_centres=cad, T_coarse=acq.T_ee_us_coarse
         )
-        exact = calibrate_markers(acq.dataset, replace(inputs, layout_sigma_mm=0.0), (1, 3))
-        est = calibrate_markers(acq.dataset, replace(inputs, layout_sigma_mm=tolerance_mm), (3,))
+
+        def with_layout(sigma_mm: float):
+            return replace(
+                inputs, alternation=replace(inputs.alternation, layout_sigma_mm=sigma_mm)
+            )
+
+        exact = calibrate_markers(acq.dataset, with_layout(0.0), markers=(1, 3))
+        est = calibrate_markers(acq.dataset, with_layout(tolerance_mm), markers=(3,))
     out = {}
     for name, alt in zip(METHODS, (exact.single, exact.three, est.three), strict=True):
         T = alt.result.T_ee_us

@@ -16,8 +16,10 @@ import os
 import sys
 
 # benchmarks/sim_us.py shares its name with the package: keep this folder off the path.
+# The repository root goes on it instead, for the reference scorer beside the tests.
 _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
+sys.path.append(os.path.dirname(_HERE))
 
 import argparse  # noqa: E402
 import time  # noqa: E402
@@ -25,19 +27,20 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.acquire_sim import make_imager, make_twin, simulate_acquisition  # noqa: E402
+from bench.config.method import axial_scale  # noqa: E402
 from bench.config.scenario import load_scenario  # noqa: E402
-from bench.pipeline import axial_scale  # noqa: E402
-from calib import stacking  # noqa: E402
-from calib.localization import LocalizerConfig  # noqa: E402
 from calib.localize import (  # noqa: E402
-    _candidate_grid,
+    LocalizerConfig,
+    candidate_step,
     fibonacci_hemisphere,
     half_ball_samples,
     localize_sphere,
-    score_candidates_reference,
     score_grid,
+    stack_sweep,
+    volume,
 )
-from calib.stacking import candidate_step, stack_sweep  # noqa: E402
+from calib.localize.search import _candidate_grid  # noqa: E402
+from tests.localize_reference import score_candidates_reference  # noqa: E402
 
 
 def main() -> None:
@@ -65,21 +68,23 @@ def main() -> None:
     sc = candidate_step((*sweeps[0].spacing, 1.0), cfg.grid_mm * 1e-3)[2]
     # The first call compiles the search kernel (cached on disk afterwards): time it apart.
     t0 = time.perf_counter()
-    vol = stack_sweep(sweeps[0], twin.truth.T_ee_us, scale, sc)
+    vol = stack_sweep(sweeps[0], twin.truth.T_ee_us, axial_scale=scale, column_step=sc)
     start, step, count = _candidate_grid(vol, radius, cfg.grid_mm * 1e-3)
-    score_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
+    score_grid(vol, start, step, count, shell, interior, min_coverage=cfg.min_coverage)
     print(f"first call (kernel compile or cache load) {time.perf_counter() - t0:.2f} s")
 
     # The host's speed drifts: each figure is the best of a few repeats.
     t_stack = t_search = np.inf
     for _ in range(args.repeats):
         t0 = time.perf_counter()
-        vols = [stack_sweep(s, twin.truth.T_ee_us, scale, sc) for s in sweeps]
+        vols = [
+            stack_sweep(s, twin.truth.T_ee_us, axial_scale=scale, column_step=sc) for s in sweeps
+        ]
         t_stack = min(t_stack, (time.perf_counter() - t0) / len(sweeps))
         t0 = time.perf_counter()
         for vol in vols:
             start, step, count = _candidate_grid(vol, radius, cfg.grid_mm * 1e-3)
-            score_grid(vol, start, step, count, shell, interior, cfg.min_coverage)
+            score_grid(vol, start, step, count, shell, interior, min_coverage=cfg.min_coverage)
         t_search = min(t_search, (time.perf_counter() - t0) / len(sweeps))
     n_candidates = int(np.prod(count))
     print(f"stack_ms={1e3 * t_stack:.1f} search_ms={1e3 * t_search:.1f} candidates={n_candidates}")
@@ -109,10 +114,14 @@ def main() -> None:
         for _ in range(args.repeats):
             # A first localization of each sweep: its frames' bright bits are packed too
             # (later re-stacks of the same sweep reuse them).
-            stacking._BITS_CACHE.clear()
+            volume._BITS_CACHE.clear()
             t0 = time.perf_counter()
             localize_sphere(
-                sweeps, twin.truth.T_ee_us, radius, LocalizerConfig(method=method), scale
+                sweeps,
+                twin.truth.T_ee_us,
+                radius,
+                LocalizerConfig(method=method),
+                axial_scale=scale,
             )
             per = min(per, (time.perf_counter() - t0) / len(sweeps))
         print(f"{method}: whole localization ms_per_sweep={1e3 * per:.1f}")

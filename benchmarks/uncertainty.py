@@ -120,9 +120,9 @@ def runs() -> list[tuple[str, dict[str, Any], int]]:
 def point(label: str, overrides: dict[str, Any], seed: int, dump: str | None) -> dict[str, Any]:
     """One held-out run through ``bench.jobs.single.run``: per method, true errors and bounds."""
     from bench import progress
+    from bench.config.method import image_points
     from bench.config.scenario import load_scenario
     from bench.jobs.single import run
-    from bench.pipeline import image_points
 
     sets = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
     scenario = load_scenario(BASE, [*sets, f"seed={seed}", "evaluation.datasets=[]"])

@@ -11,10 +11,13 @@ The method's public API is importable from the package itself (``calib.Localizer
 module                      paper section
 ==========================  ==============================================================
 ``calib.protocol``          acquisition protocol (45 sweeps, touches)
-``calib.localization``      the localizer's settings and per-sweep result
-``calib.stacking``          sweep volume: adaptive brightness, frames stacked
-``calib.localize``          threshold-free sphere localization (search, refinement)
-``calib.baseline``          the fixed-threshold localizer the paper argues against
+``calib.localize``          threshold-free sphere localization (§II-E), a module per stage:
+                            ``settings`` (the localizer's settings, per-sweep result),
+                            ``volume`` (adaptive brightness, the sweep volume), ``search``
+                            (§II-E-3), ``refine`` (§II-E-4), ``consensus`` (the siblings,
+                            the reasons a sweep is rejected), ``sphere`` (the stages in
+                            order), ``baseline`` (the fixed-threshold localizer the paper
+                            argues against)
 ``calib.calibrate``         single- and three-marker calibration, alternation
 ``calib.kinematics``        touch-based DH refinement and the touch reference
 ``calib.evaluate``          cross-validation folds, Tables I and II
@@ -35,18 +38,24 @@ from typing import Any
 
 #: Public name → the module that defines it.
 _EXPORTS = {
-    "LocalizerConfig": "localization",
-    "SweepLocalization": "localization",
-    "frame_offsets": "localization",
-    "SweepVolume": "stacking",
-    "stack_sweep": "stacking",
-    "localize_sphere": "localize",
-    "sphere_profile": "localize",
-    "localize_sphere_fixed_threshold": "baseline",
-    "AlternationResult": "calibrate",
+    "LocalizerConfig": "localize.settings",
+    "SweepLocalization": "localize.settings",
+    "frame_offsets": "localize.settings",
+    "SweepVolume": "localize.volume",
+    "stack_sweep": "localize.volume",
+    "localize_sphere": "localize.sphere",
+    "sphere_profile": "localize.sphere",
+    "localize_sphere_fixed_threshold": "localize.baseline",
+    "AlternationResult": "alternation",
+    "AlternationSettings": "alternation",
+    "alternate": "alternation",
     "CalibrationResult": "calibrate",
     "Observation": "calibrate",
-    "alternate": "calibrate",
+    "MethodInputs": "pipeline",
+    "MethodSettings": "pipeline",
+    "calibrate_dataset": "pipeline",
+    "calibrate_markers": "pipeline",
+    "run_folds": "pipeline",
     "Bound95": "uncertainty",
     "UncertaintyInputs": "uncertainty",
     "bound95": "uncertainty",

@@ -24,10 +24,9 @@ than one marker.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,27 +34,58 @@ from scipy.optimize import least_squares
 
 from . import se3
 from .errors import CalibrationError
-from .localization import LocalizerConfig, SweepLocalization
-from .localize import localize_sphere
-from .records import Sweep
 from .robust import outlier_limit, robust_inliers
 
 __all__ = [
-    "AlternationResult",
+    "CalibrationConfig",
     "CalibrationResult",
     "Observation",
-    "alternate",
     "calibrate",
+    "centres_in_base",
     "consensus_initialisation",
     "linear_initialisation",
     "outlier_limit",
-    "reconstruct",
     "robust_inliers",
 ]
 
 Array = NDArray[np.float64]
 
 _MM = 1e3
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Single- and three-marker calibration (paper, "Single- and Three-Marker Calibration")."""
+
+    initial_error_mm: float = field(
+        default=3.0,
+        metadata={
+            "doc": "Simulation: the coarse T_ee_us handed to the pipeline is off by up to "
+            "± this per axis.",
+            "ge": 0,
+            "le": 50,
+        },
+    )
+    initial_error_deg: float = field(
+        default=10.0,
+        metadata={
+            "doc": "Simulation: coarse T_ee_us rotation error, up to ± this per axis.",
+            "ge": 0,
+            "le": 45,
+        },
+    )
+    max_alternations: int = field(
+        default=5, metadata={"doc": "Localize/calibrate alternations at most.", "ge": 1, "le": 50}
+    )
+    layout: Literal["estimated", "cad"] = field(
+        default="estimated",
+        metadata={
+            "doc": "Multi-marker: 'estimated' fits the printed sphere layout with the CAD "
+            "as its prior at the phantom's print tolerance (phantom."
+            "tolerance_position_mm) and reports it; 'cad' takes the CAD layout as exact "
+            "(the paper's loss)."
+        },
+    )
 
 
 @dataclass(frozen=True)
@@ -105,7 +135,7 @@ class CalibrationResult:
     layout_weight: float = 0.0
 
 
-def reconstruct(obs: Sequence[Observation], T_ee_us: Array) -> Array:
+def centres_in_base(obs: Sequence[Observation], T_ee_us: Array) -> Array:
     """Base-frame centres (n, 3) of observations under a calibration (paper Eq. 1)."""
     T = np.array([o.T_base_ee for o in obs]) @ T_ee_us
     P = np.array([o.p_us for o in obs])
@@ -142,7 +172,7 @@ def linear_initialisation(obs: Sequence[Observation]) -> Array:
 
 
 def consensus_initialisation(
-    obs: Sequence[Observation], agree_mm: float = 5.0, trials: int = 200, seed: int = 0
+    obs: Sequence[Observation], *, agree_mm: float = 5.0, trials: int = 200, seed: int = 0
 ) -> tuple[Array, NDArray[np.bool_]]:
     """Closed-form ``T_ee_us`` from the largest set of observations that agree, for
     localizations contaminated by wrong detections (RANSAC with a local optimisation
@@ -167,7 +197,7 @@ def consensus_initialisation(
 
     def agreeing(T: Array, members: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], float]:
         """Observations within agree_mm of the centre their sphere's ``members`` give."""
-        X = reconstruct(obs, T)
+        X = centres_in_base(obs, T)
         ok = np.zeros(len(obs), dtype=bool)
         spread = 0.0
         for g in groups:
@@ -205,6 +235,7 @@ def _params_to_T(x: Array, T0: Array) -> Array:
 def calibrate(
     obs: Sequence[Observation],
     cad_centres: Mapping[str, Array] | None = None,
+    *,
     T_init: Array | None = None,
     outlier_mm: float = 2.0,
     layout_sigma_mm: float = 0.0,
@@ -278,7 +309,7 @@ def calibrate(
             weight = _localization_sigma_mm(kept, targets, T0) / layout_sigma_mm
         sol, T_base_phantom = _solve(kept, targets, cad_centres if multi else None, T0, weight)
         T_X = _params_to_T(sol.x[:6], T0)
-        X = reconstruct(obs, T_X)
+        X = centres_in_base(obs, T_X)
         dist = np.zeros(len(obs))
         for s in targets:
             idx = np.array([i for i, o in enumerate(obs) if o.target == s])
@@ -382,223 +413,9 @@ def _solve(obs, targets, cad_centres, T0, layout_weight: float = 0.0):
     x0 = np.zeros(6 + 6 * multi + 3 * len(groups) * floating)
     if multi:
         # Phantom pose start: align the CAD centres to the centroids under T0 (Kabsch).
-        X0 = reconstruct(obs, T0)
+        X0 = centres_in_base(obs, T0)
         centroids = np.array([X0[g].mean(axis=0) for g in groups])
         x0[6:12] = se3.log(se3.kabsch(C_cad, centroids))
     sol = least_squares(residuals, x0, method="trf", x_scale="jac")
     T_base_phantom = se3.exp(sol.x[6:12]) if multi else None
     return sol, T_base_phantom
-
-
-@dataclass(frozen=True, eq=False)
-class AlternationResult:
-    """Calibration after alternating localization and calibration.
-
-    ``history`` holds one entry per iteration: the estimate, its change from the previous
-    one (mm, degrees) and the loss; ``localizations`` the final per-sweep results.
-    """
-
-    result: CalibrationResult
-    observations: list[Observation]
-    localizations: dict[str, list[SweepLocalization]]
-    history: list[dict[str, float]]
-
-
-def _observations(
-    sweeps: Mapping[str, Sequence[Sweep]], locs: Mapping[str, Sequence[SweepLocalization]]
-) -> list[Observation]:
-    obs = []
-    for target, ss in sweeps.items():
-        for sweep, loc in zip(ss, locs[target], strict=True):
-            if loc.accepted:
-                obs.append(
-                    Observation(
-                        target, sweep.pose_id, loc.centre, sweep.T_base_ee[sweep.reference_index]
-                    )
-                )
-    return obs
-
-
-def _consensus_seeds(
-    sweeps: Mapping[str, Sequence[Sweep]],
-    locs: Mapping[str, Sequence[SweepLocalization]],
-    obs: Sequence[Observation],
-    result: CalibrationResult,
-    rejected: set[tuple[str, int]],
-) -> dict[str, list[Array | None]]:
-    """Where each sweep the calibration rejected, or the localizer found nothing in,
-    should find its sphere: the retained sweeps' centroid (base frame) through the new
-    calibration into the sweep's reference frame; None for the others. So one bad sweep
-    (a plate or a reverberation taken for the sphere) is searched again about its
-    siblings' consensus instead of over its whole grid, which found the wrong thing."""
-    X = reconstruct(obs, result.T_ee_us)
-    out: dict[str, list[Array | None]] = {}
-    for t, ss in sweeps.items():
-        idx = [i for i, o in enumerate(obs) if o.target == t and result.retained[i]]
-        n_obs = sum(o.target == t for o in obs)
-        if len(idx) < max(4, n_obs // 2):
-            # Fewer than half retained: the consensus itself is in doubt (the fit may
-            # have followed the wrong detections); those sweeps get their whole grid.
-            out[t] = [None] * len(ss)
-            continue
-        centroid = X[idx].mean(axis=0)
-        out[t] = [
-            se3.apply(se3.invert(s.T_base_ee[s.reference_index] @ result.T_ee_us), centroid)
-            if (t, s.pose_id) in rejected or not loc.accepted
-            else None
-            for s, loc in zip(ss, locs[t], strict=True)
-        ]
-    return out
-
-
-def _first_or_next(
-    obs: Sequence[Observation],
-    cad_centres: Mapping[str, Array] | None,
-    T_prev: Array | None,
-    layout_sigma_mm: float,
-) -> CalibrationResult:
-    """The alternation's calibration: from the previous estimate, or, the first time,
-    from the closed form; where that keeps fewer than half the observations (or none fit),
-    the first localization is contaminated and the largest agreeing set's closed form
-    (:func:`consensus_initialisation`) is tried too: the result keeping more sweeps wins."""
-    if T_prev is not None:
-        return calibrate(obs, cad_centres, T_init=T_prev, layout_sigma_mm=layout_sigma_mm)
-    result, failure = None, None
-    try:
-        result = calibrate(obs, cad_centres, layout_sigma_mm=layout_sigma_mm)
-        if 2 * result.retained.sum() >= len(obs):
-            return result
-    except CalibrationError as exc:
-        failure = exc
-    try:
-        T0, agree = consensus_initialisation(obs)
-        other = calibrate(
-            obs, cad_centres, T_init=T0, layout_sigma_mm=layout_sigma_mm, first_fit=agree
-        )
-    except CalibrationError:
-        if result is None:
-            raise failure from None
-        return result
-    if result is None or other.retained.sum() > result.retained.sum():
-        return other
-    return result
-
-
-def alternate(
-    sweeps: Mapping[str, Sequence[Sweep]],
-    radius: float,
-    localizer: LocalizerConfig,
-    axial_scale: float = 1.0,
-    cad_centres: Mapping[str, Array] | None = None,
-    T_coarse: Array | None = None,
-    max_iterations: int = 5,
-    tol_mm: float = 0.01,
-    tol_deg: float = 0.01,
-    initial: Mapping[str, Sequence[SweepLocalization]] | None = None,
-    threads: int = 1,
-    layout_sigma_mm: float = 0.0,
-) -> AlternationResult:
-    """Localize → calibrate → re-stack with the new ``T_ee_us`` → re-localize, until the
-    estimate changes by less than ``tol_mm`` and ``tol_deg`` or ``max_iterations``.
-
-    The first localization stacks at the robot-measured spacing (``initial`` may hand it
-    in, e.g. shared by several folds) and the first calibration starts from the
-    closed-form initialisation; ``T_coarse`` (the holder's CAD) is only a fallback check:
-    if the closed form lands far from it, a start from the coarse estimate is tried too
-    and the lower loss wins. Each re-localization searches around the previous centres.
-    ``layout_sigma_mm`` is the phantom's print tolerance (see :func:`calibrate`).
-    """
-
-    def localize_all(
-        T: Array | None,
-        previous: Mapping[str, Sequence[SweepLocalization | None]] | None,
-        expected: Mapping[str, Sequence[Array | None]] | None = None,
-    ) -> tuple[dict[str, list[SweepLocalization]], float]:
-        t0 = time.perf_counter()
-
-        def one(t: str) -> list[SweepLocalization]:
-            prev = previous[t] if previous else None
-            exp = expected[t] if expected else None
-            return localize_sphere(
-                sweeps[t], T, radius, localizer, axial_scale, prev, exp, consensus=False
-            )
-
-        if threads > 1 and len(sweeps) > 1:
-            with ThreadPoolExecutor(min(threads, len(sweeps))) as ex:
-                out = dict(zip(sweeps, ex.map(one, sweeps), strict=True))
-        else:
-            out = {t: one(t) for t in sweeps}
-        return out, time.perf_counter() - t0
-
-    if initial is not None:
-        locs, t_localize = {t: list(initial[t]) for t in sweeps}, 0.0
-    else:
-        locs, t_localize = localize_all(None, None)
-    history: list[dict[str, float]] = []
-    T_prev: Array | None = None
-    result = None
-    for it in range(max_iterations):
-        obs = _observations(sweeps, locs)
-        used = locs
-        t0 = time.perf_counter()
-        result = _first_or_next(obs, cad_centres, T_prev, layout_sigma_mm)
-        if T_prev is None and T_coarse is not None:
-            far = (
-                se3.translation_distance(result.T_ee_us, T_coarse) > 0.03
-                or np.degrees(se3.rotation_angle(result.T_ee_us, T_coarse)) > 30
-            )
-            if far:
-                # The coarse start is a second opinion: where it leaves too few sweeps to
-                # fit (it followed the wrong detections), the first result stands.
-                try:
-                    other = calibrate(
-                        obs, cad_centres, T_init=T_coarse, layout_sigma_mm=layout_sigma_mm
-                    )
-                except CalibrationError:
-                    other = None
-                # More sweeps explained wins, then the lower loss.
-                if other is not None and (other.retained.sum(), -other.cost) > (
-                    result.retained.sum(),
-                    -result.cost,
-                ):
-                    result = other
-        t_calibrate = time.perf_counter() - t0
-        change_mm = change_deg = float("inf")
-        if T_prev is not None:
-            change_mm = 1e3 * float(se3.translation_distance(result.T_ee_us, T_prev))
-            change_deg = float(np.degrees(se3.rotation_angle(result.T_ee_us, T_prev)))
-        history.append(
-            {
-                "iteration": it,
-                "cost_mm2": result.cost,
-                "change_mm": change_mm,
-                "change_deg": change_deg,
-                "n_observations": len(obs),
-                "n_retained": int(result.retained.sum()),
-                "localize_s": t_localize,
-                "calibrate_s": t_calibrate,
-            }
-        )
-        if change_mm < tol_mm and change_deg < tol_deg:
-            break
-        T_prev = result.T_ee_us
-        # Re-localize around the previous centres, except for sweeps the calibration
-        # rejected: their centre may be a false detection, so they get the whole grid.
-        rejected = {
-            (o.target, o.pose_id) for o, k in zip(obs, result.retained, strict=True) if not k
-        }
-        seeds = {
-            t: [
-                None if (t, s.pose_id) in rejected else loc
-                for s, loc in zip(sweeps[t], ls, strict=True)
-            ]
-            for t, ls in locs.items()
-        }
-        expected = (
-            None
-            if localizer.method == "paper"
-            else _consensus_seeds(sweeps, locs, obs, result, rejected)
-        )
-        locs, t_localize = localize_all(T_prev, seeds, expected)
-    assert result is not None
-    return AlternationResult(result, obs, used, history)

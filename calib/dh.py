@@ -56,7 +56,7 @@ class DHTable:
         return np.column_stack([self.theta, self.d, self.a, self.alpha]).astype(float)
 
     @classmethod
-    def from_array(cls, table: ArrayLike, name: str = "custom") -> DHTable:
+    def from_array(cls, table: ArrayLike, *, name: str = "custom") -> DHTable:
         """Inverse of :meth:`as_array`."""
         table = np.asarray(table, dtype=float)
         if table.shape != (6, 4):

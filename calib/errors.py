@@ -13,6 +13,7 @@ __all__ = [
     "FrameGrabberError",
     "LocalizationError",
     "RobotConnectionError",
+    "RobotSetupError",
     "RobotStoppedError",
     "ScenarioError",
     "TransformError",

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["pixel_to_us", "sphere_section", "us_to_pixel"]
+__all__ = ["pixel_axes", "pixel_to_us", "sphere_section", "us_to_pixel"]
 
 
 def pixel_to_us(
@@ -38,8 +38,26 @@ def pixel_to_us(
     [100.0, 75.0]
     """
     rows, cols = np.broadcast_arrays(np.asarray(rows, dtype=float), np.asarray(cols, dtype=float))
+    x, y = pixel_axes(rows, cols, width_px, spacing)
+    return np.stack([x, y, np.zeros_like(rows)], axis=-1)
+
+
+def pixel_axes(
+    rows: ArrayLike, cols: ArrayLike, width_px: int, spacing: tuple[float, float]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The us-frame coordinates of columns and rows as separate axes: (x of each of
+    ``cols``, y of each of ``rows``), metres (the mapping is separable, so a block of
+    pixels needs only these; :func:`pixel_to_us` is built on it).
+
+    Examples
+    --------
+    >>> x, y = pixel_axes([0, 100], [0, 75, 150], 151, (0.2e-3, 0.2e-3))
+    >>> x.round(6), y.round(6)
+    (array([-0.015,  0.   ,  0.015]), array([0.  , 0.02]))
+    """
     sx, sy = spacing
-    return np.stack([(cols - (width_px - 1) / 2) * sx, rows * sy, np.zeros_like(rows)], axis=-1)
+    x = (np.asarray(cols, dtype=float) - (width_px - 1) / 2) * sx
+    return x, np.asarray(rows, dtype=float) * sy
 
 
 def us_to_pixel(

@@ -41,6 +41,7 @@ __all__ = [
     "Identifiability",
     "KinematicGauge",
     "TouchReference",
+    "WeakDirection",
     "deltas_from_z",
     "fit_reference",
     "identifiability",
@@ -230,6 +231,7 @@ def refine_dh(
     touch_sets: Sequence[Sequence[Touch]],
     cad_vertices: Mapping[str, ArrayLike],
     tip_guess: ArrayLike,
+    *,
     regularizer: float = 0.01,
     initialisations: int = 12,
     bound: float = 10.0,
@@ -435,6 +437,7 @@ def identifiability(
     refinement: DHRefinement,
     touch_sets: Sequence[Sequence[Touch]],
     cad_vertices: Mapping[str, ArrayLike],
+    *,
     weak_threshold: float = 1e-4,
     null_threshold: float = 1e-6,
 ) -> Identifiability:

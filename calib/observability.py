@@ -58,7 +58,7 @@ def jacobians(T_base_ee: ArrayLike, T_ee_us: ArrayLike, p_us: ArrayLike) -> Arra
     return G
 
 
-def information(G: Array, line_direction: ArrayLike | None = None) -> Array:
+def information(G: Array, *, line_direction: ArrayLike | None = None) -> Array:
     """H̃ (6, 6) of Jacobians ``G`` (n, 3, 6): point constraint, or line constraint along
     ``line_direction`` (base frame)."""
     Gt = G - G.mean(axis=0)
@@ -102,7 +102,7 @@ class Observability:
     weakest: Array
 
 
-def observability(H: Array, noise_mm: float = 0.1) -> Observability:
+def observability(H: Array, *, noise_mm: float = 0.1) -> Observability:
     """Conditioning figures of an information matrix ``H`` and the covariance predicted
     for isotropic localization noise ``noise_mm`` (1 σ per axis)."""
     w, V = np.linalg.eigh(0.5 * (H + H.T))

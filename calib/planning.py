@@ -238,6 +238,7 @@ def sweep_commands(
     T_ee_us_coarse: ArrayLike,
     depth: float,
     pose: SweepPose,
+    *,
     half_length: float,
     n_frames: int,
 ) -> Array:
@@ -322,6 +323,7 @@ class Candidates:
         p_us: ArrayLike,
         target: ArrayLike,
         noise: NoiseModel,
+        *,
         layout: Mapping[int, ArrayLike] | None = None,
         layout_sigma_mm: float = 0.0,
     ) -> Candidates:
@@ -398,6 +400,7 @@ def _score(H: Array, criterion: Criterion, M: Array, ridge: float) -> Array:
 def select_sweeps(
     cands: Candidates,
     n: int,
+    *,
     criterion: Criterion = "D",
     M: Array | None = None,
     max_passes: int = 10,
@@ -478,6 +481,7 @@ def select_sweeps(
 def next_sweep(
     cands: Candidates,
     chosen: Sequence[int],
+    *,
     exclude: Sequence[int] = (),
     criterion: Criterion = "D",
     M: Array | None = None,
@@ -544,7 +548,7 @@ def bias_covariance(T_ee_us: ArrayLike, bias_mm: Sequence[float]) -> Array:
 
 
 def predict(
-    cands: Candidates, chosen: Sequence[int], M: Array, bias: Array | None = None
+    cands: Candidates, chosen: Sequence[int], M: Array, *, bias: Array | None = None
 ) -> PlanPrediction:
     """The prediction of the sweeps ``chosen`` (indices into ``cands``, repeats
     allowed), with the covariance ``bias`` of a session's shared offset added

@@ -29,8 +29,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import se3
-from .dataset_files import AcquisitionInfo, DatasetWriter, Metafile, read_metafile
+from .dataset_files import AcquisitionInfo, DatasetWriter
 from .errors import DatasetError
+from .metafile import Metafile, read_metafile
 from .records import Sweep
 
 __all__ = ["ImportSummary", "PlusFrames", "import_plus", "plus_frames"]
@@ -80,8 +81,8 @@ def plus_frames(path: str | os.PathLike[str], pose_transform: str) -> PlusFrames
     keep, poses, times = [], [], []
     skipped: Counter[str] = Counter()
     for j in range(len(meta.images)):
-        status = meta.frame_field(j, f"{name}Status", "OK")
-        image_status = meta.frame_field(j, "ImageStatus", "OK")
+        status = meta.frame_field(j, f"{name}Status", default="OK")
+        image_status = meta.frame_field(j, "ImageStatus", default="OK")
         if str(image_status).upper() != "OK":
             skipped[f"ImageStatus {image_status}"] += 1
             continue
@@ -139,6 +140,7 @@ def _check_sweep(label: str, T: Array, max_turn_deg: float) -> tuple[float, floa
 
 def import_plus(
     files: Sequence[str | os.PathLike[str]],
+    *,
     pose_transform: str,
     target: str,
     out: str | os.PathLike[str],
@@ -228,7 +230,7 @@ def import_plus(
     try:
         writer = DatasetWriter(tmp, out.name, info, {"spacing_mm": list(spacing)})
         for sweep, t in sweeps:
-            writer.add_sweep(sweep, t)
+            writer.add_sweep(sweep, timestamps=t)
         writer.finish()
         os.replace(tmp, out)
     finally:

@@ -26,6 +26,7 @@ from .planning import SweepPose, paper_poses, sweep_commands
 from .records import RobotReading, Sweep, Touch, UsFrame
 
 __all__ = [
+    "DeferredImager",
     "Imager",
     "PlanChecker",
     "PlannedSweep",
@@ -43,6 +44,7 @@ __all__ = [
     "plan_sweeps",
     "rotated_about_target",
     "touch_plan",
+    "transit",
 ]
 
 Array = NDArray[np.float64]
@@ -156,7 +158,7 @@ def orientation_offsets(rotation_deg: float) -> Array:
 
 
 def facing_pose(
-    p_base_target: ArrayLike, depth: float, lateral_axis: ArrayLike = (0, 1, 0)
+    p_base_target: ArrayLike, depth: float, *, lateral_axis: ArrayLike = (0, 1, 0)
 ) -> Array:
     """``T_base_us`` (4, 4) of a probe looking straight down at a target.
 
@@ -265,6 +267,7 @@ def plan_sweeps(
     T_base_ee_taught: ArrayLike,
     T_ee_us_coarse: ArrayLike,
     cfg: ProtocolConfig,
+    *,
     poses: Sequence[SweepPose] | None = None,
 ) -> list[PlannedSweep]:
     """The sweeps about one sphere: the paper's 9 orientations × 5 positions, or the
@@ -282,7 +285,12 @@ def plan_sweeps(
     here = np.asarray(T_base_ee_taught, dtype=float)
     for k, pose in enumerate(poses):
         frames = sweep_commands(
-            T_base_ee_taught, T_ee_us_coarse, depth, pose, half, cfg.frames_per_sweep
+            T_base_ee_taught,
+            T_ee_us_coarse,
+            depth,
+            pose,
+            half_length=half,
+            n_frames=cfg.frames_per_sweep,
         )
         plan.append(
             PlannedSweep(target, k, pose, frames, transit(here, frames[0], cfg.transit_step_deg))
@@ -308,6 +316,7 @@ def plan_parallel_sweeps(
     T_base_ee_taught: ArrayLike,
     T_ee_us_coarse: ArrayLike,
     cfg: ProtocolConfig,
+    *,
     travel: ArrayLike,
 ) -> list[PlannedSweep]:
     """The paper's prism protocol: the same 45 starting poses as :func:`plan_sweeps`
@@ -356,6 +365,7 @@ class PlannedTouch:
 def touch_plan(
     vertices: Sequence[str],
     cfg: ProtocolConfig,
+    *,
     lean: Mapping[str, ArrayLike] | None = None,
 ) -> list[PlannedTouch]:
     """``touches_per_vertex`` orientations per vertex.
@@ -394,6 +404,7 @@ def acquire_touches(
     robot: Robot,
     guide: TouchGuide,
     plan: Sequence[PlannedTouch],
+    *,
     on_touch: Callable[[PlannedTouch], None] | None = None,
 ) -> list[Touch]:
     """For each planned touch: the guide brings the tip onto the vertex, then the
@@ -412,6 +423,7 @@ def acquire(
     robot: Robot,
     imager: Imager,
     plan: Sequence[PlannedSweep],
+    *,
     on_frame: Callable[[PlannedSweep, int], None] | None = None,
 ) -> list[Sweep]:
     """Run the plan: move, let the robot settle, grab, for every frame of every sweep.

@@ -22,7 +22,8 @@ exact point-to-surface distances.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
 
 import numba
 import numpy as np
@@ -36,6 +37,7 @@ from .image import pixel_to_us
 
 __all__ = [
     "Boundary",
+    "ReconstructionConfig",
     "Registration",
     "closest_points",
     "distance_stats",
@@ -46,6 +48,65 @@ __all__ = [
 ]
 
 Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """Cone and prism reconstruction with ICP (Table III), run with the evaluation.
+
+    Paper, "Volumetric Reconstruction of Different Phantoms"; it uses the evaluation's
+    three DH models.
+    """
+
+    phantoms: tuple[Literal["cone", "prism"], ...] = field(
+        default=("cone", "prism"),
+        metadata={"doc": "Phantoms scanned and reconstructed (empty: no reconstruction)."},
+    )
+    central_frames: int = field(
+        default=10, metadata={"doc": "Central frames of each sweep used.", "ge": 1, "le": 401}
+    )
+    icp_max_iterations: int = field(
+        default=100, metadata={"doc": "ICP iterations at most.", "ge": 1, "le": 1000}
+    )
+    icp_points: int = field(
+        default=2000,
+        metadata={
+            "doc": "Points (a random subset) driving the ICP iterations; the distances "
+            "reported are those of all points.",
+            "ge": 100,
+            "le": 1_000_000,
+        },
+    )
+    remount_position_mm: float = field(
+        default=1.0,
+        metadata={
+            "doc": "Simulation: the probe taken off and put back before these scans; its "
+            "true mount moves by this (1 σ per axis).",
+            "ge": 0,
+            "le": 20,
+        },
+    )
+    remount_rotation_deg: float = field(
+        default=1.0,
+        metadata={"doc": "Simulation: and turns by this (1 σ about each axis).", "ge": 0, "le": 20},
+    )
+    placement_error_mm: float = field(
+        default=5.0,
+        metadata={
+            "doc": "Simulation: the cone or prism stands up to ± this (x, y) off the "
+            "scenario's phantom position, the nominal placement ICP starts from.",
+            "ge": 0,
+            "le": 50,
+        },
+    )
+    placement_error_deg: float = field(
+        default=5.0,
+        metadata={
+            "doc": "Simulation: and turned up to ± this about the vertical.",
+            "ge": 0,
+            "le": 45,
+        },
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,6 +169,7 @@ def _fit_line(
 
 def extract_boundaries(
     image: NDArray[np.uint8],
+    *,
     pixel_mm: float = 0.1,
     n_boundaries: int = 2,
     residual_mm: float = 0.3,
@@ -377,6 +439,7 @@ def surface_distances(mesh: trimesh.Trimesh, points: ArrayLike) -> Array:
 def register_icp(
     points: ArrayLike,
     mesh: trimesh.Trimesh,
+    *,
     initial: ArrayLike | None = None,
     max_iterations: int = 100,
     tolerance: float = 1e-8,

@@ -23,7 +23,7 @@ def outlier_limit(dist_mm: Array, floor_mm: float) -> float:
     return max(floor_mm, 3.0 * 1.4826 * mad)
 
 
-def robust_inliers(points: Array, floor_mm: float = 2.0) -> NDArray[np.bool_]:
+def robust_inliers(points: Array, *, floor_mm: float = 2.0) -> NDArray[np.bool_]:
     """Centres (n, 3, metres) of one sphere that agree with their centroid: the outlier
     test of :func:`calibrate`, repeated with the centroid of the retained ones until the
     retained set settles."""

@@ -44,7 +44,7 @@ Array = NDArray[np.float64]
 _SMALL_ANGLE = 1e-6
 
 
-def check(T: ArrayLike, name: str, batch: bool = False, tol: float = 1e-5) -> Array:
+def check(T: ArrayLike, name: str, *, batch: bool = False, tol: float = 1e-5) -> Array:
     """``T`` as a float64 array if it is a rigid transform, (4, 4), or with ``batch`` a
     stack of them, (n, 4, 4); else :class:`~calib.errors.TransformError` naming ``name``
     and what is wrong. For the method's entry points and the file and hardware boundaries:
@@ -177,7 +177,7 @@ def rotvec_from_matrix(R: ArrayLike) -> Array:
     return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(*R.shape[:-2], 3)
 
 
-def matrix_from_euler(angles_rad: ArrayLike, seq: str = "xyz") -> Array:
+def matrix_from_euler(angles_rad: ArrayLike, *, seq: str = "xyz") -> Array:
     """Rotation matrices from Euler angles in radians.
 
     ``seq`` follows scipy: lower case is extrinsic (about the fixed axes), upper case
@@ -188,7 +188,7 @@ def matrix_from_euler(angles_rad: ArrayLike, seq: str = "xyz") -> Array:
     return R.reshape(*angles_rad.shape, 3)
 
 
-def euler_from_matrix(R: ArrayLike, seq: str = "xyz") -> Array:
+def euler_from_matrix(R: ArrayLike, *, seq: str = "xyz") -> Array:
     """Euler angles (..., 3) in radians from rotation matrices; inverse of
     :func:`matrix_from_euler` away from gimbal lock."""
     R = np.asarray(R, dtype=float)

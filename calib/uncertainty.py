@@ -47,7 +47,8 @@ from numpy.typing import NDArray
 from scipy.special import ndtri, stdtrit
 
 from . import se3
-from .calibrate import AlternationResult, CalibrationResult, Observation
+from .alternation import AlternationResult
+from .calibrate import CalibrationResult, Observation
 from .image import pixel_to_us
 
 __all__ = [
@@ -138,7 +139,7 @@ class Bound95:
         }
 
 
-def orientation_groups(obs: Sequence[Observation], tol_deg: float = 5.0) -> NDArray[np.int_]:
+def orientation_groups(obs: Sequence[Observation], *, tol_deg: float = 5.0) -> NDArray[np.int_]:
     """Group index (n,) of each observation: observations whose flange orientations are
     within ``tol_deg`` of a group's first one share it (the protocol's views; the
     in-plane positions of one view, and the same view of other spheres, fall together)."""
@@ -321,6 +322,7 @@ def bound95(
     obs: Sequence[Observation],
     result: CalibrationResult,
     image_points_us: Array,
+    *,
     cad_centres: Mapping[str, Array] | None = None,
     inputs: UncertaintyInputs = UncertaintyInputs(),
     n_draws: int = 4000,
@@ -490,14 +492,17 @@ def bound95(
 def alternation_bound(
     alt: AlternationResult,
     image_points_us: Array,
+    *,
     cad_centres: Mapping[str, Array] | None = None,
     inputs: UncertaintyInputs = UncertaintyInputs(),
 ) -> Bound95:
     """:func:`bound95` of an alternation's final calibration (its observations)."""
-    return bound95(alt.observations, alt.result, image_points_us, cad_centres, inputs)
+    return bound95(
+        alt.observations, alt.result, image_points_us, cad_centres=cad_centres, inputs=inputs
+    )
 
 
-def image_grid(width_m: float, depth_m: float, n: int = 21) -> Array:
+def image_grid(width_m: float, depth_m: float, *, n: int = 21) -> Array:
     """An n × n grid of points (n², 3) covering an image ``width_m`` wide and
     ``depth_m`` deep, metres in the ``us`` frame (the image error's points)."""
     spacing = (width_m / (n - 1), depth_m / (n - 1))

@@ -11,6 +11,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+# Water's speed of sound is defined once, in calib (the pipeline's axial scale uses it).
+from calib.sound import water_speed_m_s
+
 __all__ = [
     "MATERIALS",
     "Material",
@@ -20,14 +23,6 @@ __all__ = [
     "water",
     "water_speed_m_s",
 ]
-
-# Marczak (1997), J. Acoust. Soc. Am. 102, 2776: speed of sound in pure water, 0–95 °C.
-_MARCZAK = (1.402385e3, 5.038813, -5.799136e-2, 3.287156e-4, -1.398845e-6, 2.787860e-9)
-
-
-def water_speed_m_s(temperature_c: float) -> float:
-    """Speed of sound in pure water (m/s) at ``temperature_c`` (°C)."""
-    return float(sum(c * temperature_c**k for k, c in enumerate(_MARCZAK)))
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,7 @@ from .propagation import trace
 from .raycast import AcousticScene, RayCaster
 from .speckle import ScattererField
 
-__all__ = ["BmodeSimulator"]
+__all__ = ["BmodeSimulator", "Timings"]
 
 Array = NDArray[np.float64]
 

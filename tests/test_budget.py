@@ -17,6 +17,7 @@ from bench.config.error_sources import ERROR_SOURCES, value_at
 from bench.config.scenario import load_scenario
 from bench.jobs.budget import MODES, plan_budget
 from bench.jobs.budget import run_budget as _run_budget
+from bench.jobs.single import run
 from bench.outputs.budget_report import write_budget
 
 from .test_cli import uscal_here
@@ -51,8 +52,8 @@ def test_every_source_switches_off_through_the_schema():
 
 
 def run_budget(spec, out, **kwargs):
-    """Run a budget and write its files, as ``uscal budget`` does."""
-    result = _run_budget(spec, out, **kwargs)
+    """Run a budget and write its files, as ``uscal budget`` does (each run ``uscal run``'s)."""
+    result = _run_budget(spec, out, run, **kwargs)
     write_budget(out, result)
     return result
 

@@ -9,9 +9,9 @@ from calib import se3
 from calib.calibrate import (
     Observation,
     calibrate,
+    centres_in_base,
     consensus_initialisation,
     linear_initialisation,
-    reconstruct,
 )
 from calib.errors import CalibrationError
 from calib.protocol import ProtocolConfig, plan_sweeps
@@ -59,7 +59,9 @@ def test_single_marker_recovers_exactly():
     d_mm, d_deg = pose_errors(res.T_ee_us)
     assert d_mm < 1e-6 and d_deg < 1e-6
     assert res.retained.all() and res.cost < 1e-9
-    np.testing.assert_allclose(reconstruct(obs, res.T_ee_us), [[0.3, -0.02, 0.02]] * 45, atol=1e-9)
+    np.testing.assert_allclose(
+        centres_in_base(obs, res.T_ee_us), [[0.3, -0.02, 0.02]] * 45, atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("dt_mm,dr_deg", [(10.0, 20.0), (-10.0, -20.0)])

@@ -12,14 +12,9 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.dataset_files import (
-    AcquisitionInfo,
-    DatasetWriter,
-    read_dataset,
-    read_sequence,
-    write_sequence,
-)
+from calib.dataset_files import AcquisitionInfo, DatasetWriter, read_dataset
 from calib.errors import DatasetError
+from calib.metafile import read_sequence, write_sequence
 from calib.records import Sweep, Touch
 
 from .conftest import QUICK

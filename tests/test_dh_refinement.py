@@ -60,7 +60,7 @@ def noise_free():
 def test_touch_plan_tilts_and_spreads_orientations():
     scenario = load_scenario("scenarios/paper.yaml", [], check_reach=False)
     lean = {"vertex_1": [1.0, 0.0, 0.0]}
-    plan = touch_plan(["vertex_1", "vertex_2"], scenario.protocol, lean)
+    plan = touch_plan(["vertex_1", "vertex_2"], scenario.protocol, lean=lean)
     assert len(plan) == 2 * scenario.protocol.touches_per_vertex
     for p in plan:
         axis = p.R_base_ee[:, 2]  # the stylus runs along the flange z axis

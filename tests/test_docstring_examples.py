@@ -8,7 +8,7 @@ import importlib
 
 import pytest
 
-MODULES = ["calib.se3", "calib.image", "calib.localize", "calib.calibrate"]
+MODULES = ["calib.se3", "calib.image", "calib.localize.sphere", "calib.calibrate"]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -9,17 +9,18 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.localization import LocalizerConfig
 from calib.localize import (
+    LocalizerConfig,
     fibonacci_hemisphere,
     half_ball_samples,
     localize_sphere,
     score_candidates,
-    score_candidates_reference,
     score_grid,
+    stack_sweep,
 )
 from calib.records import Sweep
-from calib.stacking import stack_sweep
+
+from .localize_reference import score_candidates_reference
 
 MM = 1e-3
 
@@ -35,7 +36,7 @@ def test_sample_sets():
     assert r.max() <= 5 * MM + 1e-12 and np.all(P[:, 1] <= 0)
     # Volume-distributed: half the points within radius R / 2^(1/3).
     assert np.mean(r < 5 * MM / 2 ** (1 / 3)) == pytest.approx(0.5, abs=0.03)
-    shell = half_ball_samples(300, 6 * MM, 4 * MM)
+    shell = half_ball_samples(300, 6 * MM, inner=4 * MM)
     assert np.linalg.norm(shell, axis=1).min() >= 4 * MM - 1e-12
 
 
@@ -130,7 +131,9 @@ def rendered_sweeps():
 def test_localizes_rendered_sweeps_against_truth(rendered_sweeps, method, tol_mm):
     sweeps, truths, twin, scale = rendered_sweeps
     radius = 5 * MM
-    res = localize_sphere(sweeps, twin.truth.T_ee_us, radius, LocalizerConfig(method=method), scale)
+    res = localize_sphere(
+        sweeps, twin.truth.T_ee_us, radius, LocalizerConfig(method=method), axial_scale=scale
+    )
     for r, p_true in zip(res, truths, strict=True):
         assert r.accepted, r.reason
         assert np.linalg.norm(r.centre - p_true) < tol_mm * MM
@@ -148,7 +151,7 @@ def test_a_sphere_cut_by_the_lateral_edge_is_rejected_with_the_reason(rendered_s
         half = round(half_mm * MM / sweep.spacing[0])
         cols = slice(W // 2 - half, W // 2 + half + 1)
         cropped = replace(sweep, images=np.ascontiguousarray(sweep.images[:, :, cols]))
-        (r,) = localize_sphere([cropped], None, 5 * MM, LocalizerConfig(), scale)
+        (r,) = localize_sphere([cropped], None, 5 * MM, LocalizerConfig(), axial_scale=scale)
         assert r.accepted == kept, r.reason
         if kept:
             assert np.linalg.norm(r.centre - p_true) < 0.25 * MM
@@ -163,7 +166,7 @@ def test_sweep_without_a_sphere_is_rejected(rendered_sweeps):
     rng = np.random.default_rng(0)
     noise = rng.rayleigh(8.0, empty.images.shape).clip(0, 255).astype(np.uint8)
     blank = Sweep(empty.target, 99, noise, empty.spacing, empty.q, empty.T_base_ee)
-    (r,) = localize_sphere([blank], None, 5 * MM, LocalizerConfig(), scale)
+    (r,) = localize_sphere([blank], None, 5 * MM, LocalizerConfig(), axial_scale=scale)
     assert not r.accepted
     assert "no sphere found" in r.reason and np.all(np.isnan(r.centre))
 
@@ -172,8 +175,8 @@ def _quick_scan(overrides: list[str], sphere: int):
     """quick.yaml's scan of one sphere (45 sweeps) with ``overrides``: the sweeps, each
     one's true centre, the true mount, the axial scale and the coarse mount."""
     from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
+    from bench.config.method import axial_scale
     from bench.config.scenario import load_scenario
-    from bench.pipeline import axial_scale
     from bench.truth import true_centre_in_sweep
 
     s = load_scenario(
@@ -207,7 +210,9 @@ def test_plate_is_not_accepted_for_a_small_sphere(small_sphere_scan):
     sweeps, truths, T_ee_us, scale = small_sphere_scan
 
     def errors_mm(method):
-        locs = localize_sphere(sweeps, T_ee_us, 3 * MM, LocalizerConfig(method=method), scale)
+        locs = localize_sphere(
+            sweeps, T_ee_us, 3 * MM, LocalizerConfig(method=method), axial_scale=scale
+        )
         err = [np.linalg.norm(r.centre - p) / MM for r, p in zip(locs, truths, strict=True)]
         return np.array([e for e, r in zip(err, locs, strict=True) if r.accepted]), locs
 
@@ -227,7 +232,9 @@ def test_faint_deep_cap_is_found_not_the_plate(deep_weak_scan):
     sweeps, truths, T_ee_us, scale, _ = deep_weak_scan
 
     def errors_mm(method):
-        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, LocalizerConfig(method=method), scale)
+        locs = localize_sphere(
+            sweeps, T_ee_us, 5 * MM, LocalizerConfig(method=method), axial_scale=scale
+        )
         return np.array(
             [
                 np.linalg.norm(r.centre - p) / MM
@@ -247,10 +254,11 @@ def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deep_weak_
     their whole grid, so they come back instead of being dropped."""
     from bench.config.scenario import load_scenario
     from bench.truth import image_error_mm
-    from calib.calibrate import alternate
+    from calib.alternation import AlternationSettings, alternate
 
     sweeps, _, T_true, scale, T_coarse = deep_weak_scan
-    alt = alternate({"sphere_1": sweeps}, 5 * MM, LocalizerConfig(), scale, None, T_coarse)
+    settings = AlternationSettings(LocalizerConfig(), axial_scale=scale)
+    alt = alternate({"sphere_1": sweeps}, 5 * MM, settings, T_coarse=T_coarse)
     # The premise: the first calibration, on the uncalibrated pass, kept few sweeps.
     assert alt.history[0]["n_retained"] < 0.9 * len(sweeps)
     final = alt.localizations["sphere_1"]
@@ -270,7 +278,7 @@ def test_a_sweep_that_disagrees_with_its_siblings_is_rejected(small_sphere_scan)
     shifted = se3.make(np.eye(3), [0.005, 0.0, 0.0])
     bad = replace(sweeps[7], T_base_ee=shifted @ sweeps[7].T_base_ee)
     locs = localize_sphere(
-        [*sweeps[:7], bad, *sweeps[8:]], T_ee_us, 3 * MM, LocalizerConfig(), scale
+        [*sweeps[:7], bad, *sweeps[8:]], T_ee_us, 3 * MM, LocalizerConfig(), axial_scale=scale
     )
     assert not locs[7].accepted
     assert "disagrees with the sphere's other sweeps" in locs[7].reason
@@ -299,7 +307,7 @@ def test_a_sphere_at_the_noise_floor_is_rejected_not_replaced_by_the_plate(noise
     sweeps, truths, T_ee_us, scale = noise_floor_scan
 
     def errors_mm(cfg):
-        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale, consensus=False)
+        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale, consensus=False)
         err = [np.linalg.norm(r.centre - p) / MM for r, p in zip(locs, truths, strict=True)]
         return np.array([e for e, r in zip(err, locs, strict=True) if r.accepted]), locs
 
@@ -311,7 +319,7 @@ def test_a_sphere_at_the_noise_floor_is_rejected_not_replaced_by_the_plate(noise
         assert all(r.reason for r in locs if not r.accepted)
     # With the siblings' evidence too (as the pipeline localizes with a calibration).
     with_siblings = localize_sphere(
-        sweeps, T_ee_us, 5 * MM, LocalizerConfig(expected_depth_mm=45.0), scale
+        sweeps, T_ee_us, 5 * MM, LocalizerConfig(expected_depth_mm=45.0), axial_scale=scale
     )
     for r, p in zip(with_siblings, truths, strict=True):
         assert not r.accepted or np.linalg.norm(r.centre - p) < 1 * MM
@@ -322,10 +330,10 @@ def test_centres_no_three_sweeps_agree_on_are_not_accepted(small_sphere_scan):
     of something else, and no three agree: none of them is confirmed, none accepted; the
     reason says so. With three that agree, those are accepted and the odd one rejected
     with its distance."""
-    from calib.localize import _reject_disagreeing
+    from calib.localize.consensus import _reject_disagreeing
 
     sweeps, _, T_ee_us, scale = small_sphere_scan
-    locs = localize_sphere(sweeps, T_ee_us, 3 * MM, LocalizerConfig(), scale)
+    locs = localize_sphere(sweeps, T_ee_us, 3 * MM, LocalizerConfig(), axial_scale=scale)
     assert sum(r.accepted for r in locs) >= 30
     ok = [i for i, r in enumerate(locs) if r.accepted][:4]
 
@@ -352,11 +360,10 @@ def test_centres_no_three_sweeps_agree_on_are_not_accepted(small_sphere_scan):
 def test_the_plan_window_bounds_the_search(small_sphere_scan):
     """Candidates lie within ± expected_window_mm of the expected depth and the centre
     line; a window that misses the sphere finds nothing there and says so."""
-    from calib.localize import _candidate_grid
-    from calib.stacking import stack_sweep
+    from calib.localize.search import _candidate_grid
 
     sweeps, _, T_ee_us, scale = small_sphere_scan
-    vol = stack_sweep(sweeps[0], T_ee_us, scale)
+    vol = stack_sweep(sweeps[0], T_ee_us, axial_scale=scale)
     cfg = LocalizerConfig(expected_depth_mm=20.0, expected_window_mm=4.0)
     start, step, count = _candidate_grid(vol, 3 * MM, 1 * MM, cfg)
     corners = [
@@ -368,7 +375,12 @@ def test_the_plan_window_bounds_the_search(small_sphere_scan):
         assert abs(p[0]) <= 4.0 * MM + 1e-9 and abs(p[1] - 20 * MM) <= 4.0 * MM + 1e-9
     assert count[1] * step[1] * vol.spacing[1] > 7 * MM  # the whole window, not less
     far = localize_sphere(
-        sweeps[:3], T_ee_us, 3 * MM, replace(cfg, expected_depth_mm=60.0), scale, consensus=False
+        sweeps[:3],
+        T_ee_us,
+        3 * MM,
+        replace(cfg, expected_depth_mm=60.0),
+        axial_scale=scale,
+        consensus=False,
     )
     assert not any(r.accepted for r in far)
     assert all("no sphere found" in r.reason for r in far)
@@ -384,7 +396,7 @@ def test_saturated_cap_centre_is_unbiased():
         sweeps, truths, T_ee_us, scale, _ = _quick_scan([f"imaging.gain_db={gain}"], 2)
         if gain == 20:
             assert sum((s.images == 255).any(axis=(1, 2)).sum() >= 3 for s in sweeps) >= 10
-        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, LocalizerConfig(), scale)
+        locs = localize_sphere(sweeps, T_ee_us, 5 * MM, LocalizerConfig(), axial_scale=scale)
         err = [
             np.linalg.norm(r.centre - p) / MM
             for r, p in zip(locs, truths, strict=True)
@@ -426,7 +438,7 @@ def test_a_cap_in_noise_is_found_above_the_noise_floor(noisy_deep_scan, monkeypa
     0.3 mm in elevation (the beam is 6 mm thick there). Above the depth's noise floor,
     with the elevation from a parabola over all the cap's slices, nearly every sweep is
     found within 1 mm."""
-    import calib.stacking as stacking
+    import calib.localize.volume as volume
 
     sweeps, truths, T_ee_us, scale = noisy_deep_scan
     cfg = LocalizerConfig(expected_depth_mm=45.0)
@@ -437,13 +449,13 @@ def test_a_cap_in_noise_is_found_above_the_noise_floor(noisy_deep_scan, monkeypa
 
     with monkeypatch.context() as m:
         # The frame mean alone (the paper's cut-off).
-        m.setattr(stacking, "_row_noise_floor", lambda images: np.zeros(images.shape[1]))
-        m.setattr(stacking, "_LEVELS_CACHE", {})
-        m.setattr(stacking, "_BITS_CACHE", {})
-        mean_only = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale)
+        m.setattr(volume, "_row_noise_floor", lambda images: np.zeros(images.shape[1]))
+        m.setattr(volume, "_LEVELS_CACHE", {})
+        m.setattr(volume, "_BITS_CACHE", {})
+        mean_only = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale)
     assert sum(r.accepted for r in mean_only) < 0.5 * len(sweeps)  # the failure
     assert any("not a sphere" in r.reason for r in mean_only)
-    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale)
+    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale)
     err = found(locs)
     assert len(err) >= 0.9 * len(sweeps)
     assert err.max() < 1.0 and np.median(err) < 0.3
@@ -454,7 +466,7 @@ def test_frame_levels_follow_the_noise_floor_of_each_depth():
     where noise fills it: rows of uniform noise about 60 ± 20 get a level well above 60
     (only the noise's tail is bright), dark rows keep the frame mean, and a bright echo
     stands above both."""
-    from calib.stacking import frame_levels
+    from calib.localize import frame_levels
 
     rng = np.random.default_rng(3)
     images = np.zeros((5, 40, 80), np.uint8)
@@ -477,7 +489,7 @@ def test_elevation_vertex_of_thin_and_wide_beams(width_slices, clipped):
     """The cap's peak grey level across slices is a parabola (a Gaussian beam in dB): its
     vertex is found between slices for a thin beam (three slices) and a wide one (many
     slices, noisy), with the slices clipped at 255 left out."""
-    from calib.localize import _elevation_vertex
+    from calib.localize.refine import _elevation_vertex
 
     rng = np.random.default_rng(5)
     zs = np.arange(-10, 11) * 1e-3
@@ -498,7 +510,7 @@ def test_elevation_vertex_does_not_lock_to_the_frames():
     was pulled towards the middle between frames by how the run changes with the phase
     (0.09 slice here); in a window centred on itself it stays within 0.03 slice at every
     phase, noise-free."""
-    from calib.localize import _elevation_vertex
+    from calib.localize.refine import _elevation_vertex
 
     zs = np.arange(-10, 11) * 1e-3
     errors = []
@@ -514,7 +526,7 @@ def test_arc_and_tangent_samples():
     """The specular arc's samples lie on the sphere within the arc's angle of the beam
     axis, towards the face; the tangent plane's touch the sphere's top plane, in a ring
     about the touching point."""
-    from calib.localize import _ARC_DEG, _TANGENT_BAND, _arc_samples, _tangent_samples
+    from calib.localize.search import _ARC_DEG, _TANGENT_BAND, _arc_samples, _tangent_samples
 
     arc = _arc_samples(256, 5 * MM)
     assert len(arc) == 256
@@ -540,16 +552,16 @@ def test_a_sphere_in_gel_is_found_by_its_specular_arc(gel_scan, monkeypatch):
     far below the detection limit in every sweep. Its specular arc, confined by the gel
     above it and by its tangent plane (where a flat reflector would lie), finds nearly
     every sweep within 1 mm."""
-    import calib.localize as loc_module
+    import calib.localize.sphere as loc_module
 
     sweeps, truths, T_ee_us, scale = gel_scan
     cfg = LocalizerConfig(expected_depth_mm=20.0)
     with monkeypatch.context() as m:
         m.setattr(loc_module, "_arc_search", lambda *args: None)
-        whole_cap = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale)
+        whole_cap = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale)
     assert sum(r.accepted for r in whole_cap) <= 0.1 * len(sweeps)  # the failure
     assert all(r.reason.startswith("no sphere found") for r in whole_cap if not r.accepted)
-    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, scale)
+    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale)
     err = np.array(
         [np.linalg.norm(r.centre - p) / MM for r, p in zip(locs, truths, strict=True) if r.accepted]
     )
@@ -564,7 +576,8 @@ def test_elevation_uncertainty_rejects_a_flat_weak_cap():
     off, and its standard error says so (it flags most such fits, and every one a
     millimetre off); a clear
     profile gives its vertex, and a small standard error, to a tenth of a millimetre."""
-    from calib.localize import _MAX_ELEVATION_SIGMA, _elevation_vertex
+    from calib.localize.consensus import _MAX_ELEVATION_SIGMA
+    from calib.localize.refine import _elevation_vertex
 
     zs = np.arange(-10, 11) * 1e-3
     flat_err, flat_sigma = [], []
@@ -592,7 +605,7 @@ def test_elevation_is_not_tilted_by_the_floor_the_sphere_raises(monkeypatch):
     each frame's own level, the cap's profile across the sweep tilts and every centre moved
     the same way in elevation (0.16 mm, the seed's mount deciding the sign); against one
     level for the whole profile the elevation is unbiased."""
-    from calib.stacking import SweepVolume
+    from calib.localize import SweepVolume
 
     sweeps, truths, T_ee_us, scale, _ = _quick_scan(
         [
@@ -606,7 +619,7 @@ def test_elevation_is_not_tilted_by_the_floor_the_sphere_raises(monkeypatch):
     cfg = LocalizerConfig(expected_depth_mm=45.0)
 
     def elevation_errors_mm():
-        locs = localize_sphere(sweeps, T_ee_us, 8 * MM, cfg, scale)
+        locs = localize_sphere(sweeps, T_ee_us, 8 * MM, cfg, axial_scale=scale)
         assert sum(r.accepted for r in locs) >= 0.9 * len(sweeps)
         return np.array(
             [(r.centre - p)[2] / MM for r, p in zip(locs, truths, strict=True) if r.accepted]
@@ -615,7 +628,7 @@ def test_elevation_is_not_tilted_by_the_floor_the_sphere_raises(monkeypatch):
     with monkeypatch.context() as m:
         per_frame = SweepVolume.intensity
         m.setattr(
-            SweepVolume, "intensity", lambda self, k, r, c, level=None: per_frame(self, k, r, c)
+            SweepVolume, "intensity", lambda self, k, r, c, *, level=None: per_frame(self, k, r, c)
         )
         tilted = elevation_errors_mm()
     assert tilted.mean() > 0.1  # the failure: one offset shared by every sweep
@@ -629,7 +642,7 @@ def test_cap_depth_does_not_follow_the_gain(monkeypatch):
     brightness level leaves of it. At 45 mm that moved every centre 0.06–0.08 mm deeper at
     −10 dB than at 0 dB, where the depth's noise floor cuts the tail; the echo's peak
     (a parabola through the brightest row) is the same at both gains."""
-    import calib.localize as loc_module
+    import calib.localize.refine as loc_module
 
     def axial_offset_mm(gain):
         sweeps, truths, T_ee_us, scale, _ = _quick_scan(
@@ -642,7 +655,7 @@ def test_cap_depth_does_not_follow_the_gain(monkeypatch):
             ],
             1,
         )
-        locs = localize_sphere(sweeps, T_ee_us, 8 * MM, LocalizerConfig(), scale)
+        locs = localize_sphere(sweeps, T_ee_us, 8 * MM, LocalizerConfig(), axial_scale=scale)
         assert sum(r.accepted for r in locs) >= 0.9 * len(sweeps)
         return np.mean([(r.centre - p)[1] / MM for r, p in zip(locs, truths, strict=True)])
 
@@ -657,8 +670,8 @@ def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():
     """The plan keeps the sphere in view in every sweep; found in fewer than half, it is
     at the noise floor and none of its few detections is accepted, each saying why. Found
     in half or more, nothing changes."""
-    from calib.localization import SweepLocalization
-    from calib.localize import _reject_if_rarely_seen
+    from calib.localize import SweepLocalization
+    from calib.localize.consensus import _reject_if_rarely_seen
 
     def locs(n_found, n=10):
         return [
@@ -715,7 +728,7 @@ def test_a_sweep_off_the_image_normal_is_localized_between_the_pixels():
         joints = np.zeros((21, 6))
         sweeps.append(Sweep("sphere_1", k, np.array(images), imager.spacing, joints, poses))
         truths.append(se3.apply(se3.invert(poses[10] @ T_ee_us), centre))
-    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, LocalizerConfig(), 1482.3 / 1540.0)
+    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, LocalizerConfig(), axial_scale=1482.3 / 1540.0)
     err = np.array([(r.centre - p)[:2] / MM for r, p in zip(locs, truths, strict=True)])
     assert all(r.accepted for r in locs)
     # The axial offset common to every sweep (where in the cap's echo the top lands) is

@@ -62,7 +62,7 @@ def test_a_wire_never_carries_more_information_than_a_sphere(seed):
         u = rng.normal(size=3)
     G = jacobians(T, X_TRUE, P)
     H_point = information(G)
-    H_line = information(G, u)
+    H_line = information(G, line_direction=u)
     diff = np.linalg.eigvalsh(H_point - H_line)
     assert diff.min() >= -1e-9 * np.abs(H_point).max()
     assert np.linalg.eigvalsh(H_line).min() <= np.linalg.eigvalsh(H_point).min() + 1e-9

@@ -1,4 +1,4 @@
-"""The one dataset → calibration path (bench.pipeline) on a small twin dataset with
+"""The one dataset → calibration path (calib.pipeline) on a small twin dataset with
 touches, read back from its files as `uscal calibrate` reads a rig's: single- and
 three-marker calibration, the touch-based kinematics and the paper's folds, checked
 against the twin's ground truth."""
@@ -15,11 +15,12 @@ from bench.acquire_sim import (
     simulate_acquisition,
     simulate_touches,
 )
+from bench.config.method import method_inputs
 from bench.config.scenario import load_scenario
 from bench.jobs.recorded import calibrate_recorded
-from bench.pipeline import MethodInputs, axial_scale, calibrate_markers, run_folds
 from bench.sessions import dataset_rngs
 from bench.truth import image_error_mm
+from calib.pipeline import calibrate_markers, run_folds
 
 from .conftest import QUICK
 
@@ -73,8 +74,8 @@ def test_folds_against_the_true_centres_measure_the_method_alone(two_spheres_wit
     from one shared first localization."""
     sc, truth, acq, _ = two_spheres_with_touches
     cad = {k: v for k, v in make_twin(sc).phantom_cad.landmarks.items() if "sphere" in k}
-    method = MethodInputs.of(
-        sc, sc.phantom.sphere_radius_mm, axial_scale(sc), cad, acq.T_ee_us_coarse
+    method = method_inputs(
+        sc, radius_mm=sc.phantom.sphere_radius_mm, cad_centres=cad, T_coarse=acq.T_ee_us_coarse
     )
     targets = ("sphere_1", "sphere_2")
     sweeps = {t: acq.dataset.of(t) for t in targets}
@@ -90,5 +91,5 @@ def test_folds_against_the_true_centres_measure_the_method_alone(two_spheres_wit
         assert 0 < r.accuracy < 1.0, r.fold.name
         assert image_error_mm(sc, r.T_ee_us, truth.T_ee_us) < 1.0
     # The single-marker calibration of calibrate_markers is the first fold's.
-    single = calibrate_markers(acq.dataset, method, (1,)).single
+    single = calibrate_markers(acq.dataset, method, markers=(1,)).single
     assert np.allclose(single.result.T_ee_us, folds.results[0].T_ee_us, atol=1e-12)

@@ -33,10 +33,18 @@ def _candidates(poses, layout=None, taught=(TAUGHT,), layout_sigma_mm=0.0) -> Ca
     T_ref, p_us, idx = [], [], []
     for k, T0 in enumerate(taught):
         for pose in poses:
-            T_ref.append(sweep_commands(T0, X, DEPTH, pose, 0.01, 3)[1])
+            T_ref.append(sweep_commands(T0, X, DEPTH, pose, half_length=0.01, n_frames=3)[1])
             p_us.append(pose.target_in_image(DEPTH))
             idx.append(k)
-    return Candidates.build(np.array(T_ref), X, np.array(p_us), idx, NOISE, layout, layout_sigma_mm)
+    return Candidates.build(
+        np.array(T_ref),
+        X,
+        np.array(p_us),
+        idx,
+        NOISE,
+        layout=layout,
+        layout_sigma_mm=layout_sigma_mm,
+    )
 
 
 def test_the_papers_plan_is_its_sweep_poses_to_the_last_bit():
@@ -46,7 +54,9 @@ def test_the_papers_plan_is_its_sweep_poses_to_the_last_bit():
     assert len(poses) == 45 == len(set(poses))
     for p, pose in zip(plan, poses, strict=True):
         assert p.pose == pose
-        again = sweep_commands(TAUGHT, X, 0.02, pose, 0.01, cfg.frames_per_sweep)
+        again = sweep_commands(
+            TAUGHT, X, 0.02, pose, half_length=0.01, n_frames=cfg.frames_per_sweep
+        )
         assert np.array_equal(p.T_base_ee, again)
         # The target stays where the pose puts it in the image (with this T_ee_us).
         centre = se3.apply(TAUGHT @ X, [0.0, 0.02, 0.0])
@@ -95,7 +105,9 @@ def test_the_fits_spread_is_the_inverse_information_for_isotropic_noise():
     the efficient one, and the prediction is the inverse of the information; with the
     image's anisotropic noise it is larger."""
     poses = PlanningConfig(max_rotation_deg=20, max_lateral_mm=4, max_axial_mm=4).candidates()
-    T_ref = np.array([sweep_commands(TAUGHT, X, DEPTH, q, 0.01, 3)[1] for q in poses[::9]])
+    T_ref = np.array(
+        [sweep_commands(TAUGHT, X, DEPTH, q, half_length=0.01, n_frames=3)[1] for q in poses[::9]]
+    )
     p_us = np.array([q.target_in_image(DEPTH) for q in poses[::9]])
     idx = np.zeros(len(p_us), dtype=int)
     M = np.eye(6)
@@ -118,7 +130,9 @@ def test_a_shared_offset_moves_the_translation_by_the_mount():
     # The same through the Jacobians: observations p + δ at any poses are explained
     # exactly by θ = (0, −R_X δ) with the sphere where it was.
     poses = paper_poses(10.0, 3.0)
-    T = np.array([sweep_commands(TAUGHT, X, DEPTH, p, 0.01, 3)[1] for p in poses])
+    T = np.array(
+        [sweep_commands(TAUGHT, X, DEPTH, p, half_length=0.01, n_frames=3)[1] for p in poses]
+    )
     P = np.array([p.target_in_image(DEPTH) for p in poses])
     delta = np.array([0.02, -0.05, 0.01])  # mm
     G = jacobians(T, X, P)
@@ -133,20 +147,20 @@ def test_selection_beats_the_papers_plan_and_never_repeats_a_pose():
     cands = _candidates(dense)
     paper = _candidates(paper_poses(10.0, 3.0))
     M = image_metric(X, np.array([[x, y, 0.0] for x in (-0.01, 0.01) for y in (0.0, 0.03)]))
-    chosen = select_sweeps(cands, 15, "D", M)
+    chosen = select_sweeps(cands, 15, criterion="D", M=M)
     assert len(set(chosen)) == 15
     opt, ref = predict(cands, chosen, M), predict(paper, range(45), M)
     # A third of the sweeps, and still better determined (rotation) than the paper's 45.
     assert opt.rotation_deg < ref.rotation_deg
     # The exchange only ever improves on the greedy start; every criterion runs.
-    greedy = select_sweeps(cands, 15, "D", M, max_passes=0)
+    greedy = select_sweeps(cands, 15, criterion="D", M=M, max_passes=0)
     H = {k: np.linalg.slogdet(np.linalg.inv(predict(cands, c, M).covariance))[1]
          for k, c in (("greedy", greedy), ("exchanged", chosen))}  # fmt: skip
     assert H["exchanged"] >= H["greedy"] - 1e-9
     for criterion in ("A", "E"):
-        assert len(set(select_sweeps(cands, 6, criterion, M))) == 6
+        assert len(set(select_sweeps(cands, 6, criterion=criterion, M=M))) == 6
     with pytest.raises(ValueError, match="criterion"):
-        select_sweeps(cands, 3, "Z", M)  # type: ignore[arg-type]
+        select_sweeps(cands, 3, criterion="Z", M=M)  # type: ignore[arg-type]
 
 
 def test_the_candidate_grid_is_symmetric_and_complete():
@@ -168,7 +182,7 @@ def test_a_three_marker_plan_sees_every_sphere_and_a_loose_layout_informs_less()
     poses = PlanningConfig(max_rotation_deg=20, max_lateral_mm=4, max_axial_mm=4).candidates()
     M = image_metric(X, np.array([[x, y, 0.0] for x in (-0.01, 0.01) for y in (0.0, 0.03)]))
     cands = _candidates(poses[::7], centres, taught=taught)
-    chosen = select_sweeps(cands, 18, "D", M, min_per_target=5)
+    chosen = select_sweeps(cands, 18, criterion="D", M=M, min_per_target=5)
     per = np.bincount(cands.target[chosen], minlength=3)
     assert per.min() >= 5 and per.sum() == 18
     exact = predict(cands, chosen, M).rotation_deg
@@ -176,4 +190,4 @@ def test_a_three_marker_plan_sees_every_sphere_and_a_loose_layout_informs_less()
     free = _candidates(poses[::7], None, taught=taught)
     assert exact <= predict(loose, chosen, M).rotation_deg <= predict(free, chosen, M).rotation_deg
     with pytest.raises(ValueError, match="cannot give"):
-        select_sweeps(cands, 12, "D", M, min_per_target=5)
+        select_sweeps(cands, 12, criterion="D", M=M, min_per_target=5)

@@ -90,7 +90,7 @@ def test_parallel_sweeps_share_one_travel_direction():
     X = se3.make(se3.matrix_from_euler(np.radians([91.0, -0.8, 1.5])), [0.8e-3, -1.2e-3, 0.158])
     taught = facing_pose([0.3, 0.0, 0.045], 0.02) @ se3.invert(X)
     ridge = np.array([1.0, 0.0, 0.0])
-    plan = plan_parallel_sweeps("ridge", taught, X, cfg, ridge)
+    plan = plan_parallel_sweeps("ridge", taught, X, cfg, travel=ridge)
     sphere_like = plan_sweeps("ridge", taught, X, cfg)
     assert len(plan) == 45
     for p, q in zip(plan, sphere_like, strict=True):

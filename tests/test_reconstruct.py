@@ -166,12 +166,12 @@ def test_boundaries_of_a_rendered_cone_lie_on_its_surface():
     T_face = facing_pose(truth.landmarks_base["apex"], 20e-3)
     twin.robot.teach(T_face @ se3.invert(truth.T_ee_us))
     frame = imager.grab()
-    bounds = extract_boundaries(frame.image, frame.spacing[0] * 1e3)
+    bounds = extract_boundaries(frame.image, pixel_mm=frame.spacing[0] * 1e3)
     assert len(bounds) == 2
     T_base_us = twin.robot.truth.T_base_ee @ truth.T_ee_us
     W = frame.image.shape[1]
     sx, sy = frame.spacing
-    from bench.pipeline import axial_scale
+    from bench.config.method import axial_scale
 
     spacing = (sx, sy * axial_scale(s))
     P = np.concatenate([samples_to_base(b.samples, W, spacing, T_base_us) for b in bounds])

@@ -5,6 +5,7 @@ coarse estimate, the speed-of-sound bias, and `uscal run` writing metrics.json."
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -99,8 +100,8 @@ def test_localizing_spheres_on_threads_changes_nothing():
     """`alternate(threads=2)` (the re-calibration's last task) localizes the spheres side
     by side: the same estimate, bit for bit, as one after the other."""
     from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
-    from bench.pipeline import axial_scale
-    from calib.calibrate import alternate
+    from bench.config.method import axial_scale
+    from calib.alternation import AlternationSettings, alternate
 
     sc = load_scenario(
         QUICK,
@@ -111,9 +112,18 @@ def test_localizing_spheres_on_threads_changes_nothing():
     acq = simulate_acquisition(sc, twin, make_imager(sc, twin))
     sweeps = {t: acq.dataset.of(t) for t in acq.dataset.targets()}
     cad = {t: twin.phantom_cad.landmarks[t] for t in sweeps}
-    args = (sweeps, sc.phantom.sphere_radius_mm * 1e-3, sc.localization, axial_scale(sc), cad)
-    serial = alternate(*args, acq.T_ee_us_coarse, threads=1)
-    threaded = alternate(*args, acq.T_ee_us_coarse, threads=2)
+    settings = AlternationSettings(sc.localization, axial_scale=axial_scale(sc))
+    radius = sc.phantom.sphere_radius_mm * 1e-3
+    serial, threaded = (
+        alternate(
+            sweeps,
+            radius,
+            replace(settings, threads=threads),
+            cad_centres=cad,
+            T_coarse=acq.T_ee_us_coarse,
+        )
+        for threads in (1, 2)
+    )
     assert len(serial.history) == len(threaded.history) >= 2
     assert (serial.result.T_ee_us == threaded.result.T_ee_us).all()
     centres = [

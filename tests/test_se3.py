@@ -49,8 +49,8 @@ def test_rotvec_round_trip(rng):
 def test_euler_round_trip(rng, seq):
     angles = rng.uniform(-np.pi, np.pi, (N, 3))
     angles[:, 1] = rng.uniform(-1.4, 1.4, N)  # away from gimbal lock
-    R = se3.matrix_from_euler(angles, seq)
-    np.testing.assert_allclose(se3.euler_from_matrix(R, seq), angles, atol=1e-9)
+    R = se3.matrix_from_euler(angles, seq=seq)
+    np.testing.assert_allclose(se3.euler_from_matrix(R, seq=seq), angles, atol=1e-9)
 
 
 def test_exp_log_round_trip(rng):
@@ -115,8 +115,7 @@ def test_the_method_refuses_a_wrong_matrix_where_it_enters():
     the calibration's entry, not found by the error it causes later."""
     from calib.calibrate import Observation, calibrate
     from calib.errors import TransformError
-    from calib.localization import LocalizerConfig
-    from calib.localize import localize_sphere
+    from calib.localize import LocalizerConfig, localize_sphere
     from calib.records import Sweep
 
     poses = np.array([se3.make(np.eye(3), [0.0, 0.0, z]) for z in (-1e-3, 0.0, 1e-3)])

@@ -75,6 +75,46 @@ def test_bad_sweep_files_fail_with_one_clear_line(tmp_path, capsys, text, messag
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    ("text", "line", "key"),
+    [
+        (f"base: {QUICK}\nseeds: [0]\nseeds: [1, 2]\n", 3, "seeds"),
+        (
+            f"base: {QUICK}\ngrid:\n  imaging.gain_db: [0]\n  imaging.gain_db: [10]\n",
+            4,
+            "imaging.gain_db",
+        ),
+    ],
+)
+def test_a_duplicate_key_is_refused_naming_the_file_and_key(tmp_path, capsys, text, line, key):
+    """A sweep file is read as every settings file is (``bench.config.schema.read_yaml``):
+    a key given twice, which a bare ``yaml.safe_load`` silently keeps the last of, is one
+    error naming the file, the line and the key."""
+    path = _write(tmp_path / "twice.yaml", text)
+    expected = f"{path}:{line}: invalid YAML: duplicate key '{key}'"
+    with pytest.raises(UscalError, match=re.escape(expected)):
+        load_sweep(path)
+    r = uscal_here(capsys, "sweep", str(path), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [f"uscal: error: {expected}"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_points_cache_is_keyed_by_the_code(monkeypatch):
+    """A cached point is reused only by the code that computed it: the key hashes the
+    packages' source (which once was looked for one directory too deep, so that the
+    hash was the empty string's and every version shared one cache)."""
+    import hashlib
+
+    from bench import grid
+
+    assert grid.code_version() != hashlib.sha256(b"").hexdigest()[:16]
+    key = grid.cache_key(base="b", seed=0)
+    assert grid.cache_key(seed=0, base="b") == key
+    monkeypatch.setattr(grid, "code_version", lambda: "other code")
+    assert grid.cache_key(base="b", seed=0) != key
+
+
 def run_sweep(spec, out: Path, **kwargs):
     """Run a sweep and write its files, as ``uscal sweep`` does."""
     result = _run_sweep(spec, out, **kwargs)

@@ -82,7 +82,9 @@ def test_bound_grows_in_proportion_to_the_localization_noise():
 def test_three_marker_bound_grows_with_the_declared_print_tolerance():
     obs, res = three(0.0)  # printed as drawn: the data show no mismatch
     bounds = [
-        bound95(obs, res, IMAGE, CENTRES, UncertaintyInputs(print_tolerance_m=t * MM))
+        bound95(
+            obs, res, IMAGE, cad_centres=CENTRES, inputs=UncertaintyInputs(print_tolerance_m=t * MM)
+        )
         for t in (0.0, 0.1, 0.3)
     ]
     image = [b.image_mm for b in bounds]
@@ -116,7 +118,7 @@ def test_layout_mismatch_the_data_show_is_taken_even_if_undeclared():
     covered, sigmas = [], []
     for seed in range(4):
         obs, res = three(0.3, noise_mm=0.02, seed=seed)
-        b = bound95(obs, res, IMAGE, CENTRES)
+        b = bound95(obs, res, IMAGE, cad_centres=CENTRES)
         sigmas.append(b.terms["sphere_layout"]["sigma_mm"])
         true_mm = se3.translation_distance(res.T_ee_us, T_EE_US_TRUE) / MM
         covered.append(true_mm <= b.translation_mm)
@@ -134,7 +136,13 @@ def test_bound_of_an_estimated_layout_covers_the_truth():
     for seed in range(20):
         obs, res = three(0.3, noise_mm=0.05, seed=seed, layout_sigma_mm=0.3)
         assert res.layout is not None
-        b = bound95(obs, res, IMAGE, CENTRES, UncertaintyInputs(print_tolerance_m=0.3 * MM))
+        b = bound95(
+            obs,
+            res,
+            IMAGE,
+            cad_centres=CENTRES,
+            inputs=UncertaintyInputs(print_tolerance_m=0.3 * MM),
+        )
         # In the covariance (the prior's rows); a term only for what the data show
         # beyond the declared tolerance: here, in the median, little.
         excess.append(b.terms.get("sphere_layout", {"sigma_mm": 0.0})["sigma_mm"])
@@ -151,7 +159,7 @@ def test_bound_of_an_estimated_layout_covers_the_truth():
 def test_bound_is_at_least_the_first_order_95_percent(method):
     obs, res = single(0.2) if method == "single" else three(0.1)
     cad = CENTRES if method == "three" else None
-    b = bound95(obs, res, IMAGE, cad)
+    b = bound95(obs, res, IMAGE, cad_centres=cad)
     std = np.sqrt(np.diag(res.covariance))
     assert b.rotation_deg >= 0.9 * 1.96 * np.degrees(std[:3].max())
     assert b.translation_mm >= 0.9 * 1.96 * std[3:].max() / MM

@@ -5,23 +5,40 @@ model)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from calib import se3
 from calib.errors import ScenarioError, UnreachablePoseError
-from calib.protocol import facing_pose, orientation_offsets, rotated_about_target
+from calib.protocol import ProtocolConfig, facing_pose, orientation_offsets, rotated_about_target
+from twin import PhantomConfig, RobotConfig, ToolsConfig
 from twin.ik import solve_ik
 from twin.phantoms import build_phantom, build_tank
 from twin.scene import Scene, SceneModel
 
-__all__ = ["check_geometry"]
-if TYPE_CHECKING:  # the type only: scenario.py calls this module
-    from .scenario import Scenario
+__all__ = ["World", "check_geometry"]
 
 
-def _targets(s: Scenario) -> dict[str, np.ndarray]:
+class World(Protocol):
+    """What the checks read of a scenario (:class:`bench.config.scenario.Scenario` is
+    one): the arm, the tools, the phantom in its tank, the protocol's poses, and the file
+    they come from, for the messages. Declared here rather than imported, so that this
+    module sits below :mod:`bench.config.scenario`, which calls it."""
+
+    @property
+    def source(self) -> str: ...
+    @property
+    def robot(self) -> RobotConfig: ...
+    @property
+    def tools(self) -> ToolsConfig: ...
+    @property
+    def phantom(self) -> PhantomConfig: ...
+    @property
+    def protocol(self) -> ProtocolConfig: ...
+
+
+def _targets(s: World) -> dict[str, np.ndarray]:
     """Imaging targets of the phantom in base (CAD at the true pose)."""
     phantom = build_phantom(s.phantom)
     marks = phantom.landmarks_in(s.phantom.T_base_phantom)
@@ -29,7 +46,7 @@ def _targets(s: Scenario) -> dict[str, np.ndarray]:
     return {k: v for k, v in marks.items() if k.startswith(keep)}
 
 
-def check_geometry(s: Scenario) -> None:
+def check_geometry(s: World) -> None:
     """Impossible geometry → :class:`ScenarioError`.
 
     Checks that the phantom rests inside the tank, under water, and that the probe can face

@@ -8,8 +8,9 @@ positions) and ``protocol`` (the scenario's protocol section: which spheres, how
 frames). Unknown keys, wrong types and out-of-range values fail with one line naming
 the file and key.
 
-:func:`loopback_hw_config` writes one for the twin's loopback controller (``uscal twin
-serve --hw-config``), with taught poses where an operator would have taught them.
+:func:`bench.jobs.twin_serve.loopback_hw_config` writes one for the twin's loopback
+controller (``uscal twin serve --hw-config``), with taught poses where an operator would
+have taught them.
 """
 
 from __future__ import annotations

@@ -24,11 +24,13 @@ from typing import Any
 
 import numpy as np
 
+from calib.calibrate import CalibrationConfig
 from calib.errors import ScenarioError
-from calib.localization import LocalizerConfig
+from calib.evaluate import EvaluationConfig
+from calib.localize import LocalizerConfig
 from calib.planning import PlanningConfig
 from calib.protocol import ProtocolConfig
-from calib.settings import CalibrationConfig, EvaluationConfig, ReconstructionConfig
+from calib.reconstruct import ReconstructionConfig
 from sim_us import MediumConfig, ProbeConfig
 from twin import PhantomConfig, RobotConfig, ToolsConfig
 

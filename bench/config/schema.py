@@ -6,7 +6,9 @@ bounds (``ge``, ``gt``, ``le``, ``lt``, applied to numbers and to every element 
 and list lengths (``len``). Any problem raises one :class:`~calib.errors.ScenarioError`
 naming the file, the key path, the value and what is allowed; unknown keys get a
 did-you-mean; YAML syntax errors and duplicate keys give the line. Scenario files
-(:mod:`bench.config.scenario`) and hw configs (:mod:`bench.config.hw`) are read with it.
+(:mod:`bench.config.scenario`), hw configs (:mod:`bench.config.hw`), plan files
+(:mod:`bench.config.plan_file`) and sweep files (:mod:`bench.jobs.sweep`) are read with
+:func:`read_yaml`, bench's one YAML reader.
 """
 
 from __future__ import annotations

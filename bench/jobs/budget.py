@@ -9,10 +9,12 @@ Each source of :mod:`bench.config.error_sources` is run
 next to ``all`` (the scenario as it is) and ``none`` (every source off: the floor set by
 the measurement itself — beam, speckle, pixels), each over seeds. Each run is the whole
 ``uscal run`` of the scenario (the paper's evaluation when it has datasets), reduced to
-the figures of the paper's tables and the errors against the truth. Runs go to the sweep
-executor (local process pool or a Dask cluster); each is cached in ``DIR/points`` under a
-hash of everything it depends on, so an interrupted budget resumes, and runs that come
-out the same (a source the scenario has off) are computed once.
+the figures of the paper's tables and the errors against the truth; the caller passes
+that run (``uscal budget``: :func:`bench.jobs.single.run`, as ``uscal run``), so that a
+job does not import another. Runs go to the grid executor (:mod:`bench.grid`: a local
+process pool or a Dask cluster); each is cached in ``DIR/points`` under a hash of
+everything it depends on, so an interrupted budget resumes, and runs that come out the
+same (a source the scenario has off) are computed once.
 
 Outputs: ``DIR/budget.csv`` (one row per source, mode and seed), ``DIR/budget.md`` and
 ``DIR/budget.html`` with one tornado chart per figure (``DIR/figures``).
@@ -20,12 +22,11 @@ Outputs: ``DIR/budget.csv`` (one row per source, mode and seed), ``DIR/budget.md
 
 from __future__ import annotations
 
-import hashlib
+import functools
 import json
 import os
 import time
-import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -37,9 +38,8 @@ from calib.errors import UscalError
 from .. import progress as progress_report
 from ..config.error_sources import ERROR_SOURCES, ErrorSource, value_at
 from ..config.scenario import Scenario, load_scenario
-from ..parallel import run_cached
-from .single import run
-from .sweep import code_version
+from ..grid import GridPoint, cache_key, run_grid
+from ..results import RunResult
 
 __all__ = [
     "FIGURES",
@@ -115,14 +115,12 @@ class BudgetSpec:
         effective = sorted(
             [k, v] for k, v in run.overrides if not _same(value_at(self.scenario, k), v)
         )
-        doc = {
-            "code": code_version(),
-            "base": self.base_text,
-            "base_overrides": list(self.base_overrides),
-            "overrides": effective,
-            "seed": run.seed,
-        }
-        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+        return cache_key(
+            base=self.base_text,
+            base_overrides=list(self.base_overrides),
+            overrides=effective,
+            seed=run.seed,
+        )
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -200,22 +198,28 @@ def budget_figures(metrics: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in out.items()}
 
 
+#: What a budget runs at each point: a whole scenario, as ``uscal run`` does.
+Runner = Callable[[Scenario], RunResult]
+
+
 def run_budget_point(
-    base: str | None, base_overrides: Sequence[str], overrides: Sequence[tuple[str, Any]], seed: int
+    run: Runner,
+    base: str | None,
+    base_overrides: Sequence[str],
+    overrides: Sequence[tuple[str, Any]],
+    seed: int,
 ) -> dict[str, Any]:
     """One budget run (in a worker): the scenario with the overrides and seed, run whole
-    (serially: the budget's executor is the parallelism), reduced to :data:`FIGURES`. A
-    failure is recorded, not raised (a source may make a calibration impossible)."""
-    try:
-        sets = [*base_overrides, *(f"{k}={json.dumps(v)}" for k, v in overrides), f"seed={seed}"]
-        scenario = load_scenario(base, sets)
-        scenario = replace(scenario, evaluation=replace(scenario.evaluation, workers=1))
-        t0 = time.perf_counter()
-        with progress_report.reporting(None):
-            result = run(scenario)
-        return {"figures": budget_figures(result.metrics), "seconds": time.perf_counter() - t0}
-    except Exception as exc:
-        return {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+    by ``run`` (serially: the budget's executor is the parallelism), reduced to
+    :data:`FIGURES`. A failure raises; the grid records it (a source may make a
+    calibration impossible) and goes on."""
+    sets = [*base_overrides, *(f"{k}={json.dumps(v)}" for k, v in overrides), f"seed={seed}"]
+    scenario = load_scenario(base, sets)
+    scenario = replace(scenario, evaluation=replace(scenario.evaluation, workers=1))
+    t0 = time.perf_counter()
+    with progress_report.reporting(None):
+        result = run(scenario)
+    return {"figures": budget_figures(result.metrics), "seconds": time.perf_counter() - t0}
 
 
 # ----------------------------------------------------------------------------- the budget
@@ -236,26 +240,25 @@ class BudgetResult:
 def run_budget(
     spec: BudgetSpec,
     out: str | os.PathLike[str],
+    run: Runner,
     scheduler: str | None = None,
     workers: int | None = None,
 ) -> BudgetResult:
-    """Run what is not cached in ``out/points`` (local pool of ``workers``, default one
-    per core, or the Dask cluster at ``scheduler``; :func:`bench.parallel.run_cached`);
-    :func:`bench.outputs.budget_report.write_budget` writes the tables and charts."""
-    t0 = time.perf_counter()
+    """Run, with ``run`` (a picklable function: ``uscal budget`` passes
+    :func:`bench.jobs.single.run`), what is not cached in ``out/points`` (local pool of
+    ``workers``, default one per core, or the Dask cluster at ``scheduler``;
+    :func:`bench.grid.run_grid`); :func:`bench.outputs.budget_report.write_budget` writes
+    the tables and charts."""
     runs = spec.runs()
-    keys = [spec.run_key(r) for r in runs]
     base = None if spec.base is None else str(spec.base)
-    tasks = {
-        key: (
-            run_budget_point,
-            (base, spec.base_overrides, run.overrides, run.seed),
-            {"overrides": [[k, v] for k, v in run.overrides], "seed": run.seed},
-        )
-        for run, key in zip(runs, keys, strict=True)
-    }
-    done, n_cached = run_cached(tasks, Path(out) / "points", scheduler, workers, "budget runs")
-    ordered = [(r, done[k]) for r, k in zip(runs, keys, strict=True)]
-    failed = sum("error" in d for d in done.values())
-    computed = len(tasks) - n_cached
-    return BudgetResult(spec, ordered, computed, n_cached, failed, time.perf_counter() - t0)
+    task = functools.partial(run_budget_point, run, base, spec.base_overrides)
+    points = [GridPoint(r.overrides, r.seed, spec.run_key(r)) for r in runs]
+    grid = run_grid(task, points, out, scheduler, workers, "budget runs")
+    return BudgetResult(
+        spec,
+        list(zip(runs, grid.documents, strict=True)),
+        grid.computed,
+        grid.cached,
+        grid.failed,
+        grid.seconds,
+    )

@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 from skimage import io as skio
 
 from calib import se3
+from calib.image import pixel_to_us
 from calib.protocol import rotated_about_target
 
 from ..acquire_sim import make_imager, make_twin, teach_at
@@ -99,12 +100,10 @@ def write_gallery(scenario: Scenario, outdir: Path) -> list[str]:
 
 def _contact_sheet(frames, spacing, path: Path, target: str) -> str:
     H, W = frames[0][1].shape
-    extent = [
-        -(W - 1) / 2 * spacing[0] * 1e3,
-        (W - 1) / 2 * spacing[0] * 1e3,
-        (H - 1) * spacing[1] * 1e3,
-        0.0,
-    ]
+    # The first and last pixels' centres in the us frame, mm: the axes' extent (left,
+    # right, bottom, top; row 0, the transducer face, at the top).
+    (x0, y0, _), (x1, y1, _) = 1e3 * pixel_to_us([0, H - 1], [0, W - 1], W, spacing)
+    extent = [x0, x1, y1, y0]
     cols = 5
     rows = -(-len(frames) // cols)
     # A bare Figure renders with the Agg canvas whatever backend pyplot would pick.

@@ -37,6 +37,7 @@ from calib.evaluate import (
     format_tables_markdown,
 )
 from calib.kinematics import DHRefinement, TouchReference
+from calib.pipeline import residual_rms_mm, touch_kinematics
 from calib.records import Touch
 from twin.phantoms import build_phantom
 from twin.printing import forget_parts, use_disk_cache
@@ -52,7 +53,6 @@ from ..parallel import (
     worker_initializer,
     workers_for,
 )
-from ..pipeline import residual_rms_mm, touch_kinematics
 from ..recording.logs import merge_parts
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
@@ -188,7 +188,12 @@ def _run_evaluation(
         train = [touches[n] for n in names if n != name]
         say(f"DH refinement for {name} from {', '.join(n for n in names if n != name)}")
         refinements[name], references[name] = touch_kinematics(
-            nominal, train, touches[name], cad_vertices, tip_cad, ev
+            nominal,
+            train,
+            touches[name],
+            vertices=cad_vertices,
+            tip_cad=tip_cad,
+            evaluation=ev,
         )
     progress_report.report("DH refinement", len(names), len(names))
     t_touch = time.perf_counter() - t_start

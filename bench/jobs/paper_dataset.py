@@ -1,7 +1,7 @@
 """One dataset of the paper's experiment (stage 2 of :mod:`bench.jobs.paper`), as a
 process-pool task: simulate its 4 × 45 sweeps (:func:`simulate_dataset`, which needs no
 DH model, so it starts while the touches are refined), recompute every frame's flange
-pose with the dataset's frozen DH model, run its folds (:func:`bench.pipeline.run_folds`),
+pose with the dataset's frozen DH model, run its folds (:func:`calib.pipeline.run_folds`),
 bound each fold's error, and score it against the twin's truth (:func:`run_dataset`).
 Frames stay inside the task; it returns metrics and small arrays only."""
 
@@ -22,6 +22,7 @@ from calib.kinematics import (
     kinematic_gauge,
     with_kinematics,
 )
+from calib.pipeline import run_folds
 from calib.records import Touch
 from calib.uncertainty import alternation_bound
 from twin.imager import acoustic_scene
@@ -34,10 +35,10 @@ from ..acquire_sim import (
     save_dataset,
     simulate_acquisition,
 )
+from ..config.method import axial_scale, image_points, method_inputs, scenario_uncertainty
 from ..config.scenario import Scenario
 from ..files import drop_frame_pages, with_frames, without_frames
 from ..parallel import release_memory
-from ..pipeline import MethodInputs, axial_scale, image_points, run_folds, scenario_uncertainty
 from ..recording.logs import log_acquisition
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
@@ -162,8 +163,12 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
     sweeps = {t: with_kinematics(acq.dataset.of(t), task.table) for t in targets}
     references = task.reference.reference_points({t: cad[t] for t in targets})
     everything = [s for ss in sweeps.values() for s in ss]
-    method = MethodInputs.of(
-        scenario, scenario.phantom.sphere_radius_mm, scale, cad, acq.T_ee_us_coarse
+    method = method_inputs(
+        scenario,
+        radius_mm=scenario.phantom.sphere_radius_mm,
+        cad_centres=cad,
+        T_coarse=acq.T_ee_us_coarse,
+        scale=scale,
     )
     run = run_folds(
         task.name,
@@ -184,7 +189,7 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
     for r in results:
         multi = {t: cad[t] for t in r.fold.train} if len(r.fold.train) >= 2 else None
         uncertainty[r.fold.name] = uncertainty_entry(
-            alternation_bound(r.alternation, grid, multi, inputs), inputs
+            alternation_bound(r.alternation, grid, cad_centres=multi, inputs=inputs), inputs
         )
     t_bounds = time.perf_counter() - t0
 

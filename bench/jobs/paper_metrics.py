@@ -63,7 +63,7 @@ def evaluation_metrics(
     fold_bounds = {k: v for o in outcomes for k, v in o.uncertainty.items()}
 
     def calibration_entry(r: FoldResult) -> dict[str, Any]:
-        """A fold's calibration (:func:`bench.pipeline.calibration_entry`, its bounds
+        """A fold's calibration (:func:`bench.results.calibration_entry`, its bounds
         from the dataset task) with its errors against the truth."""
         t = fold_truth[r.fold.name]
         entry = pipeline_entry(r.alternation, r.fold.train, r.fold.test)

@@ -65,8 +65,8 @@ def plan_report(scenario: Scenario, noise_mm: float = 0.1) -> list[PlanReport]:
                 name,
                 len(plan),
                 sum(len(p.T_base_ee) for p in plan),
-                observability(information(G), noise_mm),
-                observability(information(G, wire), noise_mm),
+                observability(information(G), noise_mm=noise_mm),
+                observability(information(G, line_direction=wire), noise_mm=noise_mm),
                 wire,
             )
         )

@@ -47,8 +47,8 @@ from ..candidates import (
     path_clear,
     taught_sphere,
 )
+from ..config.method import image_points
 from ..config.scenario import Scenario
-from ..pipeline import image_points
 from ..sessions import stage_rngs
 
 #: Sweeps of each sphere a three-marker plan keeps at least: the multi-marker fit needs
@@ -161,7 +161,7 @@ def optimize_plan(
         lambda s: paper_poses(proto.rotation_deg, proto.translation_mm), check=False,
     )  # fmt: skip
     paper_pred = predict(
-        observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias
+        observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias=bias
     )
     paper_plan = [p for s in spheres for p in plan_sweeps(s.name, s.taught, coarse, proto)]
     paper_choice = PlanChoice(
@@ -180,7 +180,7 @@ def optimize_plan(
     for _ in range(20):  # replace chosen sweeps that fail the frame-by-frame check
         cands = observations(scenario, coarse, spheres, found, multi)
         least = MIN_SWEEPS_PER_SPHERE if multi else 0
-        chosen_idx = select_sweeps(cands, n_sweeps, criterion, M, min_per_target=least)
+        chosen_idx = select_sweeps(cands, n_sweeps, criterion=criterion, M=M, min_per_target=least)
         # Every frame from the taught joint angles, as the acquisition checks the plan
         # before it moves (calib.protocol.check_plan) ...
         bad = {k for k in dict.fromkeys(chosen_idx) if not clear(scenario, twin, found[k][2])}
@@ -194,7 +194,7 @@ def optimize_plan(
                 mine = [o for o in ordered if o[1].name == s.name]
                 if not mine:
                     continue
-                steps = plan_sweeps(s.name, s.taught, coarse, proto, [o[2] for o in mine])
+                steps = plan_sweeps(s.name, s.taught, coarse, proto, poses=[o[2] for o in mine])
                 owner = [k for (k, *_), st in zip(mine, steps, strict=True)
                          for _ in (*st.approach, *st.T_base_ee)]  # fmt: skip
                 way = np.array([T for st in steps for T in (*st.approach, *st.T_base_ee)])
@@ -207,7 +207,7 @@ def optimize_plan(
         found = [f for k, f in enumerate(found) if k not in bad]
     else:
         raise UscalError("could not find a plan whose every pose is reachable and clear")
-    prediction = predict(cands, chosen_idx, M, bias)
+    prediction = predict(cands, chosen_idx, M, bias=bias)
     poses: dict[str, tuple[SweepPose, ...]] = {
         s.name: tuple(o[2] for o in ordered if o[1].name == s.name) for s in spheres
     }

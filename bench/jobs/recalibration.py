@@ -14,17 +14,17 @@ from pathlib import Path
 import numpy as np
 
 from calib import se3
-from calib.calibrate import alternate
+from calib.alternation import AlternationSettings, alternate
 from calib.dh import DHTable
 from calib.evaluate import TABLE_III_METHODS
 from calib.kinematics import kinematic_gauge, with_kinematics
 from calib.localize import localize_sphere
 
 from ..acquire_sim import make_imager, make_twin, simulate_acquisition
+from ..config.method import axial_scale, image_points
 from ..config.scenario import Scenario, layout_sigma_mm
 from ..files import frames_to_file, without_frames
 from ..parallel import release_memory
-from ..pipeline import axial_scale, image_points
 from ..progress import report
 from ..results import Recalibration, RemountScan
 from ..sessions import REMOUNT_KEY, SESSIONS, dataset_rngs, stream
@@ -84,7 +84,11 @@ def run_remount_scan(scenario: Scenario, index: int, scratch: Path) -> RemountSc
     # 10°), and absorbed by the calibration. Every model's alternation starts from it and
     # re-localizes with its own poses.
     first = localize_sphere(
-        sweeps, None, sc.phantom.sphere_radius_mm * 1e-3, sc.localization, axial_scale(sc)
+        sweeps,
+        None,
+        sc.phantom.sphere_radius_mm * 1e-3,
+        sc.localization,
+        axial_scale=axial_scale(sc),
     )
     path = scratch / f"remount_{target}.npy"
     frames_to_file(sweeps, path)
@@ -135,6 +139,13 @@ def run_recalibration(
     start = {t: by_target[t].first for t in spheres}
     label = f"remount: {method}-marker calibrations"
     report(label, 0, len(tables))
+    settings = AlternationSettings(
+        sc.localization,
+        axial_scale=axial_scale(sc),
+        max_iterations=sc.calibration.max_alternations,
+        layout_sigma_mm=layout_sigma_mm(sc),
+        threads=threads,
+    )
     for name, table in tables.items():
         X_equiv = (
             kinematic_gauge(table, truth.dh_true, q_frames, tool_points).G @ truth.T_ee_us_true
@@ -142,14 +153,10 @@ def run_recalibration(
         alt = alternate(
             {t: with_kinematics(frames[t], table) for t in spheres},
             sc.phantom.sphere_radius_mm * 1e-3,
-            sc.localization,
-            axial_scale(sc),
-            cad,
-            truth.T_ee_us_coarse,
-            sc.calibration.max_alternations,
+            settings,
+            cad_centres=cad,
+            T_coarse=truth.T_ee_us_coarse,
             initial=start,
-            threads=threads,
-            layout_sigma_mm=layout_sigma_mm(sc),
         )
         start = alt.localizations
         X = alt.result.T_ee_us

@@ -13,23 +13,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.calibrate import AlternationResult
+from calib.alternation import AlternationResult
 from calib.errors import UscalError
 from calib.kinematics import kinematic_gauge
 from calib.localize import localize_sphere
+from calib.pipeline import calibrate_markers
 from calib.uncertainty import UncertaintyInputs, alternation_bound
 from twin.imager import acoustic_scene
 
 from ..acquire_sim import SimulatedAcquisition, make_imager, make_twin, simulate_acquisition
 from ..acquire_sim import save_dataset as save_dataset_files
+from ..config.method import axial_scale, image_points, method_inputs, scenario_uncertainty
 from ..config.scenario import Scenario
-from ..pipeline import (
-    MethodInputs,
-    axial_scale,
-    calibrate_markers,
-    image_points,
-    scenario_uncertainty,
-)
 from ..recording.logs import log_acquisition, merge_parts
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
@@ -80,7 +75,7 @@ def _calibration_metrics(
     accuracy = []
     sweeps = acq.dataset
     for target in test or train:
-        locs = localize_sphere(sweeps.of(target), T_est, radius, localizer, scale)
+        locs = localize_sphere(sweeps.of(target), T_est, radius, localizer, axial_scale=scale)
         pts = [
             se3.apply(s.T_base_ee[s.reference_index] @ T_est, loc.centre)
             for s, loc in zip(sweeps.of(target), locs, strict=True)
@@ -91,7 +86,10 @@ def _calibration_metrics(
     bound = None
     if inputs is not None:
         multi = {t: cad[t] for t in train} if cad is not None and len(train) >= 2 else None
-        bound = (alternation_bound(alt, image_points(scenario), multi, inputs), inputs)
+        bound = (
+            alternation_bound(alt, image_points(scenario), cad_centres=multi, inputs=inputs),
+            inputs,
+        )
     entry = calibration_entry(alt, list(train), list(test), bound)
     out: dict[str, Any] = {"true_error": _true_errors(scenario, T_est, truth.T_ee_us)}
     if X_equiv is not None:
@@ -176,8 +174,12 @@ def run(
     targets = acq.dataset.targets()
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
 
-    method = MethodInputs.of(
-        scenario, scenario.phantom.sphere_radius_mm, scale, cad, acq.T_ee_us_coarse
+    method = method_inputs(
+        scenario,
+        radius_mm=scenario.phantom.sphere_radius_mm,
+        cad_centres=cad,
+        T_coarse=acq.T_ee_us_coarse,
+        scale=scale,
     )
     cals = calibrate_markers(acq.dataset, method)
     single, three = cals.single, cals.three

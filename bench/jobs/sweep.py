@@ -1,6 +1,7 @@
 """Robustness sweeps: a grid of scenario overrides × seeds, each point simulated,
 localized (and calibrated) with every localizer named, on a local process pool or a
-Dask cluster; results cached per point so that an interrupted sweep resumes.
+Dask cluster; results cached per point so that an interrupted sweep resumes (the grid
+executor, :mod:`bench.grid`).
 
 A sweep file::
 
@@ -22,29 +23,27 @@ finishes.
 from __future__ import annotations
 
 import functools
-import hashlib
 import itertools
 import json
 import os
-import time
-import traceback
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from calib.calibrate import alternate
+from calib.alternation import AlternationSettings, alternate
 from calib.errors import UscalError
 from calib.localize import localize_sphere
 
 from .. import progress as progress_report
 from ..acquire_sim import make_imager, make_twin, simulate_acquisition
+from ..config.method import axial_scale
 from ..config.scenario import acquisition_pixels, load_scenario, validate_overrides
-from ..parallel import release_memory, run_cached
-from ..pipeline import axial_scale
+from ..config.schema import read_yaml
+from ..grid import GridPoint, cache_key, run_grid
+from ..parallel import release_memory
 from ..truth import image_error_mm, localization_errors
 
 __all__ = [
@@ -52,7 +51,6 @@ __all__ = [
     "SweepError",
     "SweepResult",
     "SweepSpec",
-    "code_version",
     "load_sweep",
     "point_key",
     "run_point",
@@ -141,10 +139,9 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     source = Path(path)
     if not source.is_file():
         raise SweepError(f"{source}: no such file")
-    try:
-        data = yaml.safe_load(source.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise SweepError(f"{source}: not valid YAML ({exc})") from None
+    # As settings files are read (DESIGN §3): safe loader, duplicate keys refused, a
+    # syntax error named by file and line.
+    data = read_yaml(str(source))
     if not isinstance(data, dict):
         raise _fail(source, "top level", "expected a mapping with base, grid, seeds, stages")
     allowed = {"base", "grid", "seeds", "stages", "methods"}
@@ -205,31 +202,17 @@ def _override(key: str, value: Any) -> str:
     return f"{key}={json.dumps(value)}"
 
 
-@functools.cache
-def code_version() -> str:
-    """A hash of the source of the packages a point runs (calib, sim_us, twin, bench):
-    a cached result computed by other code is not reused."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for package in ("calib", "sim_us", "twin", "bench"):
-        for path in sorted((root / package).rglob("*.py")):
-            h.update(str(path.relative_to(root)).encode())
-            h.update(path.read_bytes())
-    return h.hexdigest()[:16]
-
-
 def point_key(spec: SweepSpec, overrides: Sequence[tuple[str, Any]], seed: int) -> str:
     """Cache key of a point: a hash of everything its result depends on (the code, the
-    base scenario's text, the overrides, the seed, stages and methods)."""
-    doc = {
-        "code": code_version(),
-        "base": spec.base_text,
-        "overrides": [[k, v] for k, v in overrides],
-        "seed": seed,
-        "stages": list(spec.stages),
-        "methods": list(spec.methods),
-    }
-    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+    base scenario's text, the overrides, the seed, stages and methods;
+    :func:`bench.grid.cache_key`)."""
+    return cache_key(
+        base=spec.base_text,
+        overrides=[[k, v] for k, v in overrides],
+        seed=seed,
+        stages=list(spec.stages),
+        methods=list(spec.methods),
+    )
 
 
 # ----------------------------------------------------------------------------- a point
@@ -265,7 +248,7 @@ def run_point(
         # that no calibration error enters; centres against the true centre in each
         # sweep's true reference frame (errors of the accepted sweeps, mm).
         locs = {
-            t: localize_sphere(acq.dataset.of(t), truth.T_ee_us, radius, cfg, scale)
+            t: localize_sphere(acq.dataset.of(t), truth.T_ee_us, radius, cfg, axial_scale=scale)
             for t in targets
         }
         e, n, rejected = localization_errors(acq, truth, locs)
@@ -286,11 +269,12 @@ def run_point(
                 alt = alternate(
                     {targets[0]: acq.dataset.of(targets[0])},
                     radius,
-                    cfg,
-                    scale,
-                    None,
-                    acq.T_ee_us_coarse,
-                    scenario.calibration.max_alternations,
+                    AlternationSettings(
+                        cfg,
+                        axial_scale=scale,
+                        max_iterations=scenario.calibration.max_alternations,
+                    ),
+                    T_coarse=acq.T_ee_us_coarse,
                 )
                 row["calibration_image_mm"] = image_error_mm(
                     scenario, alt.result.T_ee_us, truth.T_ee_us
@@ -301,12 +285,15 @@ def run_point(
     return rows
 
 
-def _safe_point(base, overrides, seed, stages, methods) -> dict[str, Any]:
-    """:func:`run_point` that records a failure instead of raising (the sweep goes on)."""
-    try:
-        return {"rows": run_point(base, overrides, seed, stages, methods)}
-    except Exception as exc:
-        return {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+def _sweep_point(
+    base: str,
+    stages: Sequence[str],
+    methods: Sequence[str],
+    overrides: Sequence[tuple[str, Any]],
+    seed: int,
+) -> dict[str, Any]:
+    """A point's result as the grid records it (:func:`run_point`'s rows)."""
+    return {"rows": run_point(base, overrides, seed, stages, methods)}
 
 
 # ----------------------------------------------------------------------------- the sweep
@@ -332,20 +319,9 @@ def run_sweep(
 ) -> SweepResult:
     """Run every point not yet cached in ``out/points``, on a local process pool
     (``workers``, default one per core) or the Dask cluster at ``scheduler``
-    (:func:`bench.parallel.run_cached`). A failed point records its error and the sweep
-    goes on; :func:`bench.outputs.sweep_report.write_sweep` writes the tables."""
-    t0 = time.perf_counter()
-    points = spec.points()
-    tasks = {
-        point_key(spec, overrides, seed): (
-            _safe_point,
-            (str(spec.base), overrides, seed, spec.stages, spec.methods),
-            {"overrides": [[k, v] for k, v in overrides], "seed": seed},
-        )
-        for overrides, seed in points
-    }
-    done, n_cached = run_cached(tasks, Path(out) / "points", scheduler, workers, "sweep points")
-    ordered = [done[point_key(spec, o, s)] for o, s in points]
-    failed = sum("error" in d for d in ordered)
-    computed = len(tasks) - n_cached
-    return SweepResult(spec, ordered, computed, n_cached, failed, time.perf_counter() - t0)
+    (:func:`bench.grid.run_grid`). A failed point records its error and the sweep goes
+    on; :func:`bench.outputs.sweep_report.write_sweep` writes the tables."""
+    task = functools.partial(_sweep_point, str(spec.base), spec.stages, spec.methods)
+    points = [GridPoint(o, s, point_key(spec, o, s)) for o, s in spec.points()]
+    grid = run_grid(task, points, out, scheduler, workers, "sweep points")
+    return SweepResult(spec, grid.documents, grid.computed, grid.cached, grid.failed, grid.seconds)

@@ -50,8 +50,8 @@ from twin.imager import acoustic_scene
 from twin.phantoms import build_phantom
 
 from ..acquire_sim import coarse_estimate, make_imager, make_twin, teach_at
+from ..config.method import axial_scale, image_points
 from ..config.scenario import Scenario
-from ..pipeline import axial_scale, image_points
 from ..progress import report
 from ..recording.options import RecordingOptions, sweeps_to_log
 from ..recording.recorder import Recorder
@@ -119,7 +119,7 @@ def _plan(sc: Scenario, twin, kind: str, rng: np.random.Generator):
     # The sweeps travel along the ridge as the operator sees it on the taught image: the
     # normal of the image plane there, which the coarse T_ee_us predicts.
     travel = (taught.T_base_ee @ coarse)[:3, 2]
-    return taught, plan_parallel_sweeps("prism", taught.T_base_ee, coarse, proto, travel)
+    return taught, plan_parallel_sweeps("prism", taught.T_base_ee, coarse, proto, travel=travel)
 
 
 def run_scan(
@@ -165,7 +165,7 @@ def run_scan(
         width = sweep.images.shape[2]
         pixel_mm = float(np.sqrt(sx * sy)) * _MM
         for j in range(n_central):
-            bounds = extract_boundaries(sweep.images[j], pixel_mm, seed=len(q_frames))
+            bounds = extract_boundaries(sweep.images[j], pixel_mm=pixel_mm, seed=len(q_frames))
             missing += len(bounds) < 2
             if rec is not None and i in logged:
                 t3 = time.perf_counter()

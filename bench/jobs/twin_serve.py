@@ -172,7 +172,7 @@ def emulated_operator(scenario: Scenario, twin) -> Callable[[list[str]], str]:
     lean = {k: (middle - v) * np.array([1.0, 1.0, 0.0]) for k, v in vertices.items()}
     plan = {
         (t.vertex, t.index): t.R_base_ee
-        for t in touch_plan(sorted(vertices), scenario.protocol, lean)
+        for t in touch_plan(sorted(vertices), scenario.protocol, lean=lean)
     }
     rng = stream(scenario.seed, TOUCH_GUIDE_KEY)
     guide = SimTouchGuide(

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.calibrate import AlternationResult
+from calib.alternation import AlternationResult
 from calib.evaluate import METHOD_TITLES, PHANTOM_TITLES, TABLE_III_METHODS
 from calib.observability import information, jacobians
 

@@ -18,9 +18,8 @@ from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
 from calib import se3
-from calib.calibrate import AlternationResult
-from calib.localization import LocalizerConfig, SweepLocalization, frame_offsets
-from calib.localize import sphere_profile
+from calib.alternation import AlternationResult
+from calib.localize import LocalizerConfig, SweepLocalization, frame_offsets, sphere_profile
 from calib.records import Sweep
 
 from .options import RecordingOptions, sweeps_to_log
@@ -153,7 +152,9 @@ def log_acquisition(
     for method, alt in alternations.items():
         T_est = alt.result.T_ee_us
         for target, locs in alt.localizations.items():
-            prof = sphere_profile(dataset.of(target), locs, T_est, radius, cfg, axial_scale)
+            prof = sphere_profile(
+                dataset.of(target), locs, T_est, radius, cfg, axial_scale=axial_scale
+            )
             rec.profile(session, f"{method}/{target}", prof)
         rec.alternation(session, method, alt)
         centres_base = [

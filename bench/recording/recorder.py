@@ -1,9 +1,10 @@
 """Rerun recordings of a run: where the robot went, what each frame showed, what the
 localizer found, how the calibration converged, where the reconstruction is wrong.
 
-The only module that imports rerun. One recording per run; each acquisition session
-(``run`` for a single acquisition, the datasets ``A``, ``B``… of the paper's experiment)
-is a subtree, in metres and in the robot base frame::
+With :mod:`~bench.recording.logs` (what each job logs, the merge of the workers'
+parts), the only module that imports rerun. One recording per run; each acquisition
+session (``run`` for a single acquisition, the datasets ``A``, ``B``… of the paper's
+experiment) is a subtree, in metres and in the robot base frame::
 
     /<session>/world/scene/<part>          phantom and tank meshes (static)
     /<session>/world/robot/<geom>          arm and tool at the reported joint angles
@@ -43,7 +44,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.calibrate import AlternationResult
+from calib.alternation import AlternationResult
 from calib.image import pixel_to_us, sphere_section, us_to_pixel
 
 from .options import RecordingOptions

@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage, optimize
 
-from .image import pixel_to_us
-from .localization import LocalizerConfig, SweepLocalization, frame_offsets
-from .records import Sweep
+from ..image import pixel_to_us
+from ..records import Sweep
+from .settings import LocalizerConfig, SweepLocalization, frame_offsets
 
 __all__ = ["localize_sphere_fixed_threshold"]
 
@@ -95,6 +95,7 @@ def localize_sphere_fixed_threshold(
     T_ee_us: Array | None,
     radius: float,
     cfg: LocalizerConfig,
+    *,
     axial_scale: float = 1.0,
 ) -> list[SweepLocalization]:
     """Localize one sphere in each sweep with the fixed threshold ``cfg.fixed_threshold``

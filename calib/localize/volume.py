@@ -1,28 +1,27 @@
-"""The sweep volume (paper, "Threshold-Free Sphere Localization", steps 1-2): which pixels
-are bright, and the frames stacked at their offsets in the sweep's reference frame.
+"""The sweep volume (paper §II-E-1 adaptive brightness, §II-E-2 sweep volume): which
+pixels are bright, and the frames stacked at their offsets in the sweep's reference frame.
 
 A pixel is bright above its frame's mean grey level (the paper's adaptive cut-off) and,
 for the ``refined`` method, above its depth's noise floor too (:func:`frame_levels`). The
 stack is virtual (:class:`SweepVolume`): slices are the frames at their integer in-plane
 shifts, and the bright bits are packed 64 to a machine word so that the exhaustive search
-(:mod:`calib.localize`) reads a row of candidates' labels in one or two loads. The
-compiled kernels here are the hot loops of that search and of the cap's moments, written
-by hand with numba: they touch each packed word once, where the obvious numpy scorer
-(:func:`calib.localize.score_candidates_reference`) is ≈ 24 000× slower on a sweep
-(``benchmarks/localize.py``).
+(:mod:`calib.localize.search`) reads a row of candidates' labels in one or two loads
+(the compiled kernels: :mod:`calib.localize.kernels`). Voxels map to points through the
+image's one pixel mapping (:mod:`calib.image`).
 """
 
 from __future__ import annotations
 
 import weakref
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import LocalizationError
-from .localization import frame_offsets
-from .records import Sweep
+from ..errors import LocalizationError
+from ..image import pixel_axes, pixel_to_us, us_to_pixel
+from ..records import Sweep
+from .kernels import _frame_sums, _gather_labels, _pack_bits
+from .settings import frame_offsets
 
 __all__ = [
     "LABEL_BRIGHT",
@@ -32,10 +31,8 @@ __all__ = [
     "MAX_SAMPLES",
     "SweepVolume",
     "candidate_step",
-    "cap_weights",
     "frame_bits",
     "frame_levels",
-    "grid_sums",
     "stack_sweep",
 ]
 
@@ -53,8 +50,9 @@ class SweepVolume:
     """A sweep stacked in its reference frame: a regular grid of labels.
 
     Label (k, r, c) is 0 outside the acquired volume, else dark/bright versus the frame it
-    came from; voxel (k, r, c) sits at ``x = (c + col0 − (W − 1)/2)·dx, y = (r + row0)·dy,
-    z = z0 + k·dz`` (metres, reference frame); ``shape`` is (K, H, W).
+    came from; voxel (k, r, c) sits at ``z = z0 + k·dz`` (metres, reference frame) and, in
+    plane, where the image's pixel (r + row0, c + col0) does (:mod:`calib.image`: ``x = (c
+    + col0 − (W − 1)/2)·dx, y = (r + row0)·dy``); ``shape`` is (K, H, W).
 
     The stack is virtual: slice k *is* frame ``nearest[k]`` placed at its integer in-plane
     shift (``frame_rows``, ``frame_cols``), so a re-stack under a new ``T_ee_us`` changes
@@ -103,20 +101,29 @@ class SweepVolume:
         return np.asarray(weights, dtype=float) @ self.frame_residuals[self._nearest[k]] / total
 
     def position(self, k: Array, r: Array, c: Array) -> Array:
-        """Reference-frame points (..., 3) of voxel indices."""
-        dx, dy, dz = self.spacing
-        return np.stack(
-            [(c + self.col0 - (self.width - 1) / 2) * dx, (r + self.row0) * dy, self.z0 + k * dz],
-            axis=-1,
-        )
+        """Reference-frame points (..., 3), metres, of voxel indices (fractional allowed)."""
+        P = pixel_to_us(r + self.row0, c + self.col0, self.width, self.spacing[:2])
+        P[..., 2] = self.z0 + k * self.spacing[2]
+        return P
+
+    def pixel(self, P: Array) -> tuple[Array, Array]:
+        """Fractional (rows, cols) of the frames' pixels under points (..., 3), metres,
+        reference frame (:func:`calib.image.us_to_pixel`; the stack's origin ``row0``,
+        ``col0`` not yet taken off, z ignored)."""
+        return us_to_pixel(P, self.width, self.spacing[:2])
 
     def index(self, P: Array) -> tuple[Array, Array, Array]:
-        """Nearest voxel (k, r, c) of points (..., 3), unbounded."""
-        dx, dy, dz = self.spacing
-        c = np.rint(P[..., 0] / dx + (self.width - 1) / 2).astype(np.int64) - self.col0
-        r = np.rint(P[..., 1] / dy).astype(np.int64) - self.row0
-        k = np.rint((P[..., 2] - self.z0) / dz).astype(np.int64)
+        """Nearest voxel (k, r, c) of points (..., 3), metres, reference frame; unbounded."""
+        rows, cols = self.pixel(P)
+        c = np.rint(cols).astype(np.int64) - self.col0
+        r = np.rint(rows).astype(np.int64) - self.row0
+        k = np.rint((P[..., 2] - self.z0) / self.spacing[2]).astype(np.int64)
         return k, r, c
+
+    def axes(self, rs: NDArray[np.int64], cs: NDArray[np.int64]) -> tuple[Array, Array]:
+        """(x of each voxel column ``cs``, y of each voxel row ``rs``), metres: a block's
+        in-plane coordinates as separate axes (:func:`calib.image.pixel_axes`)."""
+        return pixel_axes(rs + self.row0, cs + self.col0, self.width, self.spacing[:2])
 
     def label_at(self, k: NDArray[np.int64], r: NDArray[np.int64], c: NDArray[np.int64]):
         """Labels of voxels (any shape of integer indices); 0 (outside) past the volume."""
@@ -157,6 +164,7 @@ class SweepVolume:
         ks: NDArray[np.int64],
         rs: NDArray[np.int64],
         cs: NDArray[np.int64],
+        *,
         level: float | None = None,
     ) -> Array:
         """Grey level minus its brightness level of the voxel block ks × rs × cs (0
@@ -189,113 +197,6 @@ def candidate_step(spacing: tuple[float, float, float], grid: float) -> tuple[in
     return tuple(max(1, int(np.rint(grid / s))) for s in (dz, dy, dx))
 
 
-# ----------------------------------------------------------------------------- kernels
-# Written by hand and compiled with numba: they are the localizer's whole cost.
-
-
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def _frame_sums(images):  # pragma: no cover - compiled
-    """Integer grey-level sum of each frame (exact; no float copy of the frames)."""
-    out = np.zeros(images.shape[0], np.int64)
-    for j in range(images.shape[0]):
-        acc = np.int64(0)
-        for r in range(images.shape[1]):
-            row = images[j, r]
-            for c in range(images.shape[2]):
-                acc += row[c]
-        out[j] = acc
-    return out
-
-
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def _pack_bits(images, thresholds, sc, out):  # pragma: no cover - compiled
-    """out[j, d, r, w] bit b = pixel (r, d + (64 w + b)·sc) of frame j ≥ thresholds[j, r]."""
-    H, W = images.shape[1], images.shape[2]
-    for j in range(images.shape[0]):
-        for r in range(H):
-            t = thresholds[j, r]
-            src = images[j, r]
-            for d in range(sc):
-                dst = out[j, d, r]
-                n = (W - d + sc - 1) // sc
-                for w in range((n + 63) // 64):
-                    word = np.uint64(0)
-                    for b in range(min(64, n - 64 * w)):
-                        bright = np.uint64(src[d + (64 * w + b) * sc] >= t)
-                        word |= bright << np.uint64(b)
-                    dst[w] = word
-
-
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def _gather_labels(bits, nearest, frame_rows, frame_cols, H, W, k, r, c):  # pragma: no cover
-    """Labels at voxel indices (flat arrays) of a virtual stack, 0 outside."""
-    sc = bits.shape[1]
-    K = nearest.shape[0]
-    out = np.zeros(k.shape[0], np.int16)
-    for i in range(k.shape[0]):
-        ki = k[i]
-        if ki < 0 or ki >= K:
-            continue
-        j = nearest[ki]
-        fr = r[i] - frame_rows[j]
-        fc = c[i] - frame_cols[j]
-        if 0 <= fr < H and 0 <= fc < W:
-            q = fc // sc
-            bit = (bits[j, fc % sc, fr, q >> 6] >> np.uint64(q & 63)) & np.uint64(1)
-            out[i] = 1 + 512 * np.int16(bit)
-    return out
-
-
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def grid_sums(
-    bits, nearest, frame_rows, frame_cols, H, W, start, step, count, offsets
-):  # pragma: no cover - compiled
-    """Encoded label sums (valid + LABEL_UNIT · bright) of every grid candidate.
-
-    Per (slice, sample offset) the slice's frame and shift are fixed, so for each row of
-    candidates the samples read one bit-row of one column phase of that frame, and the
-    candidates whose sample lands inside the frame form one run, found once. Samples past
-    the acquired volume count as outside. The grid's column step must be the bits' phase
-    count (:meth:`SweepVolume.with_column_step` re-splits otherwise).
-    """
-    sc = bits.shape[1]
-    K = nearest.shape[0]
-    nk, nr, nc = count[0], count[1], count[2]
-    out = np.zeros((nk, nr, nc), np.int32)
-    one = np.uint64(1)
-    for i in range(nk):
-        for m in range(offsets.shape[0]):
-            k = start[0] + i * step[0] + offsets[m, 0]
-            if k < 0 or k >= K:
-                continue
-            j = nearest[k]
-            fc0 = start[2] + offsets[m, 2] - frame_cols[j]  # frame column of candidate 0
-            d = fc0 % sc
-            q0 = fc0 // sc
-            n_cols = (W - d + sc - 1) // sc  # columns of phase d inside the frame
-            lo = max(0, -q0)
-            hi = min(nc, n_cols - q0)
-            if hi <= lo:
-                continue
-            for jj in range(nr):
-                fr = start[1] + jj * step[1] + offsets[m, 1] - frame_rows[j]
-                if fr < 0 or fr >= H:
-                    continue
-                row = bits[j, d, fr]
-                dst = out[i, jj]
-                # A word at a time: load it once, shift it along the run's candidates.
-                q = lo
-                while q < hi:
-                    b = q0 + q
-                    word = row[b >> 6] >> np.uint64(b & 63)
-                    end = min(hi, q + 64 - (b & 63))
-                    while q < end:
-                        dst[q] += 1 + 512 * np.int32(word & one)
-                        word >>= one
-                        q += 1
-    return out
-
-
 _BITS_CACHE: dict[tuple[int, int, int], NDArray[np.uint64]] = {}
 
 
@@ -321,7 +222,7 @@ def _row_noise_floor(images: NDArray[np.uint8]) -> Array:
     return q50 + _NOISE_SIGMAS * (q75 - q25) / 1.349
 
 
-def frame_levels(images: NDArray[np.uint8], noise_floor: bool = False) -> Array:
+def frame_levels(images: NDArray[np.uint8], *, noise_floor: bool = False) -> Array:
     """Brightness level of every row of every frame, (n, H): a pixel is bright above it.
 
     The paper's cut-off is the frame's own mean grey level. With ``noise_floor`` (method
@@ -372,6 +273,7 @@ def frame_bits(images: NDArray[np.uint8], levels: Array, column_step: int) -> ND
 def stack_sweep(
     sweep: Sweep,
     T_ee_us: Array | None,
+    *,
     axial_scale: float = 1.0,
     column_step: int = 1,
     noise_floor: bool = False,
@@ -397,7 +299,7 @@ def stack_sweep(
     # Nearest frame of each slice.
     slice_z = z0 + np.arange(n_slices) * dz
     nearest = order[np.argmin(np.abs(slice_z[:, None] - z[order][None, :]), axis=1)]
-    levels = frame_levels(images, noise_floor)
+    levels = frame_levels(images, noise_floor=noise_floor)
     # Integer pixel shift of each frame's in-plane offset (nearest voxel); the grid spans
     # every shifted frame. What the rounding leaves (up to half a pixel) is kept: a sweep
     # whose axis is a few degrees off the image normal (the coarse mount's error) shifts
@@ -425,35 +327,3 @@ def stack_sweep(
         (shift_c - col0).astype(np.int64),
         residuals,
     )
-
-
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def cap_weights(
-    frames, levels, nearest, frame_rows, frame_cols, ks, rs, cs, dz2, dy2, dx2, lo2, hi2
-):  # pragma: no cover - compiled
-    """Weights (len(ks), len(rs), len(cs)) of the cap refinement: grey level minus its
-    brightness level (:func:`frame_levels`) where positive and the voxel lies in the shell
-    band (squared distances ``lo2 ≤ dz2 + dy2 + dx2 ≤ hi2``), else 0. Compiled: one pass
-    instead of the several full-block NumPy passes it replaces (≈ 4× faster)."""
-    H, W = frames.shape[1], frames.shape[2]
-    out = np.zeros((ks.shape[0], rs.shape[0], cs.shape[0]))
-    for a in range(ks.shape[0]):
-        j = nearest[ks[a]]
-        for b in range(rs.shape[0]):
-            fr = rs[b] - frame_rows[j]
-            if fr < 0 or fr >= H:
-                continue
-            row = frames[j, fr]
-            level = levels[j, fr]
-            dzy = dz2[a] + dy2[b]
-            for c in range(cs.shape[0]):
-                fc = cs[c] - frame_cols[j]
-                if fc < 0 or fc >= W:
-                    continue
-                d2 = dzy + dx2[c]
-                if d2 < lo2 or d2 > hi2:
-                    continue
-                v = row[fc] - level
-                if v > 0:
-                    out[a, b, c] = v
-    return out

@@ -2,8 +2,9 @@
 the scenario's ``localization`` section), one sweep's result (:class:`SweepLocalization`)
 and where a sweep's frames lie in its reference frame (:func:`frame_offsets`).
 
-The threshold-free localizer (:mod:`calib.localize`) and the fixed-threshold baseline
-(:mod:`calib.baseline`) both build on this module, and neither on the other's internals.
+The threshold-free localizer (:mod:`calib.localize.sphere` and its stages) and the
+fixed-threshold baseline (:mod:`calib.localize.baseline`) both build on this module, and
+neither on the other's internals.
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from . import se3
-from .records import Sweep
+from .. import se3
+from ..records import Sweep
 
 __all__ = ["LocalizerConfig", "SweepLocalization", "frame_offsets"]
 
@@ -35,7 +36,7 @@ class LocalizerConfig:
             "(a flat reflector's runs on), the specular arc alone where the whole cap is "
             "not seen, and a sub-voxel centre from the cap's echo; 'fixed_threshold': the "
             "baseline the paper argues against (one absolute grey-level threshold, "
-            "largest bright set, least-squares sphere; calib/baseline.py)."
+            "largest bright set, least-squares sphere; calib/localize/baseline.py)."
         },
     )
     fixed_threshold: int = field(

@@ -1,0 +1,101 @@
+"""A scenario's settings as the method's (:mod:`calib.pipeline`): the one place the test
+bench maps its scenario onto what the method takes."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.alternation import AlternationSettings
+from calib.pipeline import MethodInputs, MethodSettings, declared_uncertainty
+from calib.sound import speed_ratio
+from calib.uncertainty import UncertaintyInputs, image_grid
+
+from .scenario import Scenario, layout_sigma_mm
+
+__all__ = [
+    "axial_scale",
+    "image_points",
+    "method_inputs",
+    "method_settings",
+    "scenario_uncertainty",
+]
+
+Array = NDArray[np.float64]
+
+
+def axial_scale(scenario: Scenario) -> float:
+    """The axial spacing's correction factor of a scenario (:func:`calib.sound.
+    speed_ratio`)."""
+    return speed_ratio(
+        correction=scenario.imaging.sound_speed_correction,
+        medium=scenario.medium.kind,
+        temperature_c=scenario.medium.temperature_c,
+        assumed_speed_m_s=scenario.imaging.assumed_speed_m_s,
+    )
+
+
+def image_points(scenario: Scenario, n: int = 21) -> Array:
+    """An n × n grid of points (n², 3) covering the scenario's image, metres in the
+    ``us`` frame (:func:`calib.uncertainty.image_grid`)."""
+    return image_grid(scenario.imaging.width_mm * 1e-3, scenario.imaging.depth_mm * 1e-3, n=n)
+
+
+def method_settings(scenario: Scenario) -> MethodSettings:
+    """The method's settings of a scenario: its localizer, alternation and layout
+    settings, touch-based refinement, the phantom's print specification, the probe's
+    axial resolution and the arm's nominal model (a twin's own, or the settings ``uscal
+    calibrate`` runs a recorded dataset with)."""
+    return MethodSettings(
+        localizer=scenario.localization,
+        max_alternations=scenario.calibration.max_alternations,
+        layout_sigma_mm=layout_sigma_mm(scenario),
+        evaluation=scenario.evaluation,
+        print_tolerance_mm=scenario.phantom.tolerance_position_mm,
+        radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
+        axial_fwhm_mm=scenario.imaging.axial_fwhm_mm,
+        nominal_dh=scenario.robot.nominal_table,
+    )
+
+
+def method_inputs(
+    scenario: Scenario,
+    *,
+    radius_mm: float,
+    cad_centres: Mapping[str, Array],
+    T_coarse: Array | None,
+    scale: float | None = None,
+) -> MethodInputs:
+    """The inputs of one acquisition's calibration under a scenario's settings: the CAD
+    radius (mm), CAD centres and coarse mount given; the axial scale the scenario's
+    (:func:`axial_scale`) unless ``scale`` is given."""
+    return MethodInputs(
+        radius_mm * 1e-3,
+        cad_centres,
+        T_coarse,
+        AlternationSettings(
+            scenario.localization,
+            axial_scale=axial_scale(scenario) if scale is None else scale,
+            max_iterations=scenario.calibration.max_alternations,
+            layout_sigma_mm=layout_sigma_mm(scenario),
+        ),
+    )
+
+
+def scenario_uncertainty(
+    scenario: Scenario, kinematic_residual_rms_mm: float = 0.0
+) -> UncertaintyInputs:
+    """:func:`calib.pipeline.declared_uncertainty` of a twin's scenario: its phantom's
+    print tolerance as the print specification, its medium and speed-of-sound setting."""
+    return declared_uncertainty(
+        print_tolerance_mm=scenario.phantom.tolerance_position_mm,
+        sound_speed_correction=scenario.imaging.sound_speed_correction,
+        medium=scenario.medium.kind,
+        temperature_c=scenario.medium.temperature_c,
+        assumed_speed_m_s=scenario.imaging.assumed_speed_m_s,
+        kinematic_residual_rms_mm=kinematic_residual_rms_mm,
+        radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
+        axial_fwhm_mm=scenario.imaging.axial_fwhm_mm,
+    )

@@ -1,0 +1,31 @@
+"""What ``uscal sweep`` and ``uscal budget`` print: the workload before it runs, and how
+its points went (computed, from the cache, failed) with the files written."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+__all__ = ["print_cached_run", "print_workload"]
+
+
+def print_workload(count: int, seeds: int, hours: float, workers: int, cluster: bool, console):
+    """What a sweep is about to run, before it runs."""
+    where = (
+        f"≈ {hours:.1f} worker-hours on the cluster"
+        if cluster
+        else f"≈ {hours / workers:.1f} h on {workers} local worker(s)"
+    )
+    console.print(
+        f"{count // seeds:,} grid points × {seeds} seed(s) = {count:,} acquisitions; "
+        f"{where} (cached points are not recomputed)"
+    )
+
+
+def print_cached_run(what: str, n: int, result, files: Sequence[Path], console) -> None:
+    """How a sweep's or budget's points went, and its files."""
+    console.print(
+        f"{n} {what}: {result.computed} computed, {result.cached} from the cache, "
+        f"{result.failed} failed, in {result.seconds:.0f} s"
+    )
+    console.print(f"wrote {', '.join(str(f) for f in files[:-1])} and {files[-1]}")

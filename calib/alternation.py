@@ -1,0 +1,281 @@
+"""The alternation of localization and calibration (paper §II-C): localize every sweep,
+calibrate, re-stack the sweeps with the new ``T_ee_us`` (which removes the shear a wrong
+calibration puts into the stack), re-localize about the previous centres, until the
+estimate stops changing.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import se3
+from .calibrate import (
+    CalibrationResult,
+    Observation,
+    calibrate,
+    centres_in_base,
+    consensus_initialisation,
+)
+from .errors import CalibrationError
+from .localize import LocalizerConfig, SweepLocalization, localize_sphere
+from .records import Sweep
+
+__all__ = ["AlternationResult", "AlternationSettings", "alternate"]
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class AlternationResult:
+    """Calibration after alternating localization and calibration.
+
+    ``history`` holds one entry per iteration: the estimate, its change from the previous
+    one (mm, degrees) and the loss; ``localizations`` the final per-sweep results.
+    """
+
+    result: CalibrationResult
+    observations: list[Observation]
+    localizations: dict[str, list[SweepLocalization]]
+    history: list[dict[str, float]]
+
+
+def _observations(
+    sweeps: Mapping[str, Sequence[Sweep]], locs: Mapping[str, Sequence[SweepLocalization]]
+) -> list[Observation]:
+    obs = []
+    for target, ss in sweeps.items():
+        for sweep, loc in zip(ss, locs[target], strict=True):
+            if loc.accepted:
+                obs.append(
+                    Observation(
+                        target, sweep.pose_id, loc.centre, sweep.T_base_ee[sweep.reference_index]
+                    )
+                )
+    return obs
+
+
+def _consensus_seeds(
+    sweeps: Mapping[str, Sequence[Sweep]],
+    locs: Mapping[str, Sequence[SweepLocalization]],
+    obs: Sequence[Observation],
+    result: CalibrationResult,
+    rejected: set[tuple[str, int]],
+) -> dict[str, list[Array | None]]:
+    """Where each sweep the calibration rejected, or the localizer found nothing in,
+    should find its sphere: the retained sweeps' centroid (base frame) through the new
+    calibration into the sweep's reference frame; None for the others. So one bad sweep
+    (a plate or a reverberation taken for the sphere) is searched again about its
+    siblings' consensus instead of over its whole grid, which found the wrong thing."""
+    X = centres_in_base(obs, result.T_ee_us)
+    out: dict[str, list[Array | None]] = {}
+    for t, ss in sweeps.items():
+        idx = [i for i, o in enumerate(obs) if o.target == t and result.retained[i]]
+        n_obs = sum(o.target == t for o in obs)
+        if len(idx) < max(4, n_obs // 2):
+            # Fewer than half retained: the consensus itself is in doubt (the fit may
+            # have followed the wrong detections); those sweeps get their whole grid.
+            out[t] = [None] * len(ss)
+            continue
+        centroid = X[idx].mean(axis=0)
+        out[t] = [
+            se3.apply(se3.invert(s.T_base_ee[s.reference_index] @ result.T_ee_us), centroid)
+            if (t, s.pose_id) in rejected or not loc.accepted
+            else None
+            for s, loc in zip(ss, locs[t], strict=True)
+        ]
+    return out
+
+
+def _first_or_next(
+    obs: Sequence[Observation],
+    cad_centres: Mapping[str, Array] | None,
+    T_prev: Array | None,
+    layout_sigma_mm: float,
+) -> CalibrationResult:
+    """The alternation's calibration: from the previous estimate, or, the first time,
+    from the closed form; where that keeps fewer than half the observations (or none fit),
+    the first localization is contaminated and the largest agreeing set's closed form
+    (:func:`consensus_initialisation`) is tried too: the result keeping more sweeps wins."""
+    if T_prev is not None:
+        return calibrate(obs, cad_centres, T_init=T_prev, layout_sigma_mm=layout_sigma_mm)
+    result, failure = None, None
+    try:
+        result = calibrate(obs, cad_centres, layout_sigma_mm=layout_sigma_mm)
+        if 2 * result.retained.sum() >= len(obs):
+            return result
+    except CalibrationError as exc:
+        failure = exc
+    try:
+        T0, agree = consensus_initialisation(obs)
+        other = calibrate(
+            obs, cad_centres, T_init=T0, layout_sigma_mm=layout_sigma_mm, first_fit=agree
+        )
+    except CalibrationError:
+        if result is None:
+            raise failure from None
+        return result
+    if result is None or other.retained.sum() > result.retained.sum():
+        return other
+    return result
+
+
+@dataclass(frozen=True)
+class AlternationSettings:
+    """How the alternation runs.
+
+    Attributes
+    ----------
+    localizer : the localizer's settings
+    axial_scale : float
+        c_medium / c_assumed of the images (1 when the speed-of-sound correction is off;
+        :func:`calib.sound.speed_ratio`).
+    max_iterations : int
+        Calibrations at most.
+    tol_mm, tol_deg : float
+        The estimate has converged when it changes by less than both.
+    layout_sigma_mm : float
+        The phantom's print tolerance (1 σ per axis of a sphere centre; see
+        :func:`calib.calibrate.calibrate`); 0 takes the CAD layout as exact.
+    threads : int
+        Spheres localized side by side (the localizer's kernels release the GIL).
+    """
+
+    localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+    axial_scale: float = 1.0
+    max_iterations: int = 5
+    tol_mm: float = 0.01
+    tol_deg: float = 0.01
+    layout_sigma_mm: float = 0.0
+    threads: int = 1
+
+
+def alternate(
+    sweeps: Mapping[str, Sequence[Sweep]],
+    radius: float,
+    settings: AlternationSettings,
+    *,
+    cad_centres: Mapping[str, Array] | None = None,
+    T_coarse: Array | None = None,
+    initial: Mapping[str, Sequence[SweepLocalization]] | None = None,
+) -> AlternationResult:
+    """Localize → calibrate → re-stack with the new ``T_ee_us`` → re-localize, until the
+    estimate changes by less than ``settings.tol_mm`` and ``settings.tol_deg`` or
+    ``settings.max_iterations`` (paper §II-C).
+
+    The first localization stacks at the robot-measured spacing (``initial`` may hand it
+    in, e.g. shared by several folds) and the first calibration starts from the
+    closed-form initialisation; ``T_coarse`` (the holder's CAD) is only a fallback check:
+    if the closed form lands far from it, a start from the coarse estimate is tried too
+    and the lower loss wins. Each re-localization searches around the previous centres.
+    ``cad_centres`` (sphere name → (3,) metres, phantom frame) are used with two or more
+    spheres (:func:`calib.calibrate.calibrate`).
+    """
+    localizer = settings.localizer
+    layout_sigma_mm = settings.layout_sigma_mm
+
+    def localize_all(
+        T: Array | None,
+        previous: Mapping[str, Sequence[SweepLocalization | None]] | None,
+        expected: Mapping[str, Sequence[Array | None]] | None = None,
+    ) -> tuple[dict[str, list[SweepLocalization]], float]:
+        t0 = time.perf_counter()
+
+        def one(t: str) -> list[SweepLocalization]:
+            prev = previous[t] if previous else None
+            exp = expected[t] if expected else None
+            return localize_sphere(
+                sweeps[t],
+                T,
+                radius,
+                localizer,
+                axial_scale=settings.axial_scale,
+                previous=prev,
+                expected=exp,
+                consensus=False,
+            )
+
+        if settings.threads > 1 and len(sweeps) > 1:
+            with ThreadPoolExecutor(min(settings.threads, len(sweeps))) as ex:
+                out = dict(zip(sweeps, ex.map(one, sweeps), strict=True))
+        else:
+            out = {t: one(t) for t in sweeps}
+        return out, time.perf_counter() - t0
+
+    if initial is not None:
+        locs, t_localize = {t: list(initial[t]) for t in sweeps}, 0.0
+    else:
+        locs, t_localize = localize_all(None, None)
+    history: list[dict[str, float]] = []
+    T_prev: Array | None = None
+    result = None
+    for it in range(settings.max_iterations):
+        obs = _observations(sweeps, locs)
+        used = locs
+        t0 = time.perf_counter()
+        result = _first_or_next(obs, cad_centres, T_prev, layout_sigma_mm)
+        if T_prev is None and T_coarse is not None:
+            far = (
+                se3.translation_distance(result.T_ee_us, T_coarse) > 0.03
+                or np.degrees(se3.rotation_angle(result.T_ee_us, T_coarse)) > 30
+            )
+            if far:
+                # The coarse start is a second opinion: where it leaves too few sweeps to
+                # fit (it followed the wrong detections), the first result stands.
+                try:
+                    other = calibrate(
+                        obs, cad_centres, T_init=T_coarse, layout_sigma_mm=layout_sigma_mm
+                    )
+                except CalibrationError:
+                    other = None
+                # More sweeps explained wins, then the lower loss.
+                if other is not None and (other.retained.sum(), -other.cost) > (
+                    result.retained.sum(),
+                    -result.cost,
+                ):
+                    result = other
+        t_calibrate = time.perf_counter() - t0
+        change_mm = change_deg = float("inf")
+        if T_prev is not None:
+            change_mm = 1e3 * float(se3.translation_distance(result.T_ee_us, T_prev))
+            change_deg = float(np.degrees(se3.rotation_angle(result.T_ee_us, T_prev)))
+        history.append(
+            {
+                "iteration": it,
+                "cost_mm2": result.cost,
+                "change_mm": change_mm,
+                "change_deg": change_deg,
+                "n_observations": len(obs),
+                "n_retained": int(result.retained.sum()),
+                "localize_s": t_localize,
+                "calibrate_s": t_calibrate,
+            }
+        )
+        if change_mm < settings.tol_mm and change_deg < settings.tol_deg:
+            break
+        T_prev = result.T_ee_us
+        # Re-localize around the previous centres, except for sweeps the calibration
+        # rejected: their centre may be a false detection, so they get the whole grid.
+        rejected = {
+            (o.target, o.pose_id) for o, k in zip(obs, result.retained, strict=True) if not k
+        }
+        seeds = {
+            t: [
+                None if (t, s.pose_id) in rejected else loc
+                for s, loc in zip(sweeps[t], ls, strict=True)
+            ]
+            for t, ls in locs.items()
+        }
+        expected = (
+            None
+            if localizer.method == "paper"
+            else _consensus_seeds(sweeps, locs, obs, result, rejected)
+        )
+        locs, t_localize = localize_all(T_prev, seeds, expected)
+    assert result is not None
+    return AlternationResult(result, obs, used, history)

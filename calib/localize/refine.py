@@ -1,0 +1,394 @@
+"""The radial-band refinement (paper §II-E-4) and the cap's sub-voxel centre (method
+"refined").
+
+Around the current centres, the bright fraction on proximal hemispheres of trial radius,
+averaged over all sweeps of the sphere and normalised to its peak, gives a radial profile
+(:func:`radial_profile`): the interior extends to its first rising 0.25 crossing, the
+shell band lies between its 0.75 crossings (:func:`profile_bands`). Those bands replace
+the initial samples for the refinement passes (:func:`_radial_band_passes`).
+
+Method "refined" then fits each accepted centre to the cap's echo
+(:func:`_refine_centre`): laterally the echo's moments, axially the peak of the top's
+echo (:func:`_axial_peak`) one radius above the centre, and in elevation the vertex of a
+least-squares parabola through the cap's peak grey level (dB) per slice, slices clipped
+at 255 left out, refitted in a window centred on the vertex itself
+(:func:`_elevation_vertex`, :func:`_centred_vertex`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .kernels import cap_weights
+from .search import _M_PER_MM, _best_on_grid, _local_window, fibonacci_hemisphere, half_ball_samples
+from .settings import LocalizerConfig
+from .volume import LABEL_BRIGHT, SweepVolume
+
+__all__ = ["profile_bands", "profile_crossings", "radial_profile"]
+
+Array = NDArray[np.float64]
+
+_REFINE_ROUNDS = 4
+_REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
+
+
+def radial_profile(
+    vols: Sequence[SweepVolume], centres_vox: Sequence[Array], radii: Array, n_dirs: int
+) -> Array:
+    """Peak-normalised bright fraction on proximal hemispheres of trial radius, averaged
+    over sweeps; (len(radii),)."""
+    dirs = fibonacci_hemisphere(n_dirs)
+    total = np.zeros(len(radii))
+    count = np.zeros(len(radii))
+    for vol, cv in zip(vols, centres_vox, strict=True):
+        centre = vol.position(*np.asarray(cv, dtype=float))
+        P = centre[None, None, :] + radii[:, None, None] * dirs[None, :, :]
+        k, r, c = vol.index(P)
+        lab = vol.label_at(k, r, c)
+        valid = (lab > 0).sum(axis=1)
+        bright = (lab == LABEL_BRIGHT).sum(axis=1)
+        ok = valid > 0
+        total[ok] += bright[ok] / valid[ok]
+        count[ok] += 1
+    profile = np.where(count > 0, total / np.maximum(count, 1), 0.0)
+    peak = profile.max()
+    return profile / peak if peak > 0 else profile
+
+
+def profile_crossings(
+    radii: Array, profile: Array
+) -> tuple[float | None, float | None, float | None]:
+    """(first rising 0.25 crossing, rising and falling 0.75 crossings around the peak) of
+    a peak-normalised radial profile, linearly interpolated; None where it has none."""
+    peak = int(np.argmax(profile))
+
+    def crossing(level: float, rising: bool) -> float | None:
+        idx = range(1, peak + 1) if rising else range(peak + 1, len(profile))
+        for i in idx:
+            a, b = profile[i - 1], profile[i]
+            if (a < level <= b) if rising else (a >= level > b):
+                return float(radii[i - 1] + (level - a) / (b - a) * (radii[i] - radii[i - 1]))
+        return None
+
+    return crossing(0.25, True), crossing(0.75, True), crossing(0.75, False)
+
+
+def profile_bands(radii: Array, profile: Array, radius: float) -> tuple[float, float, float]:
+    """(interior limit, shell inner, shell outer) from a peak-normalised radial profile:
+    first rising 0.25 crossing; rising and falling 0.75 crossings around the peak. Falls
+    back to (0.8 R, 0.9 R, 1.1 R) pieces when a crossing is missing, and to all three
+    when the bands are not a shell outside an interior (a profile that peaks at the
+    centre, e.g. from sweeps too sparse to resolve the cap, would otherwise turn the
+    shell inside out and lose every sweep)."""
+    inner, rise, fall = profile_crossings(radii, profile)
+    bands = (
+        inner if inner is not None else 0.8 * radius,
+        rise if rise is not None else 0.9 * radius,
+        fall if fall is not None else 1.1 * radius,
+    )
+    if not bands[0] <= bands[2] or not bands[1] < bands[2]:
+        return 0.8 * radius, 0.9 * radius, 1.1 * radius
+    return bands
+
+
+def _radial_band_passes(
+    vols: Sequence[SweepVolume],
+    results: list[tuple[NDArray[np.int64], float, float, float]],
+    radius: float,
+    grid: float,
+    cfg: LocalizerConfig,
+) -> list[tuple[NDArray[np.int64], float, float, float]]:
+    """``cfg.refinement_passes`` passes of the radial-band refinement: the radial profile
+    about the centres that scored (``results``: each sweep's (voxel, score, f_shell,
+    f_interior)), its bands as the new shell and interior samples, and every sweep
+    searched again within ``refine_window_mm`` of its centre with them."""
+    radii = np.arange(0.0, 1.6 * radius, min(vols[0].spacing[:2]))
+    for _ in range(cfg.refinement_passes):
+        ok = [i for i, r in enumerate(results) if r[1] >= cfg.min_score]
+        if not ok:
+            break
+        profile = radial_profile(
+            [vols[i] for i in ok], [results[i][0] for i in ok], radii, cfg.profile_directions
+        )
+        inner, rise, fall = profile_bands(radii, profile, radius)
+        shell_p = half_ball_samples(cfg.shell_samples, fall, inner=rise)
+        interior_p = half_ball_samples(cfg.interior_samples, inner)
+        results = [
+            _best_on_grid(
+                vol,
+                *_local_window(res[0], vol, cfg.refine_window_mm * 1e-3, grid),
+                shell_p,
+                interior_p,
+                cfg.min_coverage,
+            )
+            for vol, res in zip(vols, results, strict=True)
+        ]
+    return results
+
+
+def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Array, float]:
+    """Sub-voxel centre from the moments of the cap's echo, and the standard error of its
+    elevation (0 where not estimated; see :func:`_elevation_vertex`).
+
+    The probe-facing cap is mirror-symmetric about the centre's lateral and elevational
+    coordinates, so the echo-weighted mean of x over the cap gives it, and z is the
+    vertex of the top's peak grey level across the slices (:func:`_elevation_vertex`); the
+    top of the cap (normal incidence, the strongest echo, seen in every nearby frame
+    through the slice thickness) lies one radius above the centre, so the depth of its
+    echo's peak (:func:`_axial_peak`) plus R gives y. A least-squares sphere fit would be
+    pulled upwards instead: the elevation beam smears that top echo over neighbouring
+    frames and flattens the stacked cap. Weights are grey levels above their brightness
+    level (the frame mean, and the depth's noise floor with method "refined"); a few
+    rounds re-centre the windows.
+    """
+    dx, dy, dz = vol.spacing
+    seed = np.asarray(centre, dtype=float)
+    current = seed
+    z_sigma = 0.0
+    K, H, W = vol.shape
+    for _ in range(_REFINE_ROUNDS):
+        x_c, y_c, z_c = current
+        k0, _, c0 = (int(v) for v in vol.index(current))
+        # Cap window: ±R laterally and in elevation, a band of ±R/2 about the cap's depth.
+        ks = np.arange(max(k0 - int(radius / dz) - 1, 0), min(k0 + int(radius / dz) + 2, K))
+        (first, last), _ = vol.pixel(
+            np.array([[x_c, y_c - 1.5 * radius, z_c], [x_c, y_c - 0.5 * radius, z_c]])
+        )
+        rs = np.arange(max(int(first) - vol.row0, 0), min(int(last) - vol.row0 + 1, H))
+        cs = np.arange(max(c0 - int(radius / dx) - 1, 0), min(c0 + int(radius / dx) + 2, W))
+        if not (len(ks) and len(rs) and len(cs)):
+            break
+        # Coordinates are separable on the grid: keep them as three axes.
+        zs = vol.z0 + ks * dz
+        xs, ys = vol.axes(rs, cs)
+        # Echo above its level, inside the shell band |d − R| ≤ R/2.
+        w = cap_weights(
+            vol._frames,
+            vol._levels,
+            vol._nearest,
+            vol._frame_rows,
+            vol._frame_cols,
+            ks,
+            rs,
+            cs,
+            (zs - z_c) ** 2,
+            (ys - y_c) ** 2,
+            (xs - x_c) ** 2,
+            (0.5 * radius) ** 2,
+            (1.5 * radius) ** 2,
+        )
+        total = w.sum()
+        if total <= 0:
+            break
+        # Each slice's frame sits off its integer stacking shift by up to half a pixel.
+        x_new = float(w.sum(axis=(0, 1)) @ xs / total)
+        x_new += float(vol.residual_shift(ks, w.sum(axis=(1, 2)))[0])
+        z_mean = float(w.sum(axis=(1, 2)) @ zs / total)
+        near_x = np.abs(xs - x_new) <= 0.5 * _M_PER_MM
+        near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _M_PER_MM
+        # Elevation from the top of the cap only (where the echo stands far above noise),
+        # over every slice: beyond the elevation focus the beam is wider than a small
+        # sphere and its echo of the top follows the beam profile well past ± R.
+        # One brightness level for every slice: the vertex of the profile must not move
+        # with the level. Each frame's level follows its own rows, and where the sphere's
+        # echoes raise the depth's noise floor about the cap, the frames' in-plane drift
+        # along the sweep (its axis a little off the image normal) slides the cap across
+        # that bump: a level varying linearly with elevation tilts the profile and moved
+        # the vertex by up to 0.15 mm at 45 mm.
+        ks_all = np.arange(K)
+        frame_of = vol._nearest[ks_all]
+        rows = np.clip(
+            rs[near_y][None, :] - vol._frame_rows[frame_of][:, None], 0, vol._frames.shape[1] - 1
+        )
+        level = 0.0
+        if rows.size:
+            level = float(
+                np.median(np.take_along_axis(vol._levels[frame_of], rows, axis=1).max(axis=1))
+            )
+        top = np.maximum(vol.intensity(ks_all, rs[near_y], cs[near_x], level=level), 0.0)
+        # A slice's top at a grey level of 255 is saturated.
+        clip = np.full(K, 255.0 - level)
+        zs_all = vol.z0 + ks_all * dz
+        z_new, z_sigma = _elevation_vertex(
+            top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius
+        )
+        # Top of the cap: the column under (x, z) in the nearest frames.
+        col = np.abs(xs - x_new) <= max(dx, 0.25 * _M_PER_MM)
+        frames = np.abs(zs - z_new) <= 0.75 * dz
+        wt = w[frames][:, :, col].sum(axis=(0, 2))
+        if wt.sum() <= 0:
+            break
+        y_top = _axial_peak(
+            vol.intensity(ks[frames], rs, cs[col], level=level), 255.0 - level, ys, wt
+        )
+        y_top += float(vol.residual_shift(ks[frames], w[frames][:, :, col].sum(axis=(1, 2)))[1])
+        new = np.array([x_new, y_top + radius, z_new])
+        moved = np.linalg.norm(new - current)
+        current = new
+        if moved < _REFINE_TOL:
+            break
+    # A refinement that wanders far from the grid seed is not trusted.
+    if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _M_PER_MM):
+        return seed, 0.0
+    return current, z_sigma
+
+
+def _axial_peak(grey: Array, clip: float, ys: Array, w: Array) -> float:
+    """Depth of the cap's top echo: the vertex of the parabola through the brightest row
+    of the column's grey levels (``grey`` (slices, rows, columns), less one level, at
+    ``clip`` where saturated; rows at depths ``ys``) and its two neighbours.
+
+    The echo of the top is not symmetric in depth: the rest of the cap within the slice
+    thickness lies deeper (e²/2R at elevation e), so the echo rises sharply and trails
+    off below. Its peak is the top; a weighted mean over the echo lies in its tail, and
+    by how much depends on where the brightness level cuts the tail, i.e. on the gain
+    (0.08 mm deeper at −10 dB than at 0 dB, 45 mm deep). Where the peak is saturated or
+    on the band's edge, the mean of the weights ``w`` (rows) over the echo."""
+    profile = grey.sum(axis=(0, 2))
+    i = int(np.argmax(profile))
+    saturated = (grey[:, max(i - 1, 0) : i + 2] >= clip - 0.5).any()
+    if 0 < i < len(profile) - 1 and not saturated:
+        g_m, g_0, g_p = profile[i - 1 : i + 2]
+        curvature = g_m - 2.0 * g_0 + g_p
+        if curvature < 0:
+            return float(ys[i] + 0.5 * (g_m - g_p) / curvature * (ys[1] - ys[0]))
+    return float(w @ ys / w.sum())
+
+
+def _elevation_vertex(
+    w: Array,
+    zs: Array,
+    z_mean: float,
+    dz: float,
+    clip: Array | None = None,
+    search: NDArray[np.bool_] | None = None,
+) -> tuple[float, float]:
+    """Sub-slice elevation of the cap and its standard error (0 where not estimated) from
+    its peak grey level per slice (``w`` is
+    (slices, ...), ``zs`` the slices' elevations, ``clip`` each slice's ``w`` at a grey
+    level of 255, ``search`` the slices where the brightest is looked for).
+
+    The peak grey level per slice is log-compressed (dB), in which a Gaussian beam profile
+    is a parabola; its vertex is unbiased where a weighted mean over slices is biased by
+    where the centre falls between frames. The parabola is fitted by least squares to the
+    contiguous run of slices above half the maximum: three slices where the beam is thin
+    (its vertex through them), more where it is wide beyond the elevation focus (there the
+    three-slice vertex is a difference of nearly equal noisy peaks). Slices clipped at 255
+    (high gain) are left out: the flanks on both sides still fix the vertex of a symmetric
+    profile. Without a clipped slice, the fit is then refined in a window centred on its
+    own vertex (:func:`_centred_vertex`). Without a usable fit, the midpoint of the
+    half-maximum crossings.
+    """
+    if w.size == 0:
+        return z_mean, 0.0
+    peaks = w.reshape(len(w), -1).max(axis=1)
+    k = int(np.argmax(np.where(search, peaks, -np.inf) if search is not None else peaks))
+    if peaks[k] <= 0:
+        return z_mean, 0.0
+    half = 0.5 * peaks[k]
+    lo = hi = k
+    while lo > 0 and peaks[lo - 1] >= half:
+        lo -= 1
+    while hi < len(peaks) - 1 and peaks[hi + 1] >= half:
+        hi += 1
+    # One slice beyond the run on each side: the parabola needs the fall on both sides.
+    lo, hi = max(lo - 1, 0), min(hi + 1, len(peaks) - 1)
+    run = np.arange(lo, hi + 1)
+    clipped = peaks[run] >= clip[run] - 0.5 if clip is not None else np.zeros(len(run), dtype=bool)
+    use = run[~clipped & (peaks[run] > 0)]
+    # Slices on both sides of the peak, or on both sides of a clipped top.
+    if len(use) >= 3 and (use[0] < k < use[-1] or clipped.any()):
+        u = (zs[use] - zs[k]) / dz
+        fit = _parabola_vertex(u, peaks[use])
+        if fit is not None and u[0] <= fit[0] <= u[-1]:
+            if not clipped.any():
+                fit = _centred_vertex(peaks, (zs - zs[k]) / dz, fit, 0.25 * (hi - lo), clip)
+            return float(zs[k] + fit[0] * dz), fit[1] * dz
+    top = run[clipped] if clipped.any() else np.array([k])
+    return _half_maximum_midpoint(peaks, zs, int(top[0]), int(top[-1]), z_mean), 0.0
+
+
+def _centred_vertex(
+    peaks: Array, u: Array, start: tuple[float, float], width: float, clip: Array | None
+) -> tuple[float, float]:
+    """The vertex ``start`` (slices from the brightest, and its standard error) refitted
+    with the slices weighted by a Gaussian window centred on the vertex itself (1 σ of
+    ``width`` slices, at least one), a few times over.
+
+    The profile in dB is a parabola only near its top (its flanks fall into the speckle
+    and level off). A window fixed by which slices clear half the maximum changes as the
+    centre moves between two frames, and the shape's departure from a parabola then
+    pulls the vertex towards the middle between frames (measured on the twin: ± 0.044 mm
+    with the centre's phase between frames 1 mm apart, within 0.057 mm of scatter). A
+    window centred on the vertex is symmetric about it whatever the phase: 0.015 mm, and
+    0.048 mm of scatter. Where the refit cannot be made (too few slices, a clipped slice
+    in the window, a parabola that does not open downwards, a vertex that jumps by more
+    than a slice), ``start``."""
+    width = max(width, 1.0)
+    clipped = peaks >= clip - 0.5 if clip is not None else np.zeros(len(peaks), dtype=bool)
+    vertex, sigma = start
+    for _ in range(4):
+        near = np.abs(u - vertex) <= 3.0 * width
+        if clipped[near].any():
+            return start
+        near &= peaks > 0  # below the brightness level: no echo to fit
+        window = np.exp(-0.5 * ((u[near] - vertex) / width) ** 2)
+        fit = _parabola_vertex(u[near], peaks[near], window)
+        if fit is None or abs(fit[0] - start[0]) > 1.0:
+            return start
+        moved = abs(fit[0] - vertex)
+        vertex, sigma = fit
+        if moved < 1e-3:
+            break
+    return vertex, sigma
+
+
+def _parabola_vertex(
+    u: Array, y: Array, weights: Array | None = None
+) -> tuple[float, float] | None:
+    """Vertex of the (window-weighted) least-squares parabola through (u, y) and its
+    standard error (the points' scatter about it, alike for every point, through the
+    fit by the delta method; 0 where fewer than 5 points, in effect, leave no honest
+    estimate of it); None unless it opens downwards."""
+    if len(u) < 3:
+        return None
+    wt = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=float)
+    V = np.vander(u, 3)
+    Minv = np.linalg.pinv(V.T @ (wt[:, None] * V))
+    coef = Minv @ (V.T @ (wt * y))
+    a, b = coef[0], coef[1]
+    if a >= 0:
+        return None
+    vertex = -b / (2 * a)
+    n_effective = wt.sum() ** 2 / np.sum(wt**2)  # Kish's; n for equal weights
+    if n_effective - 3 < 2:
+        return float(vertex), 0.0
+    # The residuals' degrees of freedom under the window: n − 3 for equal weights.
+    s2 = float(np.sum(wt * (V @ coef - y) ** 2)) / (wt.sum() * (1 - 3 / n_effective))
+    cov = s2 * (Minv @ (V.T @ ((wt**2)[:, None] * V)) @ Minv)[:2, :2]
+    g = np.array([b / (2 * a * a), -1 / (2 * a)])  # ∂vertex / ∂(a, b)
+    return float(vertex), float(np.sqrt(max(g @ cov @ g, 0.0)))
+
+
+def _half_maximum_midpoint(
+    peaks: Array, zs: Array, first: int, last: int, fallback: float
+) -> float:
+    """Midpoint of the elevations where ``peaks`` crosses half its maximum below slice
+    ``first`` and above slice ``last`` (linearly interpolated); ``fallback`` when the
+    profile does not fall to half on both sides."""
+    half = 0.5 * peaks[first : last + 1].max()
+
+    def crossing(inner: int, step: int) -> float | None:
+        i = inner
+        while 0 <= i + step < len(peaks):
+            a, b = peaks[i], peaks[i + step]
+            if b < half <= a:
+                return float(zs[i] + (a - half) / (a - b) * (zs[i + step] - zs[i]))
+            i += step
+        return None
+
+    lo, hi = crossing(first, -1), crossing(last, +1)
+    return fallback if lo is None or hi is None else 0.5 * (lo + hi)
