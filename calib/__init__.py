@@ -1,29 +1,43 @@
 """The calibration method of the paper: acquisition protocol, threshold-free sphere
 localization, single/three-marker calibration, kinematic reference, evaluation,
-reconstruction and observability.
+reconstruction and observability — the whole method from a dataset to a calibration
+(:mod:`calib.pipeline`), with nothing of the test bench, the twin or the simulator.
 
-Imports only numpy, scipy, scikit-image and trimesh (DESIGN.md §2).
+Imports numpy, scipy, scikit-image, trimesh (with rtree) and numba (the compiled
+kernels, each saying why it is hand-written); YAML only for the dataset manifest
+(DESIGN.md §2).
 
 The method's public API is importable from the package itself (``calib.LocalizerConfig``,
-``calib.localize_sphere``, ``calib.alternate``, ...), one module per section of the paper:
+``calib.localize_sphere``, ``calib.alternate``, ``calib.calibrate_dataset``, ...), one
+module per section of the paper (§III Methods, §IV Experiments):
 
 ==========================  ==============================================================
 module                      paper section
 ==========================  ==============================================================
-``calib.protocol``          acquisition protocol (45 sweeps, touches)
-``calib.localize``          threshold-free sphere localization (§II-E), a module per stage:
+``calib.pipeline``          the method end to end: its settings, the stages in order
+``calib.protocol``          §III-C multi-pose sphere acquisition (45 sweeps), touches
+``calib.localize``          §III-E threshold-free sphere localization, a module per stage:
                             ``settings`` (the localizer's settings, per-sweep result),
-                            ``volume`` (adaptive brightness, the sweep volume), ``search``
-                            (§II-E-3), ``refine`` (§II-E-4), ``consensus`` (the siblings,
-                            the reasons a sweep is rejected), ``sphere`` (the stages in
-                            order), ``baseline`` (the fixed-threshold localizer the paper
-                            argues against)
-``calib.calibrate``         single- and three-marker calibration, alternation
-``calib.kinematics``        touch-based DH refinement and the touch reference
-``calib.evaluate``          cross-validation folds, Tables I and II
-``calib.reconstruct``       cone and prism reconstruction, ICP (Table III)
-``calib.observability``     the information matrix of a plan
+                            ``volume`` (§III-E-1/2 adaptive brightness, the sweep
+                            volume), ``search`` (§III-E-3), ``refine`` (§III-E-4),
+                            ``consensus`` (the siblings, the reasons a sweep is
+                            rejected), ``sphere`` (the stages in order), ``baseline``
+                            (the fixed-threshold localizer the paper argues against)
+``calib.calibrate``         §III-F-1/2 single- and three-marker calibration (the fit)
+``calib.alternation``       §III-F the alternation of localization and calibration
+``calib.kinematics``        §III-D touch-based DH refinement and the touch reference
+``calib.evaluate``          §III-F-3 cross-validation folds, Tables I–III (§IV)
+``calib.reconstruct``       §IV-B cone and prism reconstruction, ICP (Table III)
+``calib.observability``     §III-B the information matrix of a plan (sphere vs wire)
+``calib.planning``          which sweeps to acquire (beyond the paper)
 ``calib.uncertainty``       95 % error bounds of a calibration (beyond the paper)
+``calib.sound``             the speed of sound, the images' axial scale (beyond the paper)
+``calib.se3`` ``image``     shared maths: transforms, the one pixel ↔ image mapping,
+``dh`` ``robust``           the DH table, robust statistics
+``calib.records``           the frozen records (frames, sweeps, touches, datasets)
+``calib.dataset_files``     dataset directories (manifest); ``metafile`` PLUS sequence
+                            files; ``plus_import`` PLUS recordings as datasets
+``calib.errors``            the error hierarchy; ``progress`` stages' progress counts
 ==========================  ==============================================================
 
 The names load lazily (PEP 562): ``from calib import se3`` stays as light as that module,

@@ -1,7 +1,7 @@
-"""The alternation of localization and calibration (paper §II-C): localize every sweep,
-calibrate, re-stack the sweeps with the new ``T_ee_us`` (which removes the shear a wrong
-calibration puts into the stack), re-localize about the previous centres, until the
-estimate stops changing.
+"""The alternation of localization and calibration (paper §III-F, "Single-marker
+calibration"): localize every sweep, calibrate, re-stack the sweeps with the new
+``T_ee_us`` (which removes the shear a wrong calibration puts into the stack),
+re-localize about the previous centres, until the estimate stops changing.
 """
 
 from __future__ import annotations
@@ -166,7 +166,7 @@ def alternate(
 ) -> AlternationResult:
     """Localize → calibrate → re-stack with the new ``T_ee_us`` → re-localize, until the
     estimate changes by less than ``settings.tol_mm`` and ``settings.tol_deg`` or
-    ``settings.max_iterations`` (paper §II-C).
+    ``settings.max_iterations`` (paper §III-F, "Single-marker calibration").
 
     The first localization stacks at the robot-measured spacing (``initial`` may hand it
     in, e.g. shared by several folds) and the first calibration starts from the

@@ -1,20 +1,22 @@
-"""The method end to end (the paper's §II–III), from a :class:`~calib.records.Dataset` and
-frozen settings; the twin's runs, the paper's experiment, ``uscal calibrate``, the
-sweeps and the budget all go through it, and a script with its own data can too.
+"""The method end to end (the paper's §III, evaluated as in §IV-A), from a
+:class:`~calib.records.Dataset` and frozen settings; the twin's runs, the paper's
+experiment, ``uscal calibrate``, the sweeps and the budget all go through it, and a
+script with its own data can too.
 
 :func:`calibrate_dataset` is the front door for a recorded dataset; it orders the
 stages, each also callable alone:
 
-1. the axial scale of the images (:func:`axial_scale`; speed of sound, §II-A);
-2. with touches, the touch-based kinematics (:func:`touch_kinematics`; §II-D Steps
+1. the axial scale of the images (:func:`axial_scale`; speed of sound, beyond the paper);
+2. with touches, the touch-based kinematics (:func:`touch_kinematics`; §III-D Steps
    1–2): DH corrections from the training datasets' touches, then this dataset's tool
    tip and phantom pose with that model frozen; every frame's flange pose recomputed
    through the refined model;
 3. localize ↔ calibrate with one and with three markers (:func:`calibrate_markers`;
-   §II-B–C, the alternation of :func:`calib.alternation.alternate`);
+   §III-E–F, the alternation of :func:`calib.alternation.alternate`);
 4. each calibration's 95 % error bounds (:func:`declared_uncertainty` and
    :func:`calib.uncertainty.alternation_bound`);
-5. with touches, the cross-validation folds (:func:`run_folds`; §III) and their summary.
+5. with touches, the cross-validation folds (:func:`run_folds`; §III-F-3, "Evaluation
+   protocol") and their summary.
 
 No ground truth here, and nothing of the test bench: comparisons with a twin's truth
 live in ``bench.truth``.
@@ -251,7 +253,7 @@ def run_folds(
     progress: str = "folds",
     before_fold: Callable[[], None] | None = None,
 ) -> FoldRun:
-    """The paper's folds of dataset ``name`` (§III: each sphere trained alone and tested
+    """The paper's folds of dataset ``name`` (§III-F-3: each sphere trained alone and tested
     on the others, then leave-one-out), each scored against the touch ``references``.
     Every sweep is localized once without a calibration, shared by all folds.
     ``before_fold`` runs before each fold (e.g. to release the frames' pages)."""

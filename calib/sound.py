@@ -1,4 +1,5 @@
-"""The speed of sound and the images' axial scale (paper §II-A).
+"""The speed of sound and the images' axial scale (beyond the paper, which images at the
+scanner's assumed speed).
 
 A scanner converts echo time to depth at an assumed speed (1540 m/s); in water at room
 temperature sound travels ≈ 3.5 % slower, so every depth it draws is stretched by

@@ -93,3 +93,41 @@ def test_folds_against_the_true_centres_measure_the_method_alone(two_spheres_wit
     # The single-marker calibration of calibrate_markers is the first fold's.
     single = calibrate_markers(acq.dataset, method, markers=(1,)).single
     assert np.allclose(single.result.T_ee_us, folds.results[0].T_ee_us, atol=1e-12)
+
+
+def test_the_method_runs_from_calib_alone(two_spheres_with_touches, tmp_path):
+    """A script with its own data needs calib alone: the whole method (touch
+    kinematics, single-marker calibration, bounds, folds) from a dataset directory and
+    frozen settings, in a process that never imports the test bench, the twin or the
+    simulator — and it gives what `uscal calibrate` gives with the same settings."""
+    import pickle
+    import subprocess
+    import sys
+
+    from bench.config.method import method_settings
+
+    sc, _, _, directory = two_spheres_with_touches
+    settings_file = tmp_path / "settings.pkl"
+    settings_file.write_bytes(pickle.dumps(method_settings(sc)))
+    script = f"""
+import pickle, sys
+import numpy as np
+from calib.dataset_files import read_dataset
+from calib.pipeline import calibrate_dataset
+settings = pickle.loads(open({str(settings_file)!r}, "rb").read())
+dataset, info = read_dataset({str(directory)!r})
+found = calibrate_dataset(dataset, info, settings, markers=(1,))
+np.save({str(tmp_path / "T.npy")!r}, found.calibrations.single.result.T_ee_us)
+print(len(found.folds.results), sorted(found.bounds))
+print(sorted({{m.split(".")[0] for m in sys.modules}} & {{"bench", "twin", "sim_us", "hw"}}))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, check=False
+    )
+    assert out.returncode == 0, out.stderr
+    folds_line, foreign_line = out.stdout.splitlines()
+    assert folds_line == "4 ['single']"
+    assert foreign_line == "[]"
+    recorded = calibrate_recorded(directory, sc, (1,))
+    T_bench = np.array(recorded.metrics["calibration"]["single"]["T_ee_us"])
+    np.testing.assert_allclose(np.load(tmp_path / "T.npy"), T_bench, atol=1e-9)

@@ -1,4 +1,4 @@
-"""Threshold-free sphere localization (paper §II-E, "Threshold-Free Sphere Localization").
+"""Threshold-free sphere localization (paper §III-E, "Threshold-Free Sphere Localization").
 
 One module per stage (as PLUS's PatternLocAlgo):
 
@@ -6,9 +6,9 @@ One module per stage (as PLUS's PatternLocAlgo):
 module                      stage
 ==========================  ==============================================================
 ``settings``                the localizer's settings and per-sweep result
-``volume``                  §II-E-1 adaptive brightness, §II-E-2 the sweep volume
-``search``                  §II-E-3 count-based exhaustive search (and the specular arc)
-``refine``                  §II-E-4 radial-band refinement; the cap's sub-voxel centre
+``volume``                  §III-E-1 adaptive brightness, §III-E-2 the sweep volume
+``search``                  §III-E-3 count-based exhaustive search (and the specular arc)
+``refine``                  §III-E-4 radial-band refinement; the cap's sub-voxel centre
 ``consensus``               the siblings' consensus and each rejected sweep's reason
 ``sphere``                  :func:`localize_sphere`: the stages in order; its profile
 ``baseline``                the fixed-threshold localizer the paper argues against

@@ -1,6 +1,6 @@
 """The localizer's compiled kernels (numba): packing the frames' bright bits, reading
 labels of the virtual stack (:class:`calib.localize.volume.SweepVolume`), the exhaustive
-search's label sums (§II-E-3) and the cap refinement's weights (§II-E-4).
+search's label sums (§III-E-3) and the cap refinement's weights (§III-E-4).
 
 Written by hand and compiled with numba: they are the localizer's whole cost. Each
 touches a packed word once, where the obvious numpy scorer (``score_candidates_reference``

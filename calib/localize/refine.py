@@ -1,4 +1,4 @@
-"""The radial-band refinement (paper §II-E-4) and the cap's sub-voxel centre (method
+"""The radial-band refinement (paper §III-E-4) and the cap's sub-voxel centre (method
 "refined").
 
 Around the current centres, the bright fraction on proximal hemispheres of trial radius,

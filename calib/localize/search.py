@@ -1,4 +1,4 @@
-"""The count-based exhaustive search (paper §II-E-3) and what method "refined" adds to it:
+"""The count-based exhaustive search (paper §III-E-3) and what method "refined" adds to it:
 the seed of each sweep.
 
 Candidate centres lie on a 1 mm grid over the sweep, starting one radius below the face

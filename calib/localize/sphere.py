@@ -1,5 +1,5 @@
 """One sphere localized in each of its sweeps: the stages of :mod:`calib.localize` in the
-paper's order (§II-E), and what the localizer saw (:func:`sphere_profile`)."""
+paper's order (§III-E), and what the localizer saw (:func:`sphere_profile`)."""
 
 from __future__ import annotations
 
@@ -121,9 +121,9 @@ def localize_sphere(
     grid = cfg.grid_mm * 1e-3
     shell = fibonacci_hemisphere(cfg.shell_samples) * radius
     interior = half_ball_samples(cfg.interior_samples, radius)
-    # §II-E-1, 2: adaptive brightness, the sweep volume (re-stacked under T_ee_us).
+    # §III-E-1, 2: adaptive brightness, the sweep volume (re-stacked under T_ee_us).
     vols = [_stack(s, T_ee_us, axial_scale, cfg) for s in sweeps]
-    # §II-E-3: the count-based search's seed of each sweep (or about its previous or
+    # §III-E-3: the count-based search's seed of each sweep (or about its previous or
     # expected centre).
     seeds = [
         _seed_search(
@@ -143,7 +143,7 @@ def localize_sphere(
     use_consensus = consensus and T_ee_us is not None and cfg.method != "paper"
     if use_consensus:
         seeds, notes = _consensus(sweeps, vols, seeds, T_ee_us, radius, grid, shell, interior, cfg)
-    # §II-E-4: the radial-band refinement passes.
+    # §III-E-4: the radial-band refinement passes.
     seeds = _radial_band_passes(vols, seeds, radius, grid, cfg)
     # Each sweep's centre, accepted or rejected with its reason.
     outer = _outer_samples(len(shell), radius)

@@ -1,4 +1,4 @@
-"""The sweep volume (paper §II-E-1 adaptive brightness, §II-E-2 sweep volume): which
+"""The sweep volume (paper §III-E-1 adaptive brightness, §III-E-2 sweep volume): which
 pixels are bright, and the frames stacked at their offsets in the sweep's reference frame.
 
 A pixel is bright above its frame's mean grey level (the paper's adaptive cut-off) and,
