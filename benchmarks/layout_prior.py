@@ -52,9 +52,7 @@ def one(seed: int, tolerance_mm: float) -> dict:
         acq = simulate_acquisition(sc, twin, make_imager(sc, twin), f"layout-{seed}")
         truth = twin.truth
         cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
-        inputs = method_inputs(
-            sc, radius_mm=sc.phantom.sphere_radius_mm, cad_centres=cad, T_coarse=acq.T_ee_us_coarse
-        )
+        inputs = method_inputs(sc, cad_centres=cad, T_coarse=acq.T_ee_us_coarse)
 
         def with_layout(sigma_mm: float):
             return replace(

@@ -74,9 +74,7 @@ def test_folds_against_the_true_centres_measure_the_method_alone(two_spheres_wit
     from one shared first localization."""
     sc, truth, acq, _ = two_spheres_with_touches
     cad = {k: v for k, v in make_twin(sc).phantom_cad.landmarks.items() if "sphere" in k}
-    method = method_inputs(
-        sc, radius_mm=sc.phantom.sphere_radius_mm, cad_centres=cad, T_coarse=acq.T_ee_us_coarse
-    )
+    method = method_inputs(sc, cad_centres=cad, T_coarse=acq.T_ee_us_coarse)
     targets = ("sphere_1", "sphere_2")
     sweeps = {t: acq.dataset.of(t) for t in targets}
     folds = run_folds("A", sweeps, {t: truth.landmarks_base[t] for t in targets}, method)

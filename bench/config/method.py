@@ -61,23 +61,18 @@ def method_settings(scenario: Scenario) -> MethodSettings:
 
 
 def method_inputs(
-    scenario: Scenario,
-    *,
-    radius_mm: float,
-    cad_centres: Mapping[str, Array],
-    T_coarse: Array | None,
-    scale: float | None = None,
+    scenario: Scenario, *, cad_centres: Mapping[str, Array], T_coarse: Array | None
 ) -> MethodInputs:
-    """The inputs of one acquisition's calibration under a scenario's settings: the CAD
-    radius (mm), CAD centres and coarse mount given; the axial scale the scenario's
-    (:func:`axial_scale`) unless ``scale`` is given."""
+    """The inputs of one acquisition's calibration under a scenario: its CAD sphere
+    radius and axial scale (:func:`axial_scale`), the CAD centres and coarse mount
+    given."""
     return MethodInputs(
-        radius_mm * 1e-3,
+        scenario.phantom.sphere_radius_mm * 1e-3,
         cad_centres,
         T_coarse,
         AlternationSettings(
             scenario.localization,
-            axial_scale=axial_scale(scenario) if scale is None else scale,
+            axial_scale=axial_scale(scenario),
             max_iterations=scenario.calibration.max_alternations,
             layout_sigma_mm=layout_sigma_mm(scenario),
         ),

@@ -157,19 +157,12 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
         acq = replace(acq, dataset=replace(acq.dataset, touches=tuple(task.touches)))
     scenario = task.scenario
     truth, cad, scene_view, t_sim = scan.truth, scan.cad, scan.scene_view, scan.seconds
-    scale = axial_scale(scenario)
     targets = acq.dataset.targets()
     # Every frame's flange pose from its joint angles through the frozen DH model.
     sweeps = {t: with_kinematics(acq.dataset.of(t), task.table) for t in targets}
     references = task.reference.reference_points({t: cad[t] for t in targets})
     everything = [s for ss in sweeps.values() for s in ss]
-    method = method_inputs(
-        scenario,
-        radius_mm=scenario.phantom.sphere_radius_mm,
-        cad_centres=cad,
-        T_coarse=acq.T_ee_us_coarse,
-        scale=scale,
-    )
+    method = method_inputs(scenario, cad_centres=cad, T_coarse=acq.T_ee_us_coarse)
     run = run_folds(
         task.name,
         sweeps,

@@ -174,13 +174,7 @@ def run(
     targets = acq.dataset.targets()
     cad = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("sphere_")}
 
-    method = method_inputs(
-        scenario,
-        radius_mm=scenario.phantom.sphere_radius_mm,
-        cad_centres=cad,
-        T_coarse=acq.T_ee_us_coarse,
-        scale=scale,
-    )
+    method = method_inputs(scenario, cad_centres=cad, T_coarse=acq.T_ee_us_coarse)
     cals = calibrate_markers(acq.dataset, method)
     single, three = cals.single, cals.three
     assert single is not None  # markers 1 and 3: the single-marker calibration always runs
