@@ -60,6 +60,7 @@ from .outputs.run_files import run_directory
 from .outputs.sweep_report import write_sweep
 from .progress import reporting
 from .sequential import StopRule
+from .summaries import RecordedSummary, RunSummary
 
 __all__ = ["main"]
 
@@ -133,11 +134,12 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
             say = lambda msg: bars.console.print(f"[dim]{msg}[/dim]")  # noqa: E731
             result = run(scenario, say, directory.recording, args.save_dataset, _until(args))
         directory.write(scenario, result)
-    print_run(result.metrics, console)
-    if result.evaluation is not None:
-        print_evaluation(result.metrics, console)
-        if "reconstruction" in result.metrics:
-            print_reconstruction(result.metrics, console)
+    summary = RunSummary.from_metrics(result.metrics)
+    print_run(summary, console)
+    if summary.evaluation is not None:
+        print_evaluation(summary.evaluation, console)
+    if summary.reconstruction is not None:
+        print_reconstruction(summary.reconstruction, console)
     print_written(out, directory.written, console)
     if args.save_dataset:
         what = "datasets in" if result.evaluation is not None else "the dataset"
@@ -217,7 +219,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
         if directory.recording is not None:
             record_recorded(directory.recording, settings, result)
         directory.write(settings, recorded_run_result(result, settings))
-    print_recorded(result.metrics, console)
+    print_recorded(RecordedSummary.from_metrics(result.metrics), console)
     print_written(out, directory.written, console)
     return 0
 

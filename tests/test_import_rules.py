@@ -211,7 +211,8 @@ def test_no_import_cycles(pkg):
 #: bench's layers, top first (DESIGN.md §2): a module imports only from its own layer
 #: or below. The command line; what it prints and writes; the jobs; the acquisitions,
 #: the truth, the recording, parallel execution and grids of runs; the settings, random
-#: streams, typed results, progress and file writing.
+#: streams, typed results (and their typed read, with the table model), progress and file
+#: writing.
 BENCH_LAYERS = (
     ("bench.cli", "bench.cli_parser"),
     ("bench.console", "bench.outputs"),
@@ -227,7 +228,15 @@ BENCH_LAYERS = (
         "bench.candidates",
         "bench.sequential",
     ),
-    ("bench.sessions", "bench.config", "bench.results", "bench.progress", "bench.files"),
+    (
+        "bench.sessions",
+        "bench.config",
+        "bench.results",
+        "bench.summaries",
+        "bench.tables",
+        "bench.progress",
+        "bench.files",
+    ),
 )
 
 

@@ -44,6 +44,7 @@ from ..results import RunResult
 __all__ = [
     "FIGURES",
     "BudgetError",
+    "BudgetOutcome",
     "BudgetResult",
     "BudgetSpec",
     "budget_figures",
@@ -220,6 +221,29 @@ def run_budget_point(
     with progress_report.reporting(None):
         result = run(scenario)
     return {"figures": budget_figures(result.metrics), "seconds": time.perf_counter() - t0}
+
+
+@dataclass(frozen=True)
+class BudgetOutcome:
+    """What became of one budget run, as the grid records it
+    (:func:`bench.grid.run_grid`): its :data:`FIGURES`, or the error it failed with."""
+
+    figures: dict[str, float] | None = None
+    error: str | None = None
+
+    @classmethod
+    def from_document(cls, doc: dict[str, Any]) -> BudgetOutcome:
+        """``{overrides, seed, figures, seconds}`` (:func:`run_budget_point`), or
+        ``{overrides, seed, error, traceback}`` for a run that failed (no figures)."""
+        figures = doc.get("figures")
+        return cls(
+            None if figures is None else {k: float(v) for k, v in figures.items()},
+            doc.get("error"),
+        )
+
+    def figure(self, name: str) -> float:
+        """One of :data:`FIGURES` (NaN: failed, or not measured by this scenario)."""
+        return (self.figures or {}).get(name, float("nan"))
 
 
 # ----------------------------------------------------------------------------- the budget

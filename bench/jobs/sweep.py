@@ -49,7 +49,9 @@ from ..truth import image_error_mm, localization_errors
 __all__ = [
     "LOCALIZATION_METRICS",
     "SweepError",
+    "SweepPoint",
     "SweepResult",
+    "SweepRow",
     "SweepSpec",
     "load_sweep",
     "point_key",
@@ -294,6 +296,77 @@ def _sweep_point(
 ) -> dict[str, Any]:
     """A point's result as the grid records it (:func:`run_point`'s rows)."""
     return {"rows": run_point(base, overrides, seed, stages, methods)}
+
+
+# ----------------------------------------------------------------------------- reading a point
+
+
+@dataclass(frozen=True)
+class SweepRow:
+    """One localizer's figures at one point, as :func:`run_point` made them: the
+    localization's (:data:`LOCALIZATION_METRICS`) and, with the ``calibrate`` stage, the
+    calibration's true image error or why it failed. A figure the row does not hold is
+    None (``results.csv`` leaves it empty)."""
+
+    method: str
+    localization_median_error_mm: float | None = None
+    rejected_fraction: float | None = None
+    localization_max_error_mm: float | None = None
+    false_acceptances: int | None = None
+    sweeps: int | None = None
+    calibration_image_mm: float | None = None  # the calibrate stage only
+    calibration_error: str | None = None  # the calibrate stage, when it failed
+
+    @classmethod
+    def from_document(cls, row: dict[str, Any]) -> SweepRow:
+        """A row of a point's document: its method and the figures it holds (every
+        localization figure from :func:`run_point`; ``calibration_image_mm`` only with
+        the ``calibrate`` stage, NaN when it failed, and ``calibration_error`` then)."""
+
+        def number(key: str, kind: type) -> Any:
+            v = row.get(key)
+            return None if v is None else kind(v)
+
+        return cls(
+            row["method"],
+            number("localization_median_error_mm", float),
+            number("rejected_fraction", float),
+            number("localization_max_error_mm", float),
+            number("false_acceptances", int),
+            number("sweeps", int),
+            number("calibration_image_mm", float),
+            row.get("calibration_error"),
+        )
+
+    def figure(self, name: str) -> float | int | None:
+        """A figure by its ``results.csv`` name (None: not measured at this point)."""
+        return getattr(self, name)
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """A point's document as the grid records it (:func:`bench.grid.run_grid`): its
+    overrides and seed, and its rows or the error it failed with."""
+
+    overrides: tuple[tuple[str, Any], ...]
+    seed: int
+    rows: tuple[SweepRow, ...] = ()
+    error: str | None = None
+
+    @classmethod
+    def from_document(cls, doc: dict[str, Any]) -> SweepPoint:
+        """``{overrides, seed, rows}``, or ``{overrides, seed, error, traceback}`` for a
+        point that failed (no rows)."""
+        return cls(
+            tuple((k, v) for k, v in doc["overrides"]),
+            int(doc["seed"]),
+            tuple(SweepRow.from_document(r) for r in doc.get("rows", [])),
+            doc.get("error"),
+        )
+
+    def override(self, key: str) -> Any:
+        """The value the point sets ``key`` to (None: it does not set it)."""
+        return dict(self.overrides).get(key)
 
 
 # ----------------------------------------------------------------------------- the sweep

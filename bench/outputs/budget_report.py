@@ -15,20 +15,38 @@ from matplotlib.patches import Patch
 
 from ..config.error_sources import value_at
 from ..files import write_text_atomic
-from ..jobs.budget import FIGURES, BudgetResult, BudgetRun, BudgetSpec
+from ..jobs.budget import FIGURES, BudgetOutcome, BudgetResult, BudgetRun, BudgetSpec
+from ..tables import Table, left, right
 from .report import report_html
 
-__all__ = ["budget_csv", "budget_markdown", "budget_medians", "tornado_rows", "write_budget"]
+__all__ = [
+    "budget_csv",
+    "budget_markdown",
+    "budget_medians",
+    "sources_table",
+    "tornado_rows",
+    "tornado_table",
+    "write_budget",
+]
 
 
-def budget_csv(runs: Sequence[tuple[BudgetRun, dict[str, Any]]]) -> str:
+Runs = Sequence[tuple[BudgetRun, dict[str, Any] | BudgetOutcome]]
+
+
+def _outcomes(runs: Runs) -> list[tuple[BudgetRun, BudgetOutcome]]:
+    """The grid's documents as :class:`~bench.jobs.budget.BudgetOutcome`."""
+    return [
+        (r, d if isinstance(d, BudgetOutcome) else BudgetOutcome.from_document(d)) for r, d in runs
+    ]
+
+
+def budget_csv(runs: Runs) -> str:
     """One row per (source, mode, seed): the figures, and the error of a failed run."""
     lines = [",".join(["source", "mode", "seed", *FIGURES, "error"])]
-    for run, doc in runs:
-        figs = doc.get("figures", {})
+    for run, outcome in _outcomes(runs):
         cells = [run.source, run.mode, str(run.seed)]
-        cells += [_fmt(figs.get(f)) for f in FIGURES]
-        error = doc.get("error", "")
+        cells += [_fmt(outcome.figure(f)) for f in FIGURES]
+        error = outcome.error or ""
         cells.append('"' + error.replace('"', "'") + '"' if error else "")
         lines.append(",".join(cells))
     return "\n".join(lines) + "\n"
@@ -40,19 +58,17 @@ def _fmt(v: Any) -> str:
     return f"{v:.6g}"
 
 
-def budget_medians(
-    runs: Sequence[tuple[BudgetRun, dict[str, Any]]],
-) -> dict[tuple[str, str], dict[str, float]]:
+def budget_medians(runs: Runs) -> dict[tuple[str, str], dict[str, float]]:
     """Median over seeds of each figure, per (source, mode)."""
-    groups: dict[tuple[str, str], list[dict[str, float]]] = {}
-    for run, doc in runs:
-        if "figures" in doc:
-            groups.setdefault((run.source, run.mode), []).append(doc["figures"])
+    groups: dict[tuple[str, str], list[BudgetOutcome]] = {}
+    for run, outcome in _outcomes(runs):
+        if outcome.figures is not None:
+            groups.setdefault((run.source, run.mode), []).append(outcome)
     out = {}
-    for key, docs in groups.items():
+    for key, outcomes in groups.items():
         out[key] = {}
         for f in FIGURES:
-            x = np.array([d[f] for d in docs], dtype=float)
+            x = np.array([o.figure(f) for o in outcomes], dtype=float)
             out[key][f] = float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else np.nan
     return out
 
@@ -104,14 +120,38 @@ def _tornado(name: str, rows: list[tuple[str, float, float]], none: float, full:
     fig.savefig(path, dpi=100)
 
 
-def budget_markdown(
-    spec: BudgetSpec, runs: Sequence[tuple[BudgetRun, dict[str, Any]]], out: Path
-) -> str:
+def sources_table(spec: BudgetSpec) -> Table:
+    """The error sources: what each is, the keys that switch it off (their value in the
+    scenario → off) and whether the scenario has it on."""
+    rows = []
+    for s in spec.sources:
+        keys = "; ".join(
+            f"`{k}` {json.dumps(_plain(value_at(spec.scenario, k)))} → {json.dumps(v)}"
+            for k, v in s.off
+        )
+        rows.append((s.name, s.title, keys, "on" if s.present_in(spec.scenario) else "off"))
+    columns = left("source", "what", "keys (value in the scenario → off)", "in the scenario")
+    return Table(columns, tuple(rows), "error sources")
+
+
+def tornado_table(rows: list[tuple[str, float, float]], label: str) -> Table:
+    """:func:`tornado_rows` of one figure: per source what it adds alone and what
+    removing it saves (the figure's unit), largest first."""
+    columns = (
+        *left("source"),
+        *right("alone: added to the error-free rig", "all but: saved by removing it"),
+    )
+    cells = tuple((n, f"{a:+.3g}", f"{s:+.3g}") for n, a, s in rows)
+    return Table(columns, cells, label)
+
+
+def budget_markdown(spec: BudgetSpec, runs: Runs, out: Path) -> str:
     """The budget page (its tornado charts written into ``out/figures``)."""
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
+    runs = _outcomes(runs)
     med = budget_medians(runs)
-    failed = [(r, d) for r, d in runs if "error" in d]
+    failed = [(r, o) for r, o in runs if o.error is not None]
     name = spec.base.name if spec.base is not None else "the built-in scenario"
     sets = f" with `{' '.join(spec.base_overrides)}`" if spec.base_overrides else ""
     lines = [
@@ -128,21 +168,12 @@ def budget_markdown(
             else ""
         ),
         "",
-        "| source | what | keys (value in the scenario → off) | in the scenario |",
-        "|---|---|---|---|",
+        sources_table(spec).markdown(),
+        "",
     ]
-    for s in spec.sources:
-        keys = "; ".join(
-            f"`{k}` {json.dumps(_plain(value_at(spec.scenario, k)))} → {json.dumps(v)}"
-            for k, v in s.off
-        )
-        lines.append(
-            f"| {s.name} | {s.title} | {keys} | {'on' if s.present_in(spec.scenario) else 'off'} |"
-        )
-    lines.append("")
     if failed:
         lines += [f"**{len(failed)} run(s) failed** (their figures are left out):", ""]
-        lines += [f"- {r.source} / {r.mode} / seed {r.seed}: {d['error']}" for r, d in failed]
+        lines += [f"- {r.source} / {r.mode} / seed {r.seed}: {o.error}" for r, o in failed]
         lines.append("")
     none = med.get(("-", "none"), {})
     full = med.get(("-", "all"), {})
@@ -160,11 +191,9 @@ def budget_markdown(
             "",
             f"![tornado chart of {label}](figures/{png})",
             "",
-            "| source | alone: added to the error-free rig | all but: saved by removing it |",
-            "|---|---:|---:|",
+            tornado_table(rows, label).markdown(),
+            "",
         ]
-        lines += [f"| {n} | {a:+.3g} | {s:+.3g} |" for n, a, s in rows]
-        lines.append("")
     return "\n".join(lines)
 
 

@@ -16,6 +16,7 @@ from calib.evaluate import METHOD_TITLES
 
 from ..config.scenario import Scenario
 from ..results import RunResult
+from ..summaries import CalibrationSummary, RecordedSummary, RunSummary, read_metrics
 from .ros import URDF_FILE, static_transform_command
 
 Array = NDArray[np.float64]
@@ -60,70 +61,67 @@ def _dh_doc(table: DHTable, source: str) -> dict[str, Any]:
     }
 
 
-def chosen_calibration(metrics: dict[str, Any]) -> str:
-    """The calibration the document recommends: three-marker when it ran (it also
-    anchors the phantom; the paper's recommended use), else single-marker."""
-    return "three" if "three" in metrics["calibration"] else "single"
-
-
-def _bound_doc(cal: dict[str, Any]) -> dict[str, Any]:
-    """``calibration.yaml``'s 95 % error bounds of a calibration."""
-    b = cal["bound95"]
-    u = cal.get("uncertainty", {})
-    declared = u.get("declared", {})
+def _bound_doc(cal: CalibrationSummary) -> dict[str, Any]:
+    """``calibration.yaml``'s 95 % error bounds of a calibration (one that has them)."""
+    b = cal.bound95
+    assert b is not None and b.image_mm is not None
+    u = cal.uncertainty
+    declared = u.declared
     return {
-        "rotation_deg": round(b["rotation_deg"], 5),
-        "translation_mm": round(b["translation_mm"], 5),
-        "image_mm": round(b["image_mm"], 5),
+        "rotation_deg": round(b.rotation_deg, 5),
+        "translation_mm": round(b.translation_mm, 5),
+        "image_mm": round(b.image_mm, 5),
         "note": (
             "95 % error bounds of T_ee_us: its rotation angle, the distance of its origin, "
             "and the mean error over the image; from a jackknife over the "
-            f"{u.get('views', '?')} views (probe orientations) of the data plus the declared "
-            f"systematic terms (print tolerance {declared.get('print_tolerance_mm', 0):g} mm, "
-            f"radius tolerance {declared.get('radius_tolerance_mm', 0):g} mm, "
-            f"axial bias {declared.get('axial_bias_mm', 0):.3g} mm, "
-            f"kinematic residual {declared.get('kinematic_sigma_mm', 0):.3g} mm, axial scale "
-            f"{declared.get('axial_scale_sigma', 0):.2g}; 1 σ per axis)."
+            f"{u.views if u.views is not None else '?'} views (probe orientations) of the "
+            "data plus the declared "
+            f"systematic terms (print tolerance {declared.print_tolerance_mm:g} mm, "
+            f"radius tolerance {declared.radius_tolerance_mm:g} mm, "
+            f"axial bias {declared.axial_bias_mm:.3g} mm, "
+            f"kinematic residual {declared.kinematic_sigma_mm:.3g} mm, axial scale "
+            f"{declared.axial_scale_sigma:.2g}; 1 σ per axis)."
         ),
     }
 
 
 def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any]:
-    """``calibration.yaml``'s content."""
-    m = result.metrics
-    method = chosen_calibration(m)
-    cal = m["calibration"][method]
-    T = np.array(cal["T_ee_us"])
-    cov = np.array(cal["covariance_rotvec_rad_translation_m"])
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    if "image" in m:  # a recorded dataset: its frames decide
-        W, H = m["image"]["width_px"], m["image"]["height_px"]
-        spacing = tuple(m["image"]["spacing_m"])
+    """``calibration.yaml``'s content: the calibration to use
+    (:attr:`bench.summaries.Calibrations.chosen`: three-marker when it ran)."""
+    summary = read_metrics(result.metrics)
+    cal = summary.calibrations.chosen
+    T, cov, std = cal.T_ee_us, cal.covariance, cal.std
+    recorded = summary if isinstance(summary, RecordedSummary) else None
+    if recorded is not None:  # a recorded dataset: its frames decide
+        W, H = recorded.image.width_px, recorded.image.height_px
+        spacing = recorded.image.spacing_m
     else:
         H, W = scenario.imaging.image_shape
         spacing = scenario.imaging.spacing_m
-    if "dataset" in m and "dh_table_refined" in m:
-        dh = _dh_doc(
-            DHTable.from_array(np.array(m["dh_table_refined"])),
-            f"refined from the touches of {m['evaluation']['dh_from']}; the flange poses "
-            "were recomputed from the joint angles with it",
-        )
-        origin = f"dataset {m['dataset']['name']} ({m['dataset']['path']})"
-    elif "dataset" in m:
-        dh = _dh_doc(
-            scenario.robot.nominal_table,
-            f"nominal {scenario.robot.model} table (the poses are as the controller reported "
-            "them, with its own calibrated model)",
-        )
-        origin = f"dataset {m['dataset']['name']} ({m['dataset']['path']})"
-    elif result.evaluation is not None:
-        dataset = cal["fold"].split("/")[0]
-        others = ", ".join(n for n in m["evaluation"]["datasets"] if n != dataset)
+    paper = summary.evaluation if isinstance(summary, RunSummary) else None
+    if recorded is not None:
+        d, touches, refined = recorded.dataset, recorded.touches, recorded.dh_table_refined
+        if refined is not None and touches is not None:
+            dh = _dh_doc(
+                DHTable.from_array(refined),
+                f"refined from the touches of {touches.dh_from}; the flange poses "
+                "were recomputed from the joint angles with it",
+            )
+        else:
+            dh = _dh_doc(
+                scenario.robot.nominal_table,
+                f"nominal {scenario.robot.model} table (the poses are as the controller "
+                "reported them, with its own calibrated model)",
+            )
+        origin = f"dataset {d.name} ({d.path})"
+    elif result.evaluation is not None and paper is not None and cal.fold is not None:
+        dataset = cal.fold.split("/")[0]
+        others = ", ".join(n for n in paper.datasets if n != dataset)
         dh = _dh_doc(
             result.evaluation.refinements[dataset].table,
             f"refined from the touches of datasets {others} (used for dataset {dataset})",
         )
-        origin = f"fold {cal['fold']} of the paper's cross-validation"
+        origin = f"fold {cal.fold} of the paper's cross-validation"
     else:
         dh = _dh_doc(scenario.robot.nominal_table, f"nominal {scenario.robot.model} table")
         origin = "the run's acquisition"
@@ -134,11 +132,11 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
             "z = x × y) to the robot flange frame (ee); T_dst_src convention."
         ),
         **(
-            {"scenario": m["scenario"]["name"]}
-            if "scenario" in m
-            else {"dataset": m["dataset"]["path"]}
+            {"scenario": summary.scenario}
+            if isinstance(summary, RunSummary)
+            else {"dataset": summary.dataset.path}
         ),
-        "method": METHOD_TITLES[method],
+        "method": METHOD_TITLES[cal.method],
         "from": origin,
         "T_ee_us": _pose_doc(T),
         "uncertainty_1sigma": {
@@ -146,7 +144,7 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
             "translation_mm": np.round(std[3:] * _MM, 5).tolist(),
             "covariance_rotvec_rad_translation_m": cov.tolist(),
         },
-        **({"bound95": _bound_doc(cal)} if "bound95" in cal else {}),
+        **({"bound95": _bound_doc(cal)} if cal.bound95 is not None else {}),
         "image": {
             "width_px": int(W),
             "height_px": int(H),

@@ -14,6 +14,7 @@ from calib.observability import information, jacobians
 
 from ..results import PhantomReconstruction
 from ..snapshot import LocalizationSnapshot
+from ..summaries import PhantomStats
 
 __all__ = [
     "convergence_figure",
@@ -173,6 +174,7 @@ def reconstruction_heatmaps(
     fig = _figure(figsize=(2.6 * len(columns) + 1.0, 2.8 * len(parts)), layout="constrained")
     axes = fig.subplots(len(parts), len(columns), squeeze=False)
     for row, part in zip(axes, parts, strict=True):
+        stats = PhantomStats.from_metrics(part.kind, part.metrics)
         top = float(np.percentile(np.concatenate([d for _, d in part.points.values()]), 99))
         scatter = None
         for ax, (method, s) in zip(row, columns, strict=True):
@@ -191,7 +193,7 @@ def reconstruction_heatmaps(
                 rasterized=True,
                 linewidths=0,
             )
-            mae = part.metrics[method][s]["mae"]
+            mae = stats.cells[(method, s)].mae
             ax.set_title(
                 f"{PHANTOM_TITLES[part.kind]}, set {s}\n{METHOD_TITLES[method]}\nMAE {mae:.2f} mm",
                 fontsize=8,

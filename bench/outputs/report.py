@@ -4,14 +4,15 @@ and the DH table in a form a user copies into their robot software, plus PLUS's
 ``ImageToProbe`` matrix for PLUS / 3D Slicer users.
 
 The HTML is the Markdown rendered by markdown-it-py (CommonMark with tables), so the
-two always say the same.
+two always say the same. What they say of the run comes from its typed summary
+(:func:`bench.summaries.read_metrics`), its tables from :class:`bench.tables.Table`.
 """
 
 from __future__ import annotations
 
 import html
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from markdown_it import MarkdownIt
@@ -22,7 +23,19 @@ from calib.evaluate import METHOD_TITLES
 from ..config.scenario import Scenario
 from ..results import RunResult
 from ..snapshot import LocalizationSnapshot
-from .calibration_doc import calibration_yaml, chosen_calibration
+from ..summaries import (
+    Calibrations,
+    CalibrationSummary,
+    LocalizationSummary,
+    PaperEvaluation,
+    Reconstruction,
+    RecordedSummary,
+    RunSummary,
+    TouchEvaluation,
+    read_metrics,
+)
+from ..tables import Column, Table, left
+from .calibration_doc import calibration_yaml
 from .figures import (
     convergence_figure,
     observability_eigenvalues,
@@ -42,7 +55,12 @@ _MM = 1e3
 # ----------------------------------------------------------------------------- figures
 
 
-def _figures(out: Path, result: RunResult, snapshot: LocalizationSnapshot | None) -> dict[str, str]:
+def _figures(
+    out: Path,
+    result: RunResult,
+    snapshot: LocalizationSnapshot | None,
+    summary: RunSummary | RecordedSummary,
+) -> dict[str, str]:
     """Draw the figures; returns {key: relative path}."""
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
@@ -63,11 +81,10 @@ def _figures(out: Path, result: RunResult, snapshot: LocalizationSnapshot | None
             profile_figure(snapshot, fig_dir / "radial_profile.png")
             written["profile"] = "figures/radial_profile.png"
     ev = result.evaluation
-    if ev is not None and ev.reconstruction:
+    paper = summary.evaluation if isinstance(summary, RunSummary) else None
+    if ev is not None and ev.reconstruction and paper is not None:
         reconstruction_heatmaps(
-            ev.reconstruction,
-            result.metrics["evaluation"]["datasets"],
-            fig_dir / "reconstruction_heatmaps.png",
+            ev.reconstruction, paper.datasets, fig_dir / "reconstruction_heatmaps.png"
         )
         written["heatmaps"] = "figures/reconstruction_heatmaps.png"
     return written
@@ -77,9 +94,13 @@ def _figures(out: Path, result: RunResult, snapshot: LocalizationSnapshot | None
 
 
 def _matrix_md(T: Array, digits: int = 4) -> str:
-    rows = ["| | | | |", "|---:|---:|---:|---:|"]
-    rows += ["| " + " | ".join(f"{v:.{digits}f}" for v in r) + " |" for r in np.asarray(T)]
-    return "\n".join(rows)
+    rows = tuple(tuple(f"{v:.{digits}f}" for v in r) for r in np.asarray(T))
+    return Table((Column("", "right"),) * 4, rows).markdown()
+
+
+def _settings_md(rows: list[tuple[str, str]], notes: tuple[str, ...] = ()) -> str:
+    """A two-column table of settings and their values (Markdown in the values)."""
+    return Table(left("setting", "value"), tuple(rows), notes=notes).markdown()
 
 
 def _scenario_md(s: Scenario) -> str:
@@ -102,100 +123,88 @@ def _scenario_md(s: Scenario) -> str:
         ("localization", f"{s.localization.method}"),
         ("datasets", ", ".join(s.evaluation.datasets) or "one acquisition"),
     ]
-    return "| setting | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
+    return _settings_md(rows)
 
 
-def _dataset_md(m: dict[str, Any]) -> str:
-    d, im = m["dataset"], m["image"]
+def _dataset_md(rec: RecordedSummary) -> str:
+    d, im = rec.dataset, rec.image
     rows = [
-        ("dataset", f"`{d['name']}` ({d['source']}), `{d['path']}`"),
-        ("sweeps", f"{d['n_sweeps']} ({d['n_frames']} frames) of {', '.join(d['targets'])}"),
+        ("dataset", f"`{d.name}` ({d.source}), `{d.path}`"),
+        ("sweeps", f"{d.n_sweeps} ({d.n_frames} frames) of {', '.join(d.targets)}"),
         (
             "image",
-            f"{im['width_px']} × {im['height_px']} px, "
-            f"{', '.join(f'{v * _MM:.4g}' for v in im['spacing_m'])} mm/px",
+            f"{im.width_px} × {im.height_px} px, "
+            f"{', '.join(f'{v * _MM:.4g}' for v in im.spacing_m)} mm/px",
         ),
-        ("medium", f"{d['temperature_c']:g} °C, axial scale {d['axial_scale']:.5f}"),
-        ("touches", str(d["n_touches"])),
+        ("medium", f"{d.temperature_c:g} °C, axial scale {d.axial_scale:.5f}"),
+        ("touches", str(d.n_touches)),
     ]
-    text = "| setting | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
-    both = m["calibration"].get("single_vs_three")
-    if both:
-        text += (
-            f"\n\nSingle- vs three-marker `T_ee_us`: {both['rotation_deg']:.3f} °, "
-            f"{both['translation_mm']:.3f} mm apart."
+    both = rec.single_vs_three
+    notes = (
+        ()
+        if both is None
+        else (
+            f"Single- vs three-marker `T_ee_us`: {both.rotation_deg:.3f} °, "
+            f"{both.translation_mm:.3f} mm apart.",
         )
-    return text
+    )
+    return _settings_md(rows, notes)
 
 
 _FOLD_TITLES = {"single": "Single-marker", "three": "Leave-one-sphere-out (three-marker)"}
 
 
-def _touch_evaluation_md(ev: dict[str, Any]) -> str:
+def _touch_evaluation_md(ev: TouchEvaluation) -> str:
     """The paper's folds of a recorded dataset, scored against its touch reference."""
-    rows = ["| fold | test sphere | precision (mm) | accuracy (mm) |", "|---|---|---:|---:|"]
-    for f in ev["folds"]:
-        for s, acc in f["accuracy_mm"].items():
-            rows.append(f"| `{f['fold']}` | {s} | {f['precision_mm'][s]:.3f} | {acc:.3f} |")
-    lines = [
-        f"DH model refined from the touches of {ev['dh_from']}; {ev['touches']} touches of "
-        f"this dataset fix its phantom pose (residual RMS {ev['touch_residual_rms_mm']:.3f} "
-        "mm). Each fold calibrates on its training spheres and localizes the others:",
-        "",
-        "\n".join(rows),
-    ]
-    for kind, v in ev.get("summary", {}).items():
-        a, p = v["accuracy_mm"], v["precision_mm"]
-        lines += [
-            "",
-            f"{_FOLD_TITLES[kind]} folds: accuracy {a['mean']:.3f} ± {a['sd']:.3f} mm, "
-            f"precision {p['mean']:.3f} ± {p['sd']:.3f} mm.",
-        ]
-    return "\n".join(lines)
+    spreads = tuple(
+        f"{_FOLD_TITLES[s.kind]} folds: accuracy {s.accuracy_mean:.3f} ± {s.accuracy_sd:.3f} mm, "
+        f"precision {s.precision_mean:.3f} ± {s.precision_sd:.3f} mm."
+        for s in ev.summary
+    )
+    return (
+        f"DH model refined from the touches of {ev.dh_from}; {ev.touches} touches of "
+        f"this dataset fix its phantom pose (residual RMS {ev.touch_residual_rms_mm:.3f} "
+        "mm). Each fold calibrates on its training spheres and localizes the others:\n\n"
+        + replace(ev.folds_table(), notes=spreads).markdown()
+    )
 
 
-def _calibration_md(m: dict[str, Any]) -> str:
+def _calibration_md(calibrations: Calibrations) -> str:
     parts = []
-    for method in ("single", "three"):
-        c = m["calibration"].get(method)
-        if c is None:
-            continue
-        T = np.array(c["T_ee_us"])
-        T_mm = T.copy()
+    for c in calibrations:
+        T_mm = c.T_ee_us.copy()
         T_mm[:3, 3] *= _MM
-        cov = np.array(c["covariance_rotvec_rad_translation_m"])
-        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        fold = f" — fold `{c['fold']}`" if "fold" in c else ""
-        e = c.get("true_error")
+        std = c.std
+        fold = f" — fold `{c.fold}`" if c.fold is not None else ""
+        e = c.true_error
         if e is None:  # recorded data: no truth to compare with
-            against = f"Precision {c['precision_mm']:.3f} mm (spread of the sphere centres)."
+            against = f"Precision {c.precision_mm:.3f} mm (spread of the sphere centres)."
         else:
             against = (
-                f"Against the twin's ground truth: rotation {e['rotation_deg']:.3f} °, "
-                f"translation {e['translation_mm']:.3f} mm, mean error over the image "
-                f"{e['image_mm']:.3f} mm; precision {c['precision_mm']:.3f} mm, accuracy "
-                f"{c['accuracy_mm']:.3f} mm."
+                f"Against the twin's ground truth: rotation {e.rotation_deg:.3f} °, "
+                f"translation {e.translation_mm:.3f} mm, mean error over the image "
+                f"{e.image_mm:.3f} mm; precision {c.precision_mm:.3f} mm, accuracy "
+                f"{c.accuracy_mm:.3f} mm."
             )
         parts.append(
-            f"### {METHOD_TITLES[method]}{fold}\n\n"
+            f"### {METHOD_TITLES[c.method]}{fold}\n\n"
             f"`T_ee_us` (translation in mm):\n\n{_matrix_md(T_mm)}\n\n"
             f"1 σ (first order, from the residuals): rotation "
             f"{', '.join(f'{v:.3f}' for v in np.degrees(std[:3]))} °, translation "
             f"{', '.join(f'{v:.3f}' for v in std[3:] * _MM)} mm. "
-            f"{c['n_retained']} observations kept, {c['iterations']} alternations.\n\n"
+            f"{c.n_retained} observations kept, {c.iterations} alternations.\n\n"
             + _bound_md(c)
             + against
         )
     return "\n\n".join(parts)
 
 
-def _bound_md(c: dict[str, Any]) -> str:
+def _bound_md(c: CalibrationSummary) -> str:
     """The 95 % error bounds of one calibration and what they are made of."""
-    b = c.get("bound95")
+    b = c.bound95
     if b is None:
         return ""
-    u = c.get("uncertainty", {})
-    terms = u.get("one_sigma_rss", {})
+    terms = c.uncertainty.one_sigma_rss
     names = {
         "jackknife": "jackknife over views",
         "first_order": "first order",
@@ -204,68 +213,43 @@ def _bound_md(c: dict[str, Any]) -> str:
         "axial_scale": "axial scale",
     }
     parts = ", ".join(
-        f"{label} {terms[k]['rotation_deg']:.3f} ° / {terms[k]['translation_mm']:.3f} mm"
+        f"{label} {terms[k].rotation_deg:.3f} ° / {terms[k].translation_mm:.3f} mm"
         for k, label in names.items()
         if k in terms
     )
     return (
-        f"95 % error bound: rotation {b['rotation_deg']:.3f} °, translation "
-        f"{b['translation_mm']:.3f} mm, mean error over the image {b['image_mm']:.3f} mm "
+        f"95 % error bound: rotation {b.rotation_deg:.3f} °, translation "
+        f"{b.translation_mm:.3f} mm, mean error over the image {b.image_mm:.3f} mm "
         f"(1 σ, rss over the axes: {parts}).\n\n"
     )
 
 
-def _localization_md(m: dict[str, Any]) -> str:
-    loc = m["localization"]
-    e = loc.get("error_mm")
+def _localization_md(loc: LocalizationSummary) -> str:
+    e = loc.error_mm
     if e is None:
-        return (
-            f"{loc['n_sweeps']} sweeps localized ({loc['method']}), {loc['n_rejected']} rejected."
-        )
+        return f"{loc.n_sweeps} sweeps localized ({loc.method}), {loc.n_rejected} rejected."
     return (
-        f"{loc['n_sweeps']} sweeps localized ({loc['method']}), {loc['n_rejected']} rejected; "
-        f"centre error against the truth: median {e['median']:.3f} mm, p95 {e['p95']:.3f} mm, "
-        f"max {e['max']:.3f} mm."
+        f"{loc.n_sweeps} sweeps localized ({loc.method}), {loc.n_rejected} rejected; "
+        f"centre error against the truth: median {e.median:.3f} mm, p95 {e.p95:.3f} mm, "
+        f"max {e.max:.3f} mm."
     )
 
 
-def _truth_md(m: dict[str, Any]) -> str:
+def _truth_md(ev: PaperEvaluation, rec: Reconstruction | None) -> str:
     """The evaluation against the twin's ground truth (beyond the paper), per dataset."""
-    names = m["evaluation"]["datasets"]
-    kin = m["kinematics"]["datasets"]
-    rows = [
-        "| set | kin. err nominal | kin. err refined | ref. err | 1: image | 1: acc | "
-        "3: image | 3: acc |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-
-    def mean(folds, kind: str, key: str) -> str:
-        v = [f["true"][key] for f in folds if f["kind"] == kind]
-        return f"{np.mean(v):.2f}" if v else "–"
-
-    for n in names:
-        k = kin[n]
-        folds = [f for f in m["evaluation"]["folds"] if f["dataset"] == n]
-        rows.append(
-            f"| {n} | {k['true_error']['nominal_rms']:.2f} | {k['true_error']['refined_rms']:.3f}"
-            f" | {np.mean(list(k['reference_error_mm'].values())):.2f}"
-            f" | {mean(folds, 'single', 'image_mm')} | {mean(folds, 'single', 'accuracy_true_mm')}"
-            f" | {mean(folds, 'three', 'image_mm')} | {mean(folds, 'three', 'accuracy_true_mm')} |"
-        )
-    text = "\n".join(rows) + (
-        "\n\nmm. kin. err: RMS error of the kinematic model at the image over the scanned "
+    notes = [
+        "mm. kin. err: RMS error of the kinematic model at the image over the scanned "
         "configurations; ref. err: touch reference centres vs true centres; image / acc: "
         "per-fold mean true image error of `T_ee_us` and accuracy against the true centres "
         "(1: single-, 3: three-marker)."
-    )
-    recal = m.get("reconstruction", {}).get("recalibration", {}).get("true_error")
-    if recal:
-        worst = max(recal.values(), key=lambda e: e["image_mm"])
-        text += (
-            "\n\nRe-calibration after the remount (Table III's `T_ee_us`), true image error: "
-            f"up to {worst['image_mm']:.2f} mm over the DH models and methods."
+    ]
+    worst = rec.worst_recalibration_image_mm if rec is not None else None
+    if worst is not None:
+        notes.append(
+            "Re-calibration after the remount (Table III's `T_ee_us`), true image error: "
+            f"up to {worst:.2f} mm over the DH models and methods."
         )
-    return text
+    return replace(ev.truth_table(), notes=tuple(notes)).markdown()
 
 
 def _figure_md(figures: dict[str, str], key: str, caption: str) -> str:
@@ -276,18 +260,19 @@ def _figure_md(figures: dict[str, str], key: str, caption: str) -> str:
 
 def report_markdown(scenario: Scenario, result: RunResult, figures: dict[str, str]) -> str:
     """``report.md``."""
-    m = result.metrics
+    summary = read_metrics(result.metrics)
+    recorded = summary if isinstance(summary, RecordedSummary) else None
     out = [
         "# uscal report",
         "",
         *(
-            ["## Dataset", "", _dataset_md(m), ""]
-            if "dataset" in m
+            ["## Dataset", "", _dataset_md(recorded), ""]
+            if recorded is not None
             else ["## Scenario", "", _scenario_md(scenario), ""]
         ),
         "## Localization",
         "",
-        _localization_md(m),
+        _localization_md(summary.localization),
         "",
         _figure_md(
             figures, "overlay", "Sphere sections across one sweep: found (red), true (green)."
@@ -300,13 +285,13 @@ def report_markdown(scenario: Scenario, result: RunResult, figures: dict[str, st
         ),
         "## Calibration",
         "",
-        _calibration_md(m),
+        _calibration_md(summary.calibrations),
         "",
         "The transform to copy into robot software, with the DH table and PLUS's "
         "`ImageToProbe`, is in [`calibration.yaml`](calibration.yaml); for ROS 2, "
         f"[`{URDF_FILE}`]({URDF_FILE}) adds it to the robot description, or publish it:",
         "",
-        f"```\n{_ros_command(scenario, m)}\n```",
+        f"```\n{_ros_command(scenario, summary.calibrations.chosen)}\n```",
         "",
         _figure_md(figures, "convergence", "Loss and change of T_ee_us per alternation."),
         _figure_md(
@@ -316,13 +301,15 @@ def report_markdown(scenario: Scenario, result: RunResult, figures: dict[str, st
             "weakest direction of the poses).",
         ),
     ]
-    if "dataset" in m and m.get("evaluation", {}).get("folds"):
-        out += ["## Against the touch reference", "", _touch_evaluation_md(m["evaluation"]), ""]
-    if result.evaluation is not None:
+    touches = recorded.touches if recorded is not None else None
+    if touches is not None and touches.folds:
+        out += ["## Against the touch reference", "", _touch_evaluation_md(touches), ""]
+    run = summary if isinstance(summary, RunSummary) else None
+    if result.evaluation is not None and run is not None and run.evaluation is not None:
         out += [
             "## Against the twin's ground truth",
             "",
-            _truth_md(m),
+            _truth_md(run.evaluation, run.reconstruction),
             "",
             "## The paper's tables",
             "",
@@ -375,12 +362,13 @@ def write_report(
     """Write the report, its figures and ``calibration.yaml`` into ``out``; returns the
     files written (relative)."""
     out = Path(out)
-    figures = _figures(out, result, result.snapshot)
+    summary = read_metrics(result.metrics)
+    figures = _figures(out, result, result.snapshot, summary)
     md = report_markdown(scenario, result, figures)
     (out / "report.md").write_text(md, encoding="utf-8")
     (out / "report.html").write_text(report_html(md), encoding="utf-8")
     (out / "calibration.yaml").write_text(calibration_yaml(scenario, result), encoding="utf-8")
-    T = np.array(result.metrics["calibration"][chosen_calibration(result.metrics)]["T_ee_us"])
+    T = summary.calibrations.chosen.T_ee_us
     o = scenario.output
     (out / URDF_FILE).write_text(
         urdf_xacro(T, o.ros_parent_link, o.ros_image_link), encoding="utf-8"
@@ -388,7 +376,6 @@ def write_report(
     return ["report.md", "report.html", "calibration.yaml", URDF_FILE, *figures.values()]
 
 
-def _ros_command(scenario: Scenario, m: dict[str, Any]) -> str:
-    T = np.array(m["calibration"][chosen_calibration(m)]["T_ee_us"])
+def _ros_command(scenario: Scenario, chosen: CalibrationSummary) -> str:
     o = scenario.output
-    return static_transform_command(T, o.ros_parent_link, o.ros_image_link)
+    return static_transform_command(chosen.T_ee_us, o.ros_parent_link, o.ros_image_link)

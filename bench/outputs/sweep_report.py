@@ -13,10 +13,11 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..files import write_text_atomic
-from ..jobs.sweep import LOCALIZATION_METRICS, SweepResult, SweepSpec
+from ..jobs.sweep import LOCALIZATION_METRICS, SweepPoint, SweepResult, SweepSpec
+from ..tables import Column, Table, left
 from .report import report_html
 
-__all__ = ["results_csv", "sweep_html", "sweep_table", "write_sweep"]
+__all__ = ["median_table", "results_csv", "sweep_html", "sweep_table", "write_sweep"]
 
 _METRICS = {
     "localization_median_error_mm": "localization error, median over sweeps (mm)",
@@ -27,19 +28,24 @@ _METRICS = {
 }
 
 
-def sweep_table(points: Sequence[dict[str, Any]], key: str, metric: str):
+def _points(points: Sequence[dict[str, Any] | SweepPoint]) -> list[SweepPoint]:
+    """The grid's documents as :class:`~bench.jobs.sweep.SweepPoint`."""
+    return [p if isinstance(p, SweepPoint) else SweepPoint.from_document(p) for p in points]
+
+
+def sweep_table(points: Sequence[dict[str, Any] | SweepPoint], key: str, metric: str):
     """{method: (values, median, 25th, 75th percentile)} of ``metric`` against the grid
     key ``key``, pooling seeds and the other keys."""
     by: dict[str, dict[Any, list[float]]] = {}
-    for doc in points:
-        value = dict((k, v) for k, v in doc["overrides"]).get(key)
+    for point in _points(points):
+        value = point.override(key)
         if not isinstance(value, (int, float, str, bool)):
             value = json.dumps(value)  # lists (e.g. protocol.spheres) as their text
-        for row in doc.get("rows", []):
-            x = row.get(metric)
+        for row in point.rows:
+            x = row.figure(metric)
             if x is None:
                 continue
-            by.setdefault(row["method"], {}).setdefault(value, []).append(float(x))
+            by.setdefault(row.method, {}).setdefault(value, []).append(float(x))
     out = {}
     for method, groups in by.items():
         values = sorted(groups)
@@ -71,21 +77,29 @@ def _figure(points, key: str, metric: str, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
-def sweep_html(spec, points: Sequence[dict[str, Any]], out: Path) -> str:
+def median_table(points: Sequence[SweepPoint], key: str, metric: str) -> Table | None:
+    """The median of ``metric`` per localizer (rows) and value of the grid key ``key``
+    (columns); None when no point measured it."""
+    table = sweep_table(points, key, metric)
+    if not table:
+        return None
+    values = next(iter(table.values()))[0]
+    rows = tuple((method, *(f"{m:.3g}" for m in med)) for method, (_, med, _, _) in table.items())
+    columns = (*left("method"), *(Column(str(v), "right") for v in values))
+    return Table(columns, rows, f"{_METRICS[metric]}, median")
+
+
+def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -> str:
     """The page (and its figures, written into ``out/figures``)."""
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
     metrics = ["localization_median_error_mm", "rejected_fraction", "false_acceptances"]
     if "calibrate" in spec.stages:
         metrics.append("calibration_image_mm")
-    failed = [d for d in points if "error" in d]
+    points = _points(points)
+    failed = [p for p in points if p.error is not None]
     false_total = {
-        m: sum(
-            int(r.get("false_acceptances", 0))
-            for d in points
-            for r in d.get("rows", [])
-            if r["method"] == m
-        )
+        m: sum(r.false_acceptances or 0 for p in points for r in p.rows if r.method == m)
         for m in spec.methods
     }
     lines = [
@@ -104,7 +118,8 @@ def sweep_html(spec, points: Sequence[dict[str, Any]], out: Path) -> str:
     ]
     if failed:
         lines += [f"**{len(failed)} point(s) failed**:", ""]
-        lines += [f"- {d['overrides']}, seed {d['seed']}: {d['error']}" for d in failed]
+        # The overrides as the point's document lists them: [[key, value], ...].
+        lines += [f"- {[list(o) for o in p.overrides]}, seed {p.seed}: {p.error}" for p in failed]
         lines.append("")
     for entry in spec.grid:
         if len(spec.grid[entry]) < 2:
@@ -119,23 +134,13 @@ def sweep_html(spec, points: Sequence[dict[str, Any]], out: Path) -> str:
             _figure(points, key, metric, fig_dir / name)
             lines += [f"![{_METRICS[metric]} vs {key}](figures/{name})", ""]
         for metric in metrics:
-            table = sweep_table(points, key, metric)
-            if not table:
-                continue
-            values = next(iter(table.values()))[0]
-            lines += [
-                f"{_METRICS[metric]}, median:",
-                "",
-                "| method | " + " | ".join(str(v) for v in values) + " |",
-                "|---|" + "---:|" * len(values),
-            ]
-            for method, (_, med, _, _) in table.items():
-                lines.append(f"| {method} | " + " | ".join(f"{m:.3g}" for m in med) + " |")
-            lines.append("")
+            table = median_table(points, key, metric)
+            if table is not None:
+                lines += [f"{table.title}:", "", table.markdown(), ""]
     return report_html("\n".join(lines), "uscal sweep")
 
 
-def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any]]) -> str:
+def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any] | SweepPoint]) -> str:
     """One row per point, seed and method: the grid keys (named by key path), then
     seed, method and the metrics; a failed point gives one row per method with the
     error."""
@@ -144,13 +149,14 @@ def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any]]) -> str:
     if "calibrate" in spec.stages:
         metrics.append("calibration_image_mm")
     lines = [",".join([*keys, "seed", "method", *metrics, "error"])]
-    for doc in points:
-        values = [json.dumps(v) if not isinstance(v, str) else v for _, v in doc["overrides"]]
-        rows = doc.get("rows") or [{"method": m} for m in spec.methods]
-        for row in rows:
-            cells = [*values, str(doc["seed"]), row["method"]]
-            cells += [_fmt(row.get(m)) for m in metrics]
-            error = doc.get("error") or row.get("calibration_error") or ""
+    for point in _points(points):
+        values = [json.dumps(v) if not isinstance(v, str) else v for _, v in point.overrides]
+        # A failed point: one row per method, its figures empty.
+        rows = [(r.method, r) for r in point.rows] or [(m, None) for m in spec.methods]
+        for method, row in rows:
+            cells = [*values, str(point.seed), method]
+            cells += [_fmt(row.figure(m) if row is not None else None) for m in metrics]
+            error = point.error or (row.calibration_error if row is not None else None) or ""
             cells.append('"' + error.replace('"', "'") + '"' if error else "")
             lines.append(",".join(cells))
     return "\n".join(lines) + "\n"
