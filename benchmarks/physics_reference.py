@@ -1,0 +1,728 @@
+"""sim_us's beam against an independent acoustic model: pymust (MUST/SIMUS), issue 35.
+
+What it measures. For two linear probes, the paper's (``scenarios/paper.yaml``'s imaging
+section, with the transducer the issue describes: 13 MHz, 64 active elements at 0.2 mm
+pitch, 65 % bandwidth, 4 mm elevation aperture, 18 mm lens) and a 7.5 MHz, 38 mm linear
+array with a 25 mm lens (``linear75``: 128 elements at 0.3 mm pitch, 64 of them active,
+kerf 0.03 mm, 75 % bandwidth, 5 mm elevation aperture: a Verasonics L11-5v-like array
+with a longer lens), at depths 5, 10, 15, 18, 22, 26, 30, 35, 40 and 50 mm:
+
+- two-way lateral FWHM, axial FWHM, elevation FWHM (the slice thickness), and the first
+  lateral side lobe (level, dB below the main lobe, and position, mm off the axis),
+  computed with pymust, next to what ``sim_us`` draws for the same probe, with the ratios
+  twin / reference (side-lobe levels: the difference twin − reference, dB);
+- the point-target PSF as the display shows it at 10, 18 and 30 mm: one scatterer through
+  ``simus`` (RF of the 64 elements, the focused transmit above), ``rf2iq`` and
+  delay-and-sum with ``dasmtx`` (dynamic receive, the same f-number), its envelope |I/Q|;
+  lateral and axial FWHM and the first side lobe, next to the field figures and sim_us.
+
+How, reference side (pymust 0.1.9, ``pfield`` with ``param.height`` / ``param.focus``:
+its multi-Gaussian elevation beam model, Fresnel in elevation, far field per sub-element
+laterally, 3-D, soft baffle, the element directivity at the centre frequency):
+
+- The scanner focuses its transmit at each depth and beamforms in receive with dynamic
+  focus. Both use the same aperture, centred on the scanline: the elements within
+  ``depth / (2 F#)`` of it, at most the 64 active ones. F# is the receive f-number MUST's
+  ``dasmtx`` derives from the element directivity (Perrot et al. 2021, "So you think you
+  can DAS?"): the angle where the element's response ``cos θ · sinc(w sin θ / λ_min)``
+  falls to 0.71, F# = 1 / (2 tan θ) (2.31 for the paper probe, 2.08 for linear75;
+  dasmtx's own bounded search lands on a wrong local minimum for 0.18 mm elements at
+  13 MHz, so the first crossing is taken here). Elements further out see the point at
+  angles where their directivity has fallen below -3 dB: a scanner leaves them out.
+- Two-way = transmit × receive pressure. With the same aperture and focus this is the
+  square of pfield's one-way RMS pressure (reciprocity); each profile is that square,
+  normalised to its peak, and a FWHM is the width at half of it (linear interpolation
+  between samples) through the focus: along x at y = 0 (lateral) and along y at x = 0
+  (elevation). Near the face the elevation beam is a near-field pattern whose maximum
+  lies off the axis (±0.9 mm at 5 mm for the paper probe, with a dip to 0.7-0.8 on it):
+  its FWHM is the width between the outer half-maximum crossings.
+- The first side lobe is the first local maximum of the lateral two-way profile past its
+  first minimum, its level 20 log10 of the profile there. A broad band fills the nulls:
+  where the profile falls without a minimum (linear75 from 15 mm on), the side lobe is
+  the shoulder it leaves, the flattest point of the dB profile past the -20 dB point
+  (marked "s" in the tables; stored as ``side_lobe_kind``).
+- The axial FWHM is that of the envelope (Hilbert) of the two-way pulse, pymust's
+  ``getpulse(param, 2)`` (a one-cycle excitation through the probe's pulse-echo
+  response of the stated -6 dB bandwidth), times c / 2: the same at every depth.
+- pfield sums the spectrum on a frequency grid and re-evaluates its elevation (MGBM)
+  term every 20th frequency; at its default step the elevation FWHMs are off by up to
+  8 % (at 10 mm). ``FrequencyStep = 0.1`` is converged to 0.5 % (0.05 gives the same).
+- c = 1540 m/s (the medium a datasheet's lens focus is stated in), no attenuation.
+- The issue's elevation figures for the paper probe (2.21, 1.13, 0.46, 0.53, 0.65, 0.82,
+  1.08, 1.71, 2.86, 4.81 mm) were taken with all 64 elements at every depth. The paper
+  table's last rows repeat that setting (converged frequency step): within 4 % of the
+  issue's, the size of what pfield's frequency step moves them by (the issue's sampling
+  is not stated). The F#-limited aperture thickens the slice near the face (2.31 instead
+  of 2.21 mm at 5 mm, 1.23 instead of 1.18 at 10 mm): the elements far off the scanline
+  see the point at long range, where their elevation beam is wide.
+- The PSF: a scanline at x_l images a scatterer at 0 as the line at 0 images one at -x_l
+  (the aperture moves with the line), so the lateral profile is the envelope on the line
+  x = 0, at the depth of its peak, of scatterers placed across it, one simus each (81
+  per half profile); the axial profile is the line through the scatterer on the axis.
+  I/Q demodulation low-passes at fc (``rf2iq`` without a bandwidth), which keeps the
+  whole echo band; a cut at the -6 dB band (rf2iq given ``param``) widens the axial
+  FWHM by ≈ 15 %. fs = 4 fc. The PSF's lateral FWHM is the field's within 3 %.
+
+How, twin side: ``sim_us`` as the simulator uses it. Lateral and axial FWHM and the side
+lobe are measured on a rendered frame: a 0.02 mm wire along the elevation axis at each
+depth (in water at 20 °C, sim_us's default medium), ``BmodeSimulator.envelope`` through
+the probe's PSF kernels with its side lobes and ring-down, sampled at 0.01 mm pixels and
+scanlines (the sampling, the pixel-scale error and the image offsets changed from the
+probe's, nothing else). The elevation FWHM is ``sim_us.beam.slice_thickness``: the
+elevation weights are Gaussians of exactly that two-way FWHM (sampled by the
+sub-planes). The paper probe's image ends at 40 mm; its 50 mm row extends the same
+formulas. ``linear75`` has no stated widths: the paper probe's are scaled as the physics
+scales them (lateral with λ, axial with 1 / (f · bandwidth), the focal slice with
+λ F / H), what a user without a datasheet figure would enter, and the paper probe's side
+lobe (-40 dB) and ring-down (2 cycles); the rest of its settings are sim_us's defaults.
+
+``--write`` stores the reference figures, the probe definitions and the pymust version
+in ``benchmarks/reference/beam.json`` (tests read it without pymust); ``--stored`` prints
+the tables from that file without pymust. Needs pymust (``pip install -e '.[reference]'``)
+unless ``--stored``. Takes ≈ 45 s on a quiet host (pfield ≈ 2-5 s per depth and probe,
+simus + DAS ≈ 2-5 s per PSF depth, the twin's renders ≈ 1 s in all), up to ≈ 4 min when
+others load the two cores; ``--stored`` ≈ 3 s.
+
+The second-to-last line is ``worst_level_db=<largest |Δ| of the side-lobe levels>``, the
+last ``worst_ratio=<the ratio farthest from 1 over all rows and width/position columns,
+as max(r, 1/r)>``.
+
+Run: python benchmarks/physics_reference.py [--probe paper|linear75|all] [--write | --stored]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# benchmarks/sim_us.py shares its name with the package: keep this folder off the path.
+_HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
+
+import argparse  # noqa: E402
+import importlib.metadata  # noqa: E402
+import json  # noqa: E402
+import re  # noqa: E402
+import time  # noqa: E402
+from dataclasses import asdict, dataclass, replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+from scipy.signal import hilbert  # noqa: E402
+
+from bench.config.scenario import load_scenario  # noqa: E402
+from sim_us import MediumConfig, ProbeConfig  # noqa: E402
+from sim_us.beam import SIDE_LOBE_OFFSET_PER_FWHM, slice_thickness  # noqa: E402
+from sim_us.raycast import AcousticScene, ScenePart  # noqa: E402
+from sim_us.simulator import BmodeSimulator  # noqa: E402
+
+ROOT = Path(_HERE).parent
+PAPER_SCENARIO = ROOT / "scenarios" / "paper.yaml"
+STORED = Path(_HERE) / "reference" / "beam.json"
+COMMAND = "python benchmarks/physics_reference.py --write"
+
+DEPTHS_MM = (5.0, 10.0, 15.0, 18.0, 22.0, 26.0, 30.0, 35.0, 40.0, 50.0)
+# The issue's pymust elevation FWHMs for the paper probe (64 elements at every depth).
+ISSUE_ELEVATION_FWHM_MM = (2.21, 1.13, 0.46, 0.53, 0.65, 0.82, 1.08, 1.71, 2.86, 4.81)
+
+SPEED_M_S = 1540.0
+# pfield's frequency step (a scaling of its automatic one): converged to 0.5 % (above).
+FREQUENCY_STEP = 0.1
+# The element's directivity (amplitude) at the edge of the receive aperture.
+DIRECTIVITY_AT_EDGE = 0.71
+# Samples of each half profile (the profiles are symmetric about the scanline).
+PROFILE_SAMPLES = 160
+
+# Point-target PSFs (simus + DAS): depths, lateral positions per half profile.
+PSF_DEPTHS_MM = (10.0, 18.0, 30.0)
+PSF_POSITIONS = 81
+
+# The twin's wire: radius, pixel and scanline spacing of the measuring render.
+WIRE_RADIUS_M = 0.01e-3
+FINE_MM = 0.01
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """A linear array as a datasheet gives it (what pymust needs), units in the names."""
+
+    f_mhz: float
+    elements: int  # on the face
+    active_elements: int  # at most this many fire and receive for one scanline
+    pitch_mm: float
+    kerf_mm: float
+    bandwidth_pct: float  # pulse-echo, -6 dB, fractional
+    elevation_aperture_mm: float  # element height
+    elevation_focus_mm: float  # lens focus
+    speed_m_s: float = SPEED_M_S
+    tx_cycles: float = 1.0  # cycles of the excitation (pymust's TXnow)
+
+
+@dataclass(frozen=True)
+class ProbeCase:
+    """One probe: how sim_us is configured for it and the transducer pymust models."""
+
+    name: str
+    description: str
+    imaging: ProbeConfig
+    array: ArraySpec
+
+
+def paper_probe() -> ProbeCase:
+    """The paper probe exactly as ``scenarios/paper.yaml`` configures it; the array's
+    element count, pitch and bandwidth from the issue (the 38 mm face at 0.2 mm pitch)."""
+    imaging = load_scenario(PAPER_SCENARIO, check_reach=False).imaging
+    array = ArraySpec(
+        f_mhz=imaging.f_mhz,
+        elements=round(imaging.width_mm / 0.2),
+        active_elements=64,
+        pitch_mm=0.2,
+        kerf_mm=0.02,
+        bandwidth_pct=65.0,
+        elevation_aperture_mm=imaging.elevation_aperture_mm,
+        elevation_focus_mm=imaging.elevation_focus_mm,
+    )
+    return ProbeCase("paper", "scenarios/paper.yaml's imaging (L8-18i-D)", imaging, array)
+
+
+def linear75_probe() -> ProbeCase:
+    """A 7.5 MHz, 38 mm linear array with a 25 mm lens; sim_us's stated widths are the
+    paper probe's scaled as the physics scales them (module docstring)."""
+    array = ArraySpec(
+        f_mhz=7.5,
+        elements=128,
+        active_elements=64,
+        pitch_mm=0.3,
+        kerf_mm=0.03,
+        bandwidth_pct=75.0,
+        elevation_aperture_mm=5.0,
+        elevation_focus_mm=25.0,
+    )
+    paper = paper_probe()
+    ref, pa = paper.imaging, paper.array
+    wavelengths = pa.f_mhz / array.f_mhz  # λ / λ_paper
+    band = (pa.f_mhz * pa.bandwidth_pct) / (array.f_mhz * array.bandwidth_pct)
+    focusing = (array.elevation_focus_mm / pa.elevation_focus_mm) / (
+        array.elevation_aperture_mm / pa.elevation_aperture_mm
+    )
+    imaging = replace(
+        ProbeConfig(),
+        width_mm=38.0,
+        depth_mm=50.0,
+        f_mhz=array.f_mhz,
+        lateral_fwhm_mm=round(ref.lateral_fwhm_mm * wavelengths, 2),
+        axial_fwhm_mm=round(ref.axial_fwhm_mm * band, 2),
+        elevation_aperture_mm=array.elevation_aperture_mm,
+        elevation_focus_mm=array.elevation_focus_mm,
+        slice_thickness_mm=round(ref.slice_thickness_mm * wavelengths * focusing, 2),
+        side_lobe_db=ref.side_lobe_db,
+        ring_down_cycles=ref.ring_down_cycles,
+    )
+    return ProbeCase("linear75", "7.5 MHz, 38 mm linear array, 25 mm lens", imaging, array)
+
+
+PROBES = {"paper": paper_probe, "linear75": linear75_probe}
+
+
+# ------------------------------------------------------------------ profiles
+
+
+def fwhm(x: NDArray[np.float64], p: NDArray[np.float64]) -> float:
+    """Full width at half maximum of profile ``p`` sampled at ``x`` around its peak
+    (linear interpolation of the two half-maximum crossings); NaN if one is missing."""
+    p = np.asarray(p, float) / np.max(p)
+    k = int(np.argmax(p))
+    below = np.flatnonzero(p[k:] < 0.5)
+    above = np.flatnonzero(p[: k + 1] < 0.5)
+    if not len(below) or not len(above):
+        return float("nan")
+    j = k + int(below[0])  # first sample under half past the peak
+    i = int(above[-1])  # last sample under half before it
+    xr = x[j - 1] + (0.5 - p[j - 1]) * (x[j] - x[j - 1]) / (p[j] - p[j - 1])
+    xl = x[i] + (0.5 - p[i]) * (x[i + 1] - x[i]) / (p[i + 1] - p[i])
+    return float(xr - xl)
+
+
+def first_side_lobe(x: NDArray[np.float64], p: NDArray[np.float64]) -> tuple[float, float, str]:
+    """(level dB, offset, kind) of the first lateral side lobe of amplitude profile ``p``,
+    on the side of increasing ``x`` from the peak: the first local maximum past the first
+    minimum ("peak"); where the bandwidth has filled the null and the profile falls
+    monotonically, the shoulder instead: the flattest point of its dB profile past the
+    main lobe's -20 dB point ("shoulder"). NaNs and "none" if neither is found."""
+    p = np.asarray(p, float) / np.max(p)
+    k = int(np.argmax(p))
+    q, xq = p[k:], x[k:] - x[k]
+    d = np.diff(q)
+    rising = np.flatnonzero(d > 0)
+    if len(rising):
+        m = int(rising[0])  # the first minimum
+        falling = np.flatnonzero(d[m:] < 0)
+        if len(falling):
+            s = m + int(falling[0])
+            return float(20.0 * np.log10(q[s])), float(xq[s]), "peak"
+    db = 20.0 * np.log10(np.maximum(q, 1e-12))
+    slope = np.gradient(db, xq)
+    start = np.flatnonzero(db < -20.0)
+    if len(start):
+        i = int(start[0])
+        flat = np.flatnonzero(
+            (slope[i:-2] < slope[i + 1 : -1]) & (slope[i + 1 : -1] >= slope[i + 2 :])
+        )
+        if len(flat):
+            s = i + 1 + int(flat[0])
+            return float(db[s]), float(xq[s]), "shoulder"
+    return float("nan"), float("nan"), "none"
+
+
+def mirrored(x: NDArray[np.float64], p: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+    """A profile sampled on x ≥ 0 (x[0] = 0), made whole by its symmetry."""
+    return np.concatenate([-x[:0:-1], x]), np.concatenate([p[:0:-1], p])
+
+
+# ------------------------------------------------------------------ reference (pymust)
+
+
+def receive_fnumber(a: ArraySpec) -> float:
+    """MUST's directivity f-number: the first angle where the element's response
+    cos θ · sinc(w sin θ / λ_min) falls to 0.71 (λ_min at the band's upper edge)."""
+    lam_min = a.speed_m_s / (a.f_mhz * 1e6 * (1 + a.bandwidth_pct / 200))
+    w = (a.pitch_mm - a.kerf_mm) * 1e-3
+    th = np.linspace(0.0, np.pi / 2, 200001)
+    g = np.cos(th) * np.sinc(w / lam_min * np.sin(th))
+    alpha = th[int(np.argmax(g < DIRECTIVITY_AT_EDGE))]
+    return float(1.0 / (2.0 * np.tan(alpha)))
+
+
+def aperture(a: ArraySpec, depth_m: float, fnumber: float | None) -> NDArray[np.float32]:
+    """Apodization (active_elements,) of the aperture a scanline at x = 0 uses at
+    ``depth_m``: the elements within depth / (2 F#) of it; all of them if F# is None."""
+    xe = (np.arange(a.active_elements) - (a.active_elements - 1) / 2) * a.pitch_mm * 1e-3
+    if fnumber is None:
+        return np.ones(a.active_elements, np.float32)
+    on = np.abs(xe) <= depth_m / (2.0 * fnumber) + 1e-12
+    if on.sum() < 2:  # at least the two elements beside the line
+        on = np.abs(xe) <= np.sort(np.abs(xe))[1] + 1e-12
+    return on.astype(np.float32)
+
+
+def pymust_param(a: ArraySpec, apod: NDArray[np.float32]) -> Any:
+    """pymust's PARAM for the active aperture (elements centred on the scanline)."""
+    from pymust import utils  # optional: only the reference needs pymust
+
+    p = utils.Param()
+    p.fc = a.f_mhz * 1e6
+    p.pitch = a.pitch_mm * 1e-3
+    p.kerf = a.kerf_mm * 1e-3
+    p.Nelements = a.active_elements
+    p.bandwidth = a.bandwidth_pct
+    p.height = a.elevation_aperture_mm * 1e-3
+    p.focus = a.elevation_focus_mm * 1e-3
+    p.c = a.speed_m_s
+    p.TXnow = a.tx_cycles
+    p.TXapodization = apod.reshape(1, -1).copy()
+    return p
+
+
+def two_way_profiles(
+    a: ArraySpec, depth_m: float, apod: NDArray[np.float32], lateral: bool = True
+) -> dict[str, tuple[NDArray, NDArray]]:
+    """Two-way amplitude profiles through the focus at ``depth_m``, transmit focused
+    there with aperture ``apod`` and the same aperture in receive: {"lateral": (x, p),
+    "elevation": (y, p)}, positions in mm, each whole (mirrored)."""
+    import pymust  # optional: only the reference needs pymust
+    from pymust import utils
+
+    lam = a.speed_m_s / (a.f_mhz * 1e6)
+    D = apod.sum() * a.pitch_mm * 1e-3
+    # Laterally: out to ≈ 2.8 times the first side lobe (at 1.43 λ z / D).
+    x = np.linspace(0.0, 4.0 * lam * depth_m / D, PROFILE_SAMPLES) if lateral else np.zeros(0)
+    # In elevation: out past the geometric beam's half width.
+    H, F = a.elevation_aperture_mm * 1e-3, a.elevation_focus_mm * 1e-3
+    y = np.linspace(0.0, 0.75 * max(H, H * abs(depth_m - F) / F) + 0.5e-3, PROFILE_SAMPLES)
+    px = np.concatenate([x, np.zeros_like(y)])
+    py = np.concatenate([np.zeros_like(x), y])
+    param = pymust_param(a, apod)
+    delays = pymust.txdelay(0.0, depth_m, param)
+    opt = utils.Options()
+    opt.FrequencyStep = FREQUENCY_STEP
+    rp, _, _ = pymust.pfield(px, py, np.full_like(px, depth_m), delays, param, options=opt)
+    two_way = np.asarray(rp, float).ravel() ** 2  # transmit × receive (reciprocity)
+    out = {"elevation": mirrored(y * 1e3, two_way[len(x) :])}
+    if lateral:
+        out["lateral"] = mirrored(x * 1e3, two_way[: len(x)])
+    return out
+
+
+def axial_fwhm_mm(a: ArraySpec) -> float:
+    """FWHM (mm of depth) of the envelope of pymust's two-way pulse."""
+    import pymust  # optional: only the reference needs pymust
+
+    param = pymust_param(a, np.ones(a.active_elements, np.float32))
+    pulse, t = pymust.getpulse(param, 2)
+    env = np.abs(hilbert(pulse))
+    return fwhm(t, env) * a.speed_m_s / 2.0 * 1e3
+
+
+def point_target_psf(a: ArraySpec, depth_m: float, fnumber: float) -> dict[str, Any]:
+    """The displayed PSF of one point scatterer at ``depth_m`` (module docstring): RF by
+    ``simus``, I/Q by ``rf2iq``, delay-and-sum by ``dasmtx`` along the scanline, |I/Q|.
+
+    A scanline at x_l images a scatterer at 0 as the scanline at 0 images one at -x_l
+    (the aperture moves with the line): the lateral profile is the envelope on the line
+    x = 0, at the depth of its peak, of scatterers placed across it, one simus each."""
+    import pymust  # optional: only the reference needs pymust
+
+    apod = aperture(a, depth_m, fnumber)
+    param = pymust_param(a, np.ones(a.active_elements, np.float32))
+    del param["TXapodization"]
+    delays = np.asarray(pymust.txdelay(0.0, depth_m, param), float)
+    del param["TXdelay"]
+    delays[0, apod == 0] = np.nan  # elements off: no transmit, and dasmtx's sub-aperture
+    delays[0] -= np.nanmin(delays)
+    param.fs = 4 * param.fc
+    param.fnumber = fnumber  # dasmtx's receive aperture: the same as the transmit one
+    lam = a.speed_m_s / (a.f_mhz * 1e6)
+    D = apod.sum() * a.pitch_mm * 1e-3
+    offsets = np.linspace(0.0, 4.0 * lam * depth_m / D, PSF_POSITIONS)
+    z = depth_m + np.arange(-0.6e-3, 0.6e-3 + 1e-9, lam / 40)
+    x = np.zeros_like(z)
+    envelopes = []
+    das = None
+    for xo in offsets:
+        rf, _ = pymust.simus(
+            np.array([[xo]]),
+            np.array([[1e-8]]),  # y ≠ 0: the 3-D model with the elevation lens (at y = 0)
+            np.array([[depth_m]]),
+            np.array([[1.0]]),
+            delays.copy(),
+            param,
+        )
+        # Demodulation low-pass at fc (rf2iq without a bandwidth): it keeps the whole echo
+        # band, so the envelope is the pulse's (a cut at the -6 dB band would widen it).
+        iq = pymust.rf2iq(rf, param.fs, param.fc)
+        if das is None or das.shape[1] != iq.size:
+            param.TXdelay = delays.copy()
+            das = pymust.dasmtx(1j * np.array(iq.shape), x, z, param)
+        envelopes.append(np.abs(das @ iq.flatten(order="F")))
+    env = np.array(envelopes)  # (offsets, depths)
+    peak = int(np.argmax(env[0]))
+    lx, lp = mirrored(offsets * 1e3, env[:, peak])
+    level, offset, kind = first_side_lobe(lx, lp)
+    return {
+        "lateral_fwhm_mm": fwhm(lx, lp),
+        "axial_fwhm_mm": fwhm(z * 1e3, env[0]),
+        "side_lobe_db": level,
+        "side_lobe_mm": offset,
+        "side_lobe_kind": kind,
+    }
+
+
+def reference_figures(case: ProbeCase, log: bool = True) -> dict[str, Any]:
+    """The pymust figures of one probe at every depth (see the module docstring)."""
+    a = case.array
+    fnum = receive_fnumber(a)
+    axial = axial_fwhm_mm(a)
+    fig: dict[str, list[float]] = {
+        k: []
+        for k in (
+            "aperture_elements",
+            "lateral_fwhm_mm",
+            "axial_fwhm_mm",
+            "elevation_fwhm_mm",
+            "side_lobe_db",
+            "side_lobe_mm",
+            "side_lobe_kind",
+        )
+    }
+    full: list[float] = []
+    for depth_mm in DEPTHS_MM:
+        t0 = time.perf_counter()
+        d = depth_mm * 1e-3
+        apod = aperture(a, d, fnum)
+        prof = two_way_profiles(a, d, apod)
+        level, offset, kind = first_side_lobe(*prof["lateral"])
+        fig["aperture_elements"].append(int(apod.sum()))
+        fig["lateral_fwhm_mm"].append(fwhm(*prof["lateral"]))
+        fig["axial_fwhm_mm"].append(axial)
+        fig["elevation_fwhm_mm"].append(fwhm(*prof["elevation"]))
+        fig["side_lobe_db"].append(level)
+        fig["side_lobe_mm"].append(offset)
+        fig["side_lobe_kind"].append(kind)
+        if case.name == "paper":
+            # The issue's setting: all 64 elements at every depth (elevation only).
+            ful = two_way_profiles(a, d, aperture(a, d, None), lateral=False)
+            full.append(fwhm(*ful["elevation"]))
+        if log:
+            print(
+                f"  pymust {case.name} {depth_mm:g} mm: {time.perf_counter() - t0:.1f} s",
+                file=sys.stderr,
+            )
+    psf: dict[str, list[Any]] = {}
+    for depth_mm in PSF_DEPTHS_MM:
+        t0 = time.perf_counter()
+        for k, v in point_target_psf(a, depth_mm * 1e-3, fnum).items():
+            psf.setdefault(k, []).append(_r(v))
+        if log:
+            print(
+                f"  simus {case.name} {depth_mm:g} mm: {time.perf_counter() - t0:.1f} s",
+                file=sys.stderr,
+            )
+    out: dict[str, Any] = {
+        "receive_fnumber": round(fnum, 4),
+        "figures": {k: [_r(v) for v in vals] for k, vals in fig.items()},
+        "psf": {"depths_mm": list(PSF_DEPTHS_MM), **psf},
+    }
+    if full:
+        out["elevation_fwhm_full_aperture_mm"] = [_r(v) for v in full]
+        out["issue_elevation_fwhm_mm"] = list(ISSUE_ELEVATION_FWHM_MM)
+    return out
+
+
+def _r(v: float | int | str) -> float | int | str | None:
+    """A figure as stored: 4 decimals; None (JSON null) for a missing one."""
+    if isinstance(v, int | str):
+        return v
+    return round(float(v), 4) if np.isfinite(v) else None
+
+
+# ------------------------------------------------------------------ twin (sim_us)
+
+
+def twin_figures(probe: ProbeConfig) -> dict[str, list[float]]:
+    """What sim_us draws for ``probe`` at every depth: lateral/axial FWHM and the side
+    lobe measured on a rendered wire, the elevation FWHM of its elevation weights."""
+    half_width = SIDE_LOBE_OFFSET_PER_FWHM * probe.lateral_fwhm_mm + 4.0 * probe.lateral_fwhm_mm
+    fig: dict[str, list[float]] = {
+        k: []
+        for k in (
+            "lateral_fwhm_mm",
+            "axial_fwhm_mm",
+            "elevation_fwhm_mm",
+            "side_lobe_db",
+            "side_lobe_mm",
+        )
+    }
+    for depth_mm in DEPTHS_MM:
+        mesh = trimesh.creation.cylinder(radius=WIRE_RADIUS_M, height=20e-3, sections=16)
+        mesh.apply_translation([0.0, depth_mm * 1e-3, 0.0])
+        fine = replace(
+            probe,
+            width_mm=2.0 * round(half_width, 1),
+            depth_mm=1.06 * depth_mm + 2.0 * probe.axial_fwhm_mm + 1.0,
+            pixel_spacing_mm=(FINE_MM, FINE_MM),
+            scanline_spacing_mm=FINE_MM,
+            pixel_scale_error_pct=(0.0, 0.0),
+            image_origin_offset_mm=0.0,
+            lateral_offset_mm=0.0,
+        )
+        sim = BmodeSimulator(AcousticScene((ScenePart("wire", mesh, "pla"),)), fine, MediumConfig())
+        env = sim.envelope(np.eye(4)[None])[0].astype(float)
+        r, c = np.unravel_index(int(np.argmax(env)), env.shape)
+        pos = np.arange(env.shape[1]) * FINE_MM
+        row = env[r]
+        level, offset, _ = first_side_lobe(pos, row)
+        fig["lateral_fwhm_mm"].append(fwhm(pos, row))
+        fig["axial_fwhm_mm"].append(fwhm(np.arange(env.shape[0]) * FINE_MM, env[:, c]))
+        fig["elevation_fwhm_mm"].append(float(slice_thickness(probe, depth_mm * 1e-3)) * 1e3)
+        fig["side_lobe_db"].append(level)
+        fig["side_lobe_mm"].append(offset)
+    return fig
+
+
+# ------------------------------------------------------------------ stored reference
+
+
+def probe_record(case: ProbeCase, ref: dict[str, Any]) -> dict[str, Any]:
+    """The stored definition and figures of one probe."""
+    rec: dict[str, Any] = {
+        "description": case.description,
+        "array": asdict(case.array),
+        "imaging": {
+            k: getattr(case.imaging, k)
+            for k in ("f_mhz", "elevation_aperture_mm", "elevation_focus_mm", "width_mm")
+        },
+    }
+    if case.name == "paper":
+        rec["source"] = "scenarios/paper.yaml"
+    rec.update(ref)
+    return rec
+
+
+def write_stored(records: dict[str, dict[str, Any]]) -> None:
+    data: dict[str, Any] = {
+        "what": "pymust two-way beam figures (benchmarks/physics_reference.py's docstring)",
+        "command": COMMAND,
+        "pymust_version": importlib.metadata.version("pymust"),
+        "depths_mm": list(DEPTHS_MM),
+        "method": {
+            "two_way": "square of pfield's one-way RMS pressure (same transmit and receive "
+            "aperture, transmit focused at the depth), FWHM through the focus",
+            "aperture": "elements within depth / (2 F#) of the scanline, at most "
+            "active_elements; F# from the element directivity (0.71 at the edge)",
+            "axial": "envelope FWHM of getpulse(param, 2) times c / 2",
+            "psf": "one scatterer through simus, rf2iq (low-pass at fc), dasmtx along the "
+            "scanline (the same f-number); FWHMs of |I/Q|",
+            "frequency_step": FREQUENCY_STEP,
+            "speed_m_s": SPEED_M_S,
+        },
+        "probes": records,
+    }
+    if STORED.exists():
+        old = json.loads(STORED.read_text())
+        old["probes"].update(records)
+        data["probes"] = {k: old["probes"][k] for k in PROBES if k in old["probes"]}
+    STORED.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(data, indent=1, ensure_ascii=False)
+    # Lists of figures on one line each (they hold no brackets, braces or commas in strings).
+    text = re.sub(
+        r"\[\s*([^\[\]{}]*?)\s*\]",
+        lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]",
+        text,
+    )
+    STORED.write_text(text + "\n")
+
+
+# ------------------------------------------------------------------ printing
+
+
+def _num(v: float | None) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def _ratio(t: float, r: float) -> float:
+    return t / r if np.isfinite(t) and np.isfinite(r) and r > 0 else float("nan")
+
+
+def print_table(case: ProbeCase, rec: dict[str, Any], twin: dict[str, list[float]]) -> tuple:
+    """Print one probe's table; returns (ratios, level differences)."""
+    a, im = case.array, case.imaging
+    ref = rec["figures"]
+    print(
+        f"\n{case.name}: {case.description}. Array: {a.f_mhz:g} MHz, {a.elements} elements "
+        f"at {a.pitch_mm:g} mm pitch (kerf {a.kerf_mm:g} mm), {a.active_elements} active, "
+        f"{a.bandwidth_pct:g} % bandwidth, elevation aperture {a.elevation_aperture_mm:g} mm, "
+        f"lens focus {a.elevation_focus_mm:g} mm; transmit = receive aperture at "
+        f"F# {rec['receive_fnumber']:.2f} (≤ {a.active_elements} elements), c {a.speed_m_s:g} m/s."
+        f"\n  sim_us: lateral {im.lateral_fwhm_mm:g} mm, axial {im.axial_fwhm_mm:g} mm, slice "
+        f"{im.slice_thickness_mm:g} mm at the focus, side lobe {im.side_lobe_db} dB, "
+        f"ring-down {im.ring_down_cycles:g} cycles."
+    )
+    head = (
+        f"{'depth':>5} {'el':>3} | {'lateral FWHM mm':^19} | {'axial FWHM mm':^19} | "
+        f"{'elevation FWHM mm':^19} | {'side lobe dB':^19} | {'side lobe at mm':^19}"
+    )
+    sub = f"{'mm':>5} {'':>3} |" + f" {'ref':>5} {'twin':>5} {'ratio':>5} |" * 3
+    sub += f" {'ref':>5} {'twin':>5} {'Δ dB':>5} |" + f" {'ref':>5} {'twin':>5} {'ratio':>5}"
+    print(head)
+    print(sub)
+    ratios: list[float] = []
+    levels: list[float] = []
+    for i, depth in enumerate(DEPTHS_MM):
+        cells = []
+        for key in ("lateral_fwhm_mm", "axial_fwhm_mm", "elevation_fwhm_mm"):
+            r, t = _num(ref[key][i]), twin[key][i]
+            q = _ratio(t, r)
+            ratios.append(q)
+            cells.append(f" {r:5.3f} {t:5.3f} {q:5.2f} |")
+        shoulder = "s" if ref["side_lobe_kind"][i] == "shoulder" else " "
+        r, t = _num(ref["side_lobe_db"][i]), twin["side_lobe_db"][i]
+        levels.append(t - r)
+        cells.append(f" {r:5.1f}{shoulder}{t:5.1f} {t - r:+5.1f} |")
+        r, t = _num(ref["side_lobe_mm"][i]), twin["side_lobe_mm"][i]
+        q = _ratio(t, r)
+        ratios.append(q)
+        cells.append(f" {r:5.3f} {t:5.3f} {q:5.2f}")
+        ap = ref["aperture_elements"][i]
+        print(f"{depth:5g} {ap:3d} |" + "".join(cells))
+    print(
+        "  (el = elements in the transmit/receive aperture; ratio = twin / reference; "
+        "s = the reference's side lobe is a shoulder, the bandwidth filled its null)"
+    )
+    psf = rec["psf"]
+    print(
+        "  point-target PSF (simus + focused-transmit DAS, |I/Q|) vs the beam table's "
+        "reference (field) and sim_us:"
+    )
+    print(
+        f"  {'depth':>5} | {'lateral FWHM mm':^25} | {'axial FWHM mm':^25} | "
+        f"{'side lobe dB / mm':^17}"
+    )
+    print(
+        f"  {'mm':>5} |"
+        + f" {'psf':>5} {'field':>5} {'twin':>5} {'ratio':>5} |" * 2
+        + f" {'psf':>7} {'at':>5}"
+    )
+    for j, depth in enumerate(psf["depths_mm"]):
+        i = DEPTHS_MM.index(depth)
+        cells = []
+        for key in ("lateral_fwhm_mm", "axial_fwhm_mm"):
+            r, f, t = _num(psf[key][j]), _num(ref[key][i]), twin[key][i]
+            q = _ratio(t, r)
+            ratios.append(q)
+            cells.append(f" {r:5.3f} {f:5.3f} {t:5.3f} {q:5.2f} |")
+        shoulder = "s" if psf["side_lobe_kind"][j] == "shoulder" else " "
+        level, at = _num(psf["side_lobe_db"][j]), _num(psf["side_lobe_mm"][j])
+        cells.append(f" {level:6.1f}{shoulder} {at:5.3f}")
+        print(f"  {depth:5g} |" + "".join(cells))
+    if "elevation_fwhm_full_aperture_mm" in rec:
+        full = rec["elevation_fwhm_full_aperture_mm"]
+        issue = rec["issue_elevation_fwhm_mm"]
+        print("  elevation FWHM with all 64 elements at every depth (the issue's setting):")
+        print("    depth mm     " + " ".join(f"{d:5g}" for d in DEPTHS_MM))
+        print("    pymust here  " + " ".join(f"{v:5.2f}" for v in full))
+        print("    issue quotes " + " ".join(f"{v:5.2f}" for v in issue))
+        print(
+            "    here / issue "
+            + " ".join(f"{f / q:5.2f}" for f, q in zip(full, issue, strict=True))
+        )
+    return ratios, levels
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description="sim_us's beam against pymust (issue 35)",
+        epilog="Details: the module docstring.",
+    )
+    parser.add_argument("--probe", choices=["paper", "linear75", "all"], default="all")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--write", action="store_true", help=f"store the reference in {STORED}")
+    mode.add_argument("--stored", action="store_true", help="print from the stored reference")
+    args = parser.parse_args()
+    names = list(PROBES) if args.probe == "all" else [args.probe]
+    t_start = time.perf_counter()
+    stored = json.loads(STORED.read_text()) if args.stored else None
+    records: dict[str, dict[str, Any]] = {}
+    all_ratios: list[float] = []
+    all_levels: list[float] = []
+    for name in names:
+        case = PROBES[name]()
+        if stored is not None:
+            rec = stored["probes"][name]
+        else:
+            rec = probe_record(case, reference_figures(case))
+        records[name] = rec
+        t0 = time.perf_counter()
+        twin = twin_figures(case.imaging)
+        print(f"  sim_us {name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        ratios, levels = print_table(case, rec, twin)
+        all_ratios += ratios
+        all_levels += levels
+    if args.write:
+        write_stored(records)
+        print(f"\nwrote {STORED.relative_to(ROOT)}")
+    if stored is None:
+        source = f"computed with pymust {importlib.metadata.version('pymust')}"
+    else:
+        source = f"read from {STORED.relative_to(ROOT)} (pymust {stored['pymust_version']})"
+    print(f"\nreference {source}; time {time.perf_counter() - t_start:.0f} s")
+    finite = [max(q, 1 / q) for q in all_ratios if np.isfinite(q) and q > 0]
+    lv = [abs(v) for v in all_levels if np.isfinite(v)]
+    print(f"worst_level_db={max(lv):.1f}" if lv else "worst_level_db=nan")
+    print(f"worst_ratio={max(finite):.2f}" if finite else "worst_ratio=nan")
+
+
+if __name__ == "__main__":
+    main()
