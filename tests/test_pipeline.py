@@ -93,6 +93,7 @@ def test_folds_against_the_true_centres_measure_the_method_alone(two_spheres_wit
     assert np.allclose(single.result.T_ee_us, folds.results[0].T_ee_us, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_the_method_runs_from_calib_alone(two_spheres_with_touches, tmp_path):
     """A script with its own data needs calib alone: the whole method (touch
     kinematics, single-marker calibration, bounds, folds) from a dataset directory and
