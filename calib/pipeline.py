@@ -372,8 +372,6 @@ class DatasetCalibration:
     localizer : the localizer's settings as run (the search depth the dataset recorded)
     calibrations : the single- and three-marker calibrations
     bounds : "single" / "three" → the 95 % bounds and their declared terms
-    dh_table : the refined DH model (None: the controller's own, no touches)
-    kinematic_rms_mm : RMS of the DH refinement's touch residuals (0 without touches)
     refinement, reference : the touch-based steps' results (None without touches)
     dh_from : the names of the datasets the DH model was refined from
     folds : the paper's folds against the touch reference (None: no touches, or one
@@ -386,13 +384,21 @@ class DatasetCalibration:
     localizer: LocalizerConfig
     calibrations: MarkerCalibrations
     bounds: dict[str, tuple[Bound95, UncertaintyInputs]]
-    dh_table: DHTable | None = None
-    kinematic_rms_mm: float = 0.0
     refinement: DHRefinement | None = None
     reference: TouchReference | None = None
     dh_from: tuple[str, ...] = ()
     folds: FoldRun | None = None
     seconds_dh: float = 0.0
+
+    @property
+    def dh_table(self) -> DHTable | None:
+        """The refined DH model (None: the controller's own, no touches)."""
+        return None if self.refinement is None else self.refinement.table
+
+    @property
+    def kinematic_rms_mm(self) -> float:
+        """RMS of the DH refinement's touch residuals (0 without touches: none known)."""
+        return _kinematic_rms_mm(self.refinement)
 
 
 def calibrate_dataset(
@@ -430,21 +436,23 @@ def calibrate_dataset(
     localizer = dataclasses.replace(settings.localizer, expected_depth_mm=info.target_depth_mm)
     scale = axial_scale(info)
     cad = {k: v for k, v in info.landmarks.items() if k.startswith("sphere_")}
-    kinematics: dict[str, Any] = {}
+    refinement = reference = None
+    sources: tuple[str, ...] = ()
+    seconds_dh = 0.0
     if dataset.touches:
         t1 = time.perf_counter()
-        kinematics = _touch_steps(dataset, info, settings, dh_from)
+        refinement, reference, sources = _touch_steps(dataset, info, settings, dh_from)
         dataset = Dataset(
             dataset.name,
             tuple(
                 s
                 for t in dataset.targets()
-                for s in with_kinematics(dataset.of(t), kinematics["dh_table"])
+                for s in with_kinematics(dataset.of(t), refinement.table)
             ),
             dataset.meta,
             dataset.touches,
         )
-        kinematics["seconds_dh"] = time.perf_counter() - t1
+        seconds_dh = time.perf_counter() - t1
     inputs = MethodInputs(
         info.sphere_radius_mm * 1e-3,
         cad,
@@ -465,7 +473,7 @@ def calibrate_dataset(
         medium=info.medium,
         temperature_c=info.temperature_c,
         assumed_speed_m_s=info.assumed_speed_m_s,
-        kinematic_residual_rms_mm=kinematics.get("kinematic_rms_mm", 0.0),
+        kinematic_residual_rms_mm=_kinematic_rms_mm(refinement),
         radius_tolerance_mm=settings.radius_tolerance_mm,
         axial_fwhm_mm=settings.axial_fwhm_mm,
     )
@@ -485,20 +493,37 @@ def calibrate_dataset(
             declared,
         )
     fold_run = None
-    if dataset.touches and len(cals.targets) >= 2:
+    if reference is not None and len(cals.targets) >= 2:
         targets = dataset.targets()
         fold_run = run_folds(
             dataset.name,
             {t: dataset.of(t) for t in targets},
-            kinematics["reference"].reference_points({t: cad[t] for t in targets}),
+            reference.reference_points({t: cad[t] for t in targets}),
             inputs,
         )
-    return DatasetCalibration(dataset, scale, localizer, cals, bounds, folds=fold_run, **kinematics)
+    return DatasetCalibration(
+        dataset,
+        scale,
+        localizer,
+        cals,
+        bounds,
+        refinement=refinement,
+        reference=reference,
+        dh_from=sources,
+        folds=fold_run,
+        seconds_dh=seconds_dh,
+    )
+
+
+def _kinematic_rms_mm(refinement: DHRefinement | None) -> float:
+    """The DH refinement's touch residual RMS (mm); 0 without one (the controller's own
+    model: no residual known)."""
+    return 0.0 if refinement is None else residual_rms_mm(refinement.residuals_mm)
 
 
 def _touch_steps(
     dataset: Dataset, info: AcquisitionInfo, settings: MethodSettings, dh_from: Sequence[Dataset]
-) -> dict[str, Any]:
+) -> tuple[DHRefinement, TouchReference, tuple[str, ...]]:
     """:func:`touch_kinematics` on recorded data: DH corrections from the touches of
     ``dh_from`` (the paper's leave-one-dataset-out; this dataset's own when empty), then
     this dataset's reference with that model frozen."""
@@ -521,10 +546,4 @@ def _touch_steps(
         tip_cad=tip,
         evaluation=settings.evaluation,
     )
-    return {
-        "dh_table": refinement.table,
-        "kinematic_rms_mm": residual_rms_mm(refinement.residuals_mm),
-        "refinement": refinement,
-        "reference": reference,
-        "dh_from": tuple(d.name for d in sources),
-    }
+    return refinement, reference, tuple(d.name for d in sources)
