@@ -110,6 +110,18 @@ class MethodSettings:
     axial_fwhm_mm: float = 0.0
     nominal_dh: DHTable | None = None
 
+    def alternation(
+        self, *, axial_scale: float, localizer: LocalizerConfig | None = None
+    ) -> AlternationSettings:
+        """How the alternation runs with these settings on images of ``axial_scale``
+        (``localizer``: these settings' localizer, or one adapted to the dataset)."""
+        return AlternationSettings(
+            self.localizer if localizer is None else localizer,
+            axial_scale=axial_scale,
+            max_iterations=self.max_alternations,
+            layout_sigma_mm=self.layout_sigma_mm,
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class MethodInputs:
@@ -457,12 +469,7 @@ def calibrate_dataset(
         info.sphere_radius_mm * 1e-3,
         cad,
         info.T_ee_us_coarse,
-        AlternationSettings(
-            localizer,
-            axial_scale=scale,
-            max_iterations=settings.max_alternations,
-            layout_sigma_mm=settings.layout_sigma_mm,
-        ),
+        settings.alternation(axial_scale=scale, localizer=localizer),
     )
     cals = calibrate_markers(dataset, inputs, markers=markers)
     # The bounds' declared terms: the settings' print specification of the phantom, the

@@ -8,7 +8,6 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.alternation import AlternationSettings
 from calib.pipeline import MethodInputs, MethodSettings, declared_uncertainty
 from calib.sound import speed_ratio
 from calib.uncertainty import UncertaintyInputs, image_grid
@@ -70,12 +69,7 @@ def method_inputs(
         scenario.phantom.sphere_radius_mm * 1e-3,
         cad_centres,
         T_coarse,
-        AlternationSettings(
-            scenario.localization,
-            axial_scale=axial_scale(scenario),
-            max_iterations=scenario.calibration.max_alternations,
-            layout_sigma_mm=layout_sigma_mm(scenario),
-        ),
+        method_settings(scenario).alternation(axial_scale=axial_scale(scenario)),
     )
 
 
