@@ -176,6 +176,9 @@ class PhantomScan:
     target_depth: float  # metres below the transducer face at the taught pose
     n_sweeps: int
     frames_without_two_boundaries: int
+    # Of those, the frames with no echo at all (nothing of the phantom in the section, the
+    # noise below the display): no extraction could find a boundary there.
+    frames_without_echo: int
     T_base_phantom_true: Array  # truth: kept apart, for the without-ICP distances
     timing_s: dict[str, float]
     recording_part: Path | None = None

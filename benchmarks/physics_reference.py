@@ -115,7 +115,12 @@ from scipy.signal import hilbert  # noqa: E402
 
 from bench.config.scenario import load_scenario  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
-from sim_us.beam import SIDE_LOBE_OFFSET_PER_FWHM, slice_thickness  # noqa: E402
+from sim_us.beam import (  # noqa: E402
+    SIDE_LOBE_OFFSET_PER_FWHM,
+    axial_fwhm_m,
+    lateral_fwhm_m,
+    slice_thickness,
+)
 from sim_us.raycast import AcousticScene, ScenePart  # noqa: E402
 from sim_us.simulator import BmodeSimulator  # noqa: E402
 
@@ -171,57 +176,47 @@ class ProbeCase:
     array: ArraySpec
 
 
-def paper_probe() -> ProbeCase:
-    """The paper probe exactly as ``scenarios/paper.yaml`` configures it; the array's
-    element count, pitch and bandwidth from the issue (the 38 mm face at 0.2 mm pitch)."""
-    imaging = load_scenario(PAPER_SCENARIO, check_reach=False).imaging
-    array = ArraySpec(
+def array_of(imaging: ProbeConfig) -> ArraySpec:
+    """The transducer pymust models: exactly the datasheet figures sim_us is given."""
+    return ArraySpec(
         f_mhz=imaging.f_mhz,
-        elements=round(imaging.width_mm / 0.2),
-        active_elements=64,
-        pitch_mm=0.2,
-        kerf_mm=0.02,
-        bandwidth_pct=65.0,
+        elements=round(imaging.width_mm / imaging.pitch_mm),
+        active_elements=imaging.active_elements,
+        pitch_mm=imaging.pitch_mm,
+        kerf_mm=imaging.kerf_mm,
+        bandwidth_pct=imaging.bandwidth_pct,
         elevation_aperture_mm=imaging.elevation_aperture_mm,
         elevation_focus_mm=imaging.elevation_focus_mm,
+        speed_m_s=imaging.assumed_speed_m_s,
+        tx_cycles=imaging.pulse_cycles,
     )
-    return ProbeCase("paper", "scenarios/paper.yaml's imaging (L8-18i-D)", imaging, array)
+
+
+def paper_probe() -> ProbeCase:
+    """The paper probe exactly as ``scenarios/paper.yaml`` configures it."""
+    imaging = load_scenario(PAPER_SCENARIO, check_reach=False).imaging
+    return ProbeCase(
+        "paper", "scenarios/paper.yaml's imaging (L8-18i-D)", imaging, array_of(imaging)
+    )
 
 
 def linear75_probe() -> ProbeCase:
-    """A 7.5 MHz, 38 mm linear array with a 25 mm lens; sim_us's stated widths are the
-    paper probe's scaled as the physics scales them (module docstring)."""
-    array = ArraySpec(
+    """A 7.5 MHz, 38 mm linear array with a 25 mm lens, as sim_us is given it."""
+    imaging = replace(
+        ProbeConfig(),
+        width_mm=38.4,
+        depth_mm=50.0,
         f_mhz=7.5,
-        elements=128,
-        active_elements=64,
+        bandwidth_pct=75.0,
         pitch_mm=0.3,
         kerf_mm=0.03,
-        bandwidth_pct=75.0,
+        active_elements=64,
         elevation_aperture_mm=5.0,
         elevation_focus_mm=25.0,
     )
-    paper = paper_probe()
-    ref, pa = paper.imaging, paper.array
-    wavelengths = pa.f_mhz / array.f_mhz  # λ / λ_paper
-    band = (pa.f_mhz * pa.bandwidth_pct) / (array.f_mhz * array.bandwidth_pct)
-    focusing = (array.elevation_focus_mm / pa.elevation_focus_mm) / (
-        array.elevation_aperture_mm / pa.elevation_aperture_mm
+    return ProbeCase(
+        "linear75", "7.5 MHz, 38 mm linear array, 25 mm lens", imaging, array_of(imaging)
     )
-    imaging = replace(
-        ProbeConfig(),
-        width_mm=38.0,
-        depth_mm=50.0,
-        f_mhz=array.f_mhz,
-        lateral_fwhm_mm=round(ref.lateral_fwhm_mm * wavelengths, 2),
-        axial_fwhm_mm=round(ref.axial_fwhm_mm * band, 2),
-        elevation_aperture_mm=array.elevation_aperture_mm,
-        elevation_focus_mm=array.elevation_focus_mm,
-        slice_thickness_mm=round(ref.slice_thickness_mm * wavelengths * focusing, 2),
-        side_lobe_db=ref.side_lobe_db,
-        ring_down_cycles=ref.ring_down_cycles,
-    )
-    return ProbeCase("linear75", "7.5 MHz, 38 mm linear array, 25 mm lens", imaging, array)
 
 
 PROBES = {"paper": paper_probe, "linear75": linear75_probe}
@@ -494,7 +489,8 @@ def _r(v: float | int | str) -> float | int | str | None:
 def twin_figures(probe: ProbeConfig) -> dict[str, list[float]]:
     """What sim_us draws for ``probe`` at every depth: lateral/axial FWHM and the side
     lobe measured on a rendered wire, the elevation FWHM of its elevation weights."""
-    half_width = SIDE_LOBE_OFFSET_PER_FWHM * probe.lateral_fwhm_mm + 4.0 * probe.lateral_fwhm_mm
+    widest = float(np.max(lateral_fwhm_m(probe, np.array(DEPTHS_MM) * 1e-3))) * 1e3
+    half_width = (SIDE_LOBE_OFFSET_PER_FWHM + 4.0) * widest
     fig: dict[str, list[float]] = {
         k: []
         for k in (
@@ -511,7 +507,7 @@ def twin_figures(probe: ProbeConfig) -> dict[str, list[float]]:
         fine = replace(
             probe,
             width_mm=2.0 * round(half_width, 1),
-            depth_mm=1.06 * depth_mm + 2.0 * probe.axial_fwhm_mm + 1.0,
+            depth_mm=1.06 * depth_mm + 2.0 * axial_fwhm_m(probe) * 1e3 + 1.0,
             pixel_spacing_mm=(FINE_MM, FINE_MM),
             scanline_spacing_mm=FINE_MM,
             pixel_scale_error_pct=(0.0, 0.0),
@@ -588,6 +584,10 @@ def write_stored(records: dict[str, dict[str, Any]]) -> None:
 # ------------------------------------------------------------------ printing
 
 
+def _stated(v: float | None) -> str:
+    return "from the transducer" if v is None else f"stated {v:g} mm"
+
+
 def _num(v: float | None) -> float:
     return float("nan") if v is None else float(v)
 
@@ -606,9 +606,9 @@ def print_table(case: ProbeCase, rec: dict[str, Any], twin: dict[str, list[float
         f"{a.bandwidth_pct:g} % bandwidth, elevation aperture {a.elevation_aperture_mm:g} mm, "
         f"lens focus {a.elevation_focus_mm:g} mm; transmit = receive aperture at "
         f"F# {rec['receive_fnumber']:.2f} (≤ {a.active_elements} elements), c {a.speed_m_s:g} m/s."
-        f"\n  sim_us: lateral {im.lateral_fwhm_mm:g} mm, axial {im.axial_fwhm_mm:g} mm, slice "
-        f"{im.slice_thickness_mm:g} mm at the focus, side lobe {im.side_lobe_db} dB, "
-        f"ring-down {im.ring_down_cycles:g} cycles."
+        f"\n  sim_us: lateral {_stated(im.lateral_fwhm_mm)}, axial "
+        f"{_stated(im.axial_fwhm_mm)}, slice {_stated(im.slice_thickness_mm)}, side lobes "
+        f"{im.side_lobe_db}, ring-down {im.ring_down_cycles:g} cycles."
     )
     head = (
         f"{'depth':>5} {'el':>3} | {'lateral FWHM mm':^19} | {'axial FWHM mm':^19} | "

@@ -28,6 +28,7 @@ from calib import se3  # noqa: E402
 from calib.dh import NOMINAL_TABLES  # noqa: E402
 from calib.protocol import facing_pose, orientation_offsets, rotated_about_target  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
+from sim_us.beam import scanline_step  # noqa: E402
 from sim_us.simulator import BmodeSimulator, Timings  # noqa: E402
 from twin.imager import acoustic_scene  # noqa: E402
 from twin.phantoms import PhantomConfig, build_phantom, build_tank  # noqa: E402
@@ -93,7 +94,8 @@ def main() -> None:
     H, W = probe.image_shape
     print(
         f"paper probe: {H}x{W} px, {probe.elevation_planes} sub-planes, "
-        f"scanlines every {probe.scanline_spacing_mm} mm"
+        f"scanlines every "
+        f"{scanline_step(probe, probe.spacing_m[0]) * probe.pixel_spacing_mm[0]:g} mm"
     )
     print("gel (speckle everywhere):")
     gel = BmodeSimulator(scene, probe, MediumConfig(kind="gel"), speckle_key=1)

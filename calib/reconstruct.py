@@ -4,7 +4,8 @@ Reconstruction of Different Phantoms").
 Per B-mode frame (the central frames of each sweep):
 
 1. **Otsu threshold** (scikit-image) → binary mask, after a light blur about one speckle
-   grain wide. Otsu picks the threshold that best splits the frame's own grey-level
+   grain wide; the mask closed over about two grains (a rough face's echo is granular).
+   Otsu picks the threshold that best splits the frame's own grey-level
    histogram into two classes: like the sphere localizer's per-frame mean, it is derived
    from the image, never set by hand.
 2. **Two bright boundaries**: a cross-section near the cone's apex or across the prism's
@@ -31,6 +32,7 @@ import trimesh
 from numpy.typing import ArrayLike, NDArray
 from skimage.filters import gaussian, threshold_otsu
 from skimage.measure import LineModelND, label
+from skimage.morphology import isotropic_closing
 
 from . import se3
 from .image import pixel_to_us
@@ -176,6 +178,7 @@ def extract_boundaries(
     search_mm: float = 0.4,
     min_region_mm2: float = 0.3,
     smooth_mm: float = 0.2,
+    close_mm: float = 0.4,
     min_length_mm: float = 5.0,
     region_share: float = 0.25,
     min_coverage: float = 0.8,
@@ -196,6 +199,9 @@ def extract_boundaries(
     search_mm : per column, the sample is the brightest pixel within ± this of the line
     min_region_mm2 : connected bright regions smaller than this are speckle, not surface
     smooth_mm : Gaussian blur (σ) before the threshold, about a speckle grain
+    close_mm : the threshold's mask is closed over a disc of this radius: about two
+        speckle grains of a surface echo (a rough or obliquely met face draws a granular,
+        broken line whose grains are ≈ 0.2-0.3 mm along it for a 13 MHz probe)
     min_length_mm : a boundary's inliers span at least this length along its line
     region_share : candidate regions are the mask's connected regions at least this
         share of the largest one's area
@@ -236,6 +242,13 @@ def extract_boundaries(
     mask = coarse > threshold_otsu(coarse)
     if mask.mean() > max_bright_share:
         return []
+    # A granular surface echo (speckle along a rough or obliquely met face) leaves its
+    # mask broken into grains with dark gaps of about a grain between them: closing the
+    # mask over a disc of radius ``close_mm`` joins them into one region along the
+    # surface, without merging separate bands further apart than the disc's diameter.
+    radius = round(close_mm / (b * pixel_mm))
+    if radius >= 1:
+        mask = isotropic_closing(mask, radius)
     # Candidate regions: the mask's large connected regions. A boundary crossing the
     # frame is one long region; the speckle left above the threshold is many small ones
     # (isolated specks below ``min_region_mm2`` are never surfaces).

@@ -1,10 +1,13 @@
 """The beam: point spread function and elevation profile (slice thickness vs depth).
 
-Lateral and axial resolution are the configured FWHM of the envelope PSF (Gaussian,
-σ = FWHM / 2.355). The elevation profile is Gaussian with a depth-dependent FWHM, the
-slice thickness ``ST(y) = sqrt(ST_f² + (H · |y − F| / F)²)``: the aperture height ``H`` at
-the face, ``ST_f`` at the focus ``F``, growing linearly past it (geometric beam). Laterally
-the first side lobe of the aperture sits at a fixed multiple of the lateral FWHM.
+By default every width follows from the transducer (:mod:`sim_us.transducer`): the axial
+FWHM from the pulse, the lateral profile (main lobe and side lobes) per depth from the
+focused aperture, the slice thickness per depth from the lensed element height. A probe
+measured on a wire can state its widths instead: a Gaussian PSF (σ = FWHM / 2.355) of the
+stated lateral and axial FWHM, and the geometric slice ``ST(y) = sqrt(ST_f² + (H · |y − F|
+/ F)²)`` (the aperture height ``H`` at the face, ``ST_f`` at the focus ``F``). The
+elevation profile is Gaussian with the depth's FWHM either way. Laterally the first side
+lobe of a two-way sinc² beam sits at a fixed multiple of its FWHM.
 """
 
 from __future__ import annotations
@@ -13,12 +16,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .probe import ProbeConfig
+from .transducer import BeamTables, beam_tables, transducer
+from .transducer import axial_fwhm_m as pulse_axial_fwhm_m
 
 __all__ = [
     "FWHM_PER_SIGMA",
     "SIDE_LOBE_OFFSET_PER_FWHM",
+    "SURFACE_KERNEL_FLOOR",
+    "axial_fwhm_m",
+    "beam_of",
     "elevation_offsets",
     "elevation_weights",
+    "lateral_amplitude",
+    "lateral_fwhm_m",
+    "scanline_step",
     "slab_edge_shares",
     "slice_thickness",
 ]
@@ -38,10 +49,42 @@ SIDE_LOBE_OFFSET_PER_FWHM = 4.493409457909064 / (2.0 * 1.3915573782515103)
 _COVERAGE = 1.25
 
 
+def beam_of(probe: ProbeConfig) -> BeamTables:
+    """The transducer's beam tables over the probe's depth range (cached): the imaging
+    depth with room for a scale error (±10 %) and an image origin offset (≤ 5 mm)."""
+    return beam_tables(transducer(probe), round(probe.depth_mm * 1.12e-3 + 5e-3, 4))
+
+
+def axial_fwhm_m(probe: ProbeConfig) -> float:
+    """Axial FWHM (m): stated, or the pulse's."""
+    if probe.axial_fwhm_mm is not None:
+        return probe.axial_fwhm_mm * 1e-3
+    return pulse_axial_fwhm_m(transducer(probe))
+
+
+def lateral_fwhm_m(probe: ProbeConfig, depth_m: NDArray[np.float64] | float) -> NDArray[np.float64]:
+    """Two-way lateral FWHM (m) at depth(s): stated, or the focused aperture's."""
+    if probe.lateral_fwhm_mm is not None:
+        return np.full(np.shape(depth_m), probe.lateral_fwhm_mm * 1e-3)
+    return beam_of(probe).at("lateral_fwhm", depth_m)
+
+
+def scanline_step(probe: ProbeConfig, pixel_m: float) -> float:
+    """Columns between scanlines (≥ 1) at a column spacing ``pixel_m``: the stated
+    spacing, or half the narrowest lateral FWHM over the image, in whole columns."""
+    if probe.scanline_spacing_mm is not None:
+        return max(1.0, probe.scanline_spacing_mm * 1e-3 / pixel_m)
+    narrowest = float(np.min(lateral_fwhm_m(probe, np.linspace(0.0, probe.depth_mm * 1e-3, 41))))
+    return float(max(1, int(np.floor(narrowest / 2.0 / pixel_m + 1e-9))))
+
+
 def slice_thickness(
     probe: ProbeConfig, depth_m: NDArray[np.float64] | float
 ) -> NDArray[np.float64]:
-    """Elevation FWHM (m) at depth(s) ``depth_m``."""
+    """Elevation FWHM (m) at depth(s) ``depth_m``: the geometric beam of a stated slice
+    thickness, or the lensed aperture's diffraction."""
+    if probe.slice_thickness_mm is None:
+        return beam_of(probe).at("elevation_fwhm", depth_m)
     H = probe.elevation_aperture_mm * 1e-3
     F = probe.elevation_focus_mm * 1e-3
     st_f = probe.slice_thickness_mm * 1e-3
@@ -59,7 +102,7 @@ def elevation_offsets(
     n = probe.elevation_planes
     if n == 1:
         return np.zeros(1), np.ones(1)
-    st_max = float(np.max(slice_thickness(probe, np.array([0.0, max_depth_m]))))
+    st_max = float(np.max(slice_thickness(probe, np.linspace(0.0, max_depth_m, 81))))
     half = _COVERAGE * st_max / 2
     # Symmetric, denser near the centre: z = half · sinh(a u) / sinh(a), u uniform in [-1, 1].
     # a = 3 puts the first planes within ≈ 0.3 mm of the centre for a 4 mm aperture, so the
@@ -109,3 +152,64 @@ def slab_edge_shares(
     lo = np.exp(-8.0 * np.log(2.0) * (z - dz / 2)[:, None] ** 2 / st**2)
     hi = np.exp(-8.0 * np.log(2.0) * (z + dz / 2)[:, None] ** 2 / st**2)
     return lo / np.maximum(lo + hi, 1e-300)
+
+
+# Lateral kernels of surface echoes are cut where the two-way amplitude stays below this
+# for good (−60 dB: the tail of the brightest echo, itself ≈ −10 dB, falls below a 60 dB
+# display).
+SURFACE_KERNEL_FLOOR = 1e-3
+
+
+def lateral_amplitude(
+    probe: ProbeConfig,
+    depths_m: NDArray[np.float64],
+    spacing_m: float,
+    floor: float = SURFACE_KERNEL_FLOOR,
+) -> NDArray[np.float64]:
+    """Two-way lateral amplitude PSF (rows, taps), peak 1, sampled every ``spacing_m``
+    (the drawn column spacing) for rows at ``depths_m``; centred, symmetric, cut where every
+    row stays below ``floor`` of its peak.
+
+    The array's own profile where the lateral beam and its side lobes are derived
+    (``side_lobe_db: array``); otherwise a Gaussian of the depth's FWHM (stated or
+    derived) with, when side lobes are on, copies at ± :data:`SIDE_LOBE_OFFSET_PER_FWHM`
+    × FWHM at the stated level or the array's. The copies are drawn with the main lobe's
+    shape (a side lobe's real width is about half the main lobe's null-to-null width; the
+    level at its peak is what matters for a detector).
+    """
+    depths = np.asarray(depths_m, float)
+    fwhm = lateral_fwhm_m(probe, depths)
+    own = probe.lateral_fwhm_mm is None and probe.side_lobe_db == "array"
+    derived = probe.lateral_fwhm_mm is None or probe.side_lobe_db == "array"
+    tables = beam_of(probe) if derived else None
+    if own:
+        assert tables is not None
+        radius = int(np.ceil(tables.lateral_x[-1] / spacing_m))
+        x = np.arange(-radius, radius + 1) * spacing_m
+        k = tables.lateral_profile(depths, x)
+    else:
+        sigma = fwhm / FWHM_PER_SIGMA  # amplitude σ (m) per row
+        if probe.side_lobe_db is None:
+            level = np.zeros(len(depths))
+        elif probe.side_lobe_db == "array":
+            assert tables is not None
+            level = 10.0 ** (np.nan_to_num(tables.at("side_lobe_db", depths), nan=-300.0) / 20.0)
+        else:
+            level = np.full(len(depths), 10.0 ** (float(probe.side_lobe_db) / 20.0))
+        offset = SIDE_LOBE_OFFSET_PER_FWHM * fwhm
+        reach = np.max(np.where(level > 0, offset, 0.0) + 4.0 * sigma)
+        radius = max(int(np.ceil(reach / spacing_m)), 1)
+        x = np.arange(-radius, radius + 1) * spacing_m
+        s = sigma[:, None]
+        copies = np.exp(-0.5 * ((x - offset[:, None]) / s) ** 2) + np.exp(
+            -0.5 * ((x + offset[:, None]) / s) ** 2
+        )
+        # The copies add in intensity (no cross term with the main lobe's Gaussian tail,
+        # which stands for no real aperture's): |h|² = g² + level² · copies².
+        # The Gaussian is cut at 3 σ of its intensity, as every Gaussian kernel here.
+        main = np.where(np.abs(x) <= 3.0 * s / np.sqrt(2.0), np.exp(-((x / s) ** 2)), 0.0)
+        k = np.sqrt(main + (level[:, None] * copies) ** 2)
+    # Cut the taps no row needs (all below the floor from there out).
+    need = np.flatnonzero(np.max(k, axis=0) >= floor)
+    cut = int(max(abs(need[0] - radius), abs(need[-1] - radius))) if len(need) else 0
+    return k[:, radius - cut : radius + cut + 1]

@@ -24,16 +24,76 @@ class ProbeConfig:
         metadata={"doc": "Output pixel spacing (lateral sx, axial sy).", "gt": 0.005, "le": 2},
     )
     f_mhz: float = field(default=13.0, metadata={"doc": "Centre frequency.", "gt": 0.5, "le": 60})
-    lateral_fwhm_mm: float = field(
-        default=0.7, metadata={"doc": "Lateral resolution (PSF FWHM).", "gt": 0, "le": 10}
+    bandwidth_pct: float = field(
+        default=65.0,
+        metadata={
+            "doc": "Pulse-echo -6 dB fractional bandwidth (datasheet): sets the pulse, "
+            "hence the axial resolution.",
+            "gt": 5,
+            "lt": 200,
+        },
     )
-    axial_fwhm_mm: float = field(
-        default=0.35, metadata={"doc": "Axial resolution (PSF FWHM).", "gt": 0, "le": 10}
+    pulse_cycles: float = field(
+        default=1.0,
+        metadata={"doc": "Cycles of the transmit excitation (a sine at f_mhz).", "gt": 0, "le": 20},
+    )
+    pitch_mm: float = field(
+        default=0.2,
+        metadata={"doc": "Element pitch (datasheet).", "gt": 0.01, "le": 2},
+    )
+    kerf_mm: float = field(
+        default=0.02,
+        metadata={
+            "doc": "Gap between elements; the element width is pitch - kerf (its "
+            "directivity sets the f-number).",
+            "ge": 0,
+            "lt": 1,
+        },
+    )
+    active_elements: int = field(
+        default=64,
+        metadata={
+            "doc": "Elements that fire and receive for one scanline at most (the "
+            "scanner's channel count): caps the aperture, hence the lateral resolution "
+            "at depth.",
+            "ge": 2,
+            "le": 1024,
+        },
+    )
+    f_number: float | None = field(
+        default=None,
+        metadata={
+            "doc": "Transmit/receive f-number (depth / aperture) of the scanner; null = "
+            "where the element's directivity falls to 0.71 (2.3 for 0.18 mm elements at "
+            "13 MHz).",
+            "gt": 0.3,
+            "le": 20,
+        },
+    )
+    lateral_fwhm_mm: float | None = field(
+        default=None,
+        metadata={
+            "doc": "Stated lateral resolution (two-way PSF FWHM) for a probe measured on "
+            "a wire: a Gaussian beam of this width at every depth. null = the array's "
+            "own beam from the transducer figures above (depth-dependent, side lobes "
+            "included; sim_us.transducer).",
+            "gt": 0,
+            "le": 10,
+        },
+    )
+    axial_fwhm_mm: float | None = field(
+        default=None,
+        metadata={
+            "doc": "Stated axial resolution (PSF FWHM); null = the pulse's envelope from "
+            "f_mhz, bandwidth_pct and pulse_cycles.",
+            "gt": 0,
+            "le": 10,
+        },
     )
     elevation_aperture_mm: float = field(
         default=4.0,
         metadata={
-            "doc": "Elevation aperture height: the slice thickness at the face.",
+            "doc": "Elevation aperture height (element height, datasheet).",
             "gt": 0.1,
             "le": 30,
         },
@@ -41,15 +101,23 @@ class ProbeConfig:
     elevation_focus_mm: float = field(
         default=18.0, metadata={"doc": "Depth of the elevation (lens) focus.", "gt": 1, "le": 200}
     )
-    slice_thickness_mm: float = field(
-        default=0.7,
-        metadata={"doc": "Slice thickness (elevation FWHM) at the focus.", "gt": 0.05, "le": 10},
-    )
-    scanline_spacing_mm: float = field(
-        default=0.2,
+    slice_thickness_mm: float | None = field(
+        default=None,
         metadata={
-            "doc": "Spacing of the simulated scanlines (rounded to whole pixels; the "
-            "lateral PSF fills in between).",
+            "doc": "Stated slice thickness (elevation FWHM) at the lens focus: a geometric "
+            "beam, sqrt(ST² + (H |y - F| / F)²). null = the lensed aperture's diffraction "
+            "(thinnest in front of the focus for a weak lens; sim_us.transducer).",
+            "gt": 0.05,
+            "le": 10,
+        },
+    )
+    scanline_spacing_mm: float | None = field(
+        default=None,
+        metadata={
+            "doc": "Spacing of the scanlines (rounded to whole pixels; the display "
+            "interpolates between them). null = half the narrowest lateral FWHM in the "
+            "image, down to whole pixels (the beam's Nyquist spacing: a line every 0.1 mm "
+            "for the paper probe at 0.1 mm pixels).",
             "gt": 0.005,
             "le": 2,
         },
@@ -87,9 +155,12 @@ class ProbeConfig:
         },
     )
     noise_db: float = field(
-        default=-55.0,
+        default=-90.0,
         metadata={
-            "doc": "Electronic noise (rms) relative to the echo of a perfect reflector.",
+            "doc": "Electronic noise (rms) at the receiver input, before gain and TGC, "
+            "relative to the echo of a perfect reflector. -90: a 13 MHz probe shows "
+            "tissue speckle (-38 dB) through 0.5 dB/cm/MHz to ≈ 4 cm, as real ones do "
+            "(4-6 cm); in water it lies below the display unless the gain is raised.",
             "ge": -200,
             "le": 0,
         },
@@ -112,25 +183,27 @@ class ProbeConfig:
         },
     )
     surface_speckle: bool = field(
-        default=False,
+        default=True,
         metadata={
             "doc": "Draw the incoherent share of each surface echo (what a rough or "
             "obliquely met surface returns besides its specular reflection) as speckle: "
             "random-phase scatterers on the surface, summed as waves and blurred by the "
             "PSF, so an oblique face shows a granular, broken line as on a real scanner; the "
             "mirror part of the echo stays smooth. Its mean brightness is the smooth "
-            "model's. Off by default: the boundary extraction and the threshold-free "
-            "localizer are not yet robust to it (see docs/paper-comparison.md)."
+            "model's. On by default: the phantoms are printed (layer lines, roughness); "
+            "off draws every surface echo smooth, a lathe-turned part's."
         },
     )
-    side_lobe_db: float | None = field(
-        default=None,
+    side_lobe_db: float | Literal["array"] | None = field(
+        default="array",
         metadata={
-            "doc": "Lateral side lobes, two-way level of the first side lobe relative to the "
-            "main lobe (dB); null = off. Copies of every echo at ±1.43 λz/D, i.e. 1.61 × "
-            "the lateral FWHM of the two-way sinc² beam. Plausible: -26.5 (rectangular "
-            "aperture, -13.3 dB one way, doubled two way) to below -60 (apodized); "
-            "-35 to -50 for real arrays with element errors (array beam theory).",
+            "doc": "Lateral side lobes. 'array': the array's own (the derived beam's "
+            "profile; with a stated lateral_fwhm_mm, copies at the level the array gives). "
+            "A number: copies of every echo at the first side lobe's offset (1.61 × the "
+            "lateral FWHM of a two-way sinc² beam) at this two-way level relative to the "
+            "main lobe (dB): -26.5 for a narrow-band rectangular aperture, ≈ -33 "
+            "broadband (the reference), below -40 apodized. null = none (the main lobe "
+            "alone).",
             "ge": -100,
             "le": -6,
         },

@@ -31,9 +31,12 @@ from calib.image import pixel_to_us, us_to_pixel
 
 from .beam import (
     FWHM_PER_SIGMA,
-    SIDE_LOBE_OFFSET_PER_FWHM,
+    axial_fwhm_m,
     elevation_offsets,
     elevation_weights,
+    lateral_amplitude,
+    lateral_fwhm_m,
+    scanline_step,
     slab_edge_shares,
     slice_thickness,
 )
@@ -61,6 +64,9 @@ _SPECKLE_COVERAGE = 1.5
 # ... on lattice lines at least this many to a slice thickness (every line of the fine
 # lattice where the slice is thinnest, every 2nd, 4th, ... where it is thicker).
 _SPECKLE_LINES_PER_SLICE = 3.0
+# The speckle's lateral PSF is cut where it stays below this (−40 dB: its tail holds
+# < 0.1 % of the speckle's energy).
+_SPECKLE_KERNEL_FLOOR = 1e-2
 # PSF kernels are truncated at this many σ.
 _TRUNCATE = 3.0
 # Continuous elevation integration: a surface steeper than this in elevation (depth change
@@ -116,7 +122,9 @@ class BmodeSimulator:
         self.part_materials = [MATERIALS[p.material] for p in scene.parts]
         self.caster = RayCaster(scene)
         # Scatterer cells of a third of the finer resolution: ≥ 10 per PSF cell.
-        cell = min(probe.axial_fwhm_mm, probe.lateral_fwhm_mm) * 1e-3 / 3.0
+        depths = np.linspace(0.0, probe.depth_mm * 1e-3, 41)
+        lateral_min = float(np.min(lateral_fwhm_m(probe, depths)))
+        cell = min(axial_fwhm_m(probe), lateral_min) / 3.0
         self.scatterers = ScattererField(cell, int(speckle_key))
         self._surface_speckle = probe.surface_speckle
         self.surface_scatterers = ScattererField(cell, int(speckle_key) ^ _SURFACE_FIELD_KEY)
@@ -153,7 +161,7 @@ class BmodeSimulator:
         # Scanlines on the nearest columns to an even spacing; each stands for the columns
         # nearest to it (its weight) and the lateral PSF (σ ≳ spacing) fills them in.
         # (The simulator's own sampling choice: on the reported pixel grid.)
-        step = max(1.0, probe.scanline_spacing_mm * 1e-3 / self.spacing[0])
+        step = scanline_step(probe, self.spacing[0])
         self.columns = np.unique(np.rint(np.arange(0.0, W - 1 + 1e-9, step)).astype(np.int64))
         mids = (self.columns[1:] + self.columns[:-1]) / 2
         bounds = np.concatenate([[-0.5], mids, [W - 0.5]])
@@ -164,16 +172,27 @@ class BmodeSimulator:
         self._origins_us = np.stack(
             np.broadcast_arrays(x[None, :], 0.0, self.z[:, None]), axis=-1
         ).astype(float)
-        sigma_lat = probe.lateral_fwhm_mm * 1e-3 / FWHM_PER_SIGMA / sx
-        sigma_ax = probe.axial_fwhm_mm * 1e-3 / FWHM_PER_SIGMA / sy
-        self.sigma_px = (sigma_ax, sigma_lat)  # amplitude PSF σ in (rows, cols)
-        # Intensity PSF kernels of the surface echoes (correlation taps along rows, cols):
-        # the Gaussian |h|², with the ring-down tail and the side lobes when configured.
+        sigma_ax = axial_fwhm_m(probe) / FWHM_PER_SIGMA / sy  # amplitude PSF σ, rows
+        # Lateral amplitude PSF per row (the beam changes with depth), peak 1.
+        lateral = lateral_amplitude(probe, rows_y, sx)
+        # Intensity PSF kernels of the surface echoes (correlation taps along rows; along
+        # columns one set per row): |h|², unit sum, with the ring-down tail when configured.
+        intensity = _between_scanlines(lateral**2, step)
+        intensity /= intensity.sum(axis=1, keepdims=True)
         self._kernels = (
             _ring_down_kernel(sigma_ax / np.sqrt(2), probe, sy),
-            _side_lobe_kernel(sigma_lat / np.sqrt(2), probe, sx),
+            np.ascontiguousarray(intensity, dtype=np.float32),
         )
         self._amplitude_kernels = tuple(np.sqrt(k) for k in self._kernels)
+        # The medium's speckle through the amplitude PSF h, unit sum per axis; white
+        # scatterers keep unit mean intensity with the norm 1 / (Σ h_ax² · Σ h_lat²) per row.
+        k_ax = _gaussian_kernel(sigma_ax)
+        k_lat = lateral_amplitude(probe, rows_y, sx, floor=_SPECKLE_KERNEL_FLOOR)
+        k_lat /= k_lat.sum(axis=1, keepdims=True)
+        self._speckle_kernels = (k_ax, np.ascontiguousarray(k_lat, dtype=np.float32))
+        self._speckle_norm = (
+            1.0 / (np.sum(k_ax.astype(float) ** 2) * np.sum(k_lat**2, axis=1))
+        ).astype(np.float32)
         # Path loss past which no echo can reach the display floor at any row's gain: the
         # strongest interface of the scene reflects r_max, so a path weaker than
         # floor / r_max cannot show.
@@ -524,11 +543,9 @@ class BmodeSimulator:
         medium, floor_db = self._medium_at(temperature_c)
         image, surface, medium_end = self._echo_intensity(T, medium, floor_db)
         t0 = time.perf_counter()
-        sig_ax, sig_lat = self.sigma_px
-        # The intensity PSF of an incoherent echo is |h|²: Gaussian with σ / √2 (plus the
-        # ring-down tail and side lobes when configured). The medium's speckle below keeps
-        # the plain Gaussian: side lobes and ring-down of fully developed speckle are more
-        # speckle.
+        # The intensity PSF of an incoherent echo is |h|² (with the ring-down tail when
+        # configured). The medium's speckle below goes through h without the ring-down:
+        # the ring-down of fully developed speckle is more speckle.
         _blur_where_nonzero(image, *self._kernels)
         if surface is not None:
             # The surfaces' speckle through the amplitude PSF h = √(|h|²) of the same
@@ -538,13 +555,7 @@ class BmodeSimulator:
             image += parts[: len(T)] ** 2 + parts[len(T) :] ** 2
         if medium.backscatter_db is not None:
             sp = self._speckle(T, medium_end, medium)
-            # Through the amplitude PSF, normalised so white scatterers keep unit mean
-            # intensity: a unit-sum Gaussian of σ keeps 1 / (2 √π σ) of white noise's
-            # power per axis.
-            norm = np.float32(4.0 * np.pi * sig_ax * sig_lat)
-            _add_blurred_intensity(
-                image, sp, _gaussian_kernel(sig_ax), _gaussian_kernel(sig_lat), norm
-            )
+            _add_blurred_intensity(image, sp, *self._speckle_kernels, self._speckle_norm)
         self.timings.formation += time.perf_counter() - t0
         self.timings.frames += len(T)
         return image
@@ -579,6 +590,23 @@ class BmodeSimulator:
         return frames
 
 
+def _between_scanlines(kernels: Array, step: float) -> Array:
+    """Lateral intensity kernels (rows, taps) with the scanner's interpolation between its
+    scanlines folded in: scan conversion fills the columns between two lines linearly
+    (a tent of half-width ``step`` columns), so a surface met by lines every other column
+    draws a continuous line, not a dotted one, when the beam is narrower than the line
+    spacing (a 0.26 mm beam, lines at the 0.2 mm pitch). Unchanged at one line per
+    column."""
+    if step <= 1.0 + 1e-9:
+        return kernels
+    reach = int(np.ceil(step)) - 1
+    d = np.arange(-reach, reach + 1)
+    tent = np.maximum(0.0, 1.0 - np.abs(d) / step)
+    tent /= tent.sum()
+    padded = np.pad(kernels, ((0, 0), (reach, reach)))
+    return np.stack([np.convolve(row, tent, mode="same") for row in padded])
+
+
 def _gaussian_kernel(sigma: float) -> NDArray[np.float32]:
     """Normalised Gaussian taps out to ``_TRUNCATE`` σ (as scipy's gaussian_filter1d)."""
     radius = int(_TRUNCATE * sigma + 0.5)
@@ -595,9 +623,10 @@ def _gaussian_kernel(sigma: float) -> NDArray[np.float32]:
 @numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
 def _add_blurred_intensity(image, field, k_rows, k_cols, norm):  # pragma: no cover
     """``image += norm · |h * field|²`` for frames (n, H, W): the complex ``field`` blurred
-    by the separable amplitude PSF (symmetric taps along rows, then columns), in place."""
+    by the separable amplitude PSF (symmetric taps along rows, then along columns with
+    row r's taps ``k_cols[r]``), in place; ``norm`` per row."""
     n, H, W = field.shape
-    R, C = len(k_rows) // 2, len(k_cols) // 2
+    R, C = len(k_rows) // 2, k_cols.shape[1] // 2
     tmp = np.zeros((2, H, W), np.float32)
     buf = np.zeros((2, W + 2 * C), np.float32)
     acc = np.zeros((2, W), np.float32)
@@ -624,12 +653,13 @@ def _add_blurred_intensity(image, field, k_rows, k_cols, norm):  # pragma: no co
                     buf[p, C - 1 - c] = tmp[p, r, c]
                     buf[p, C + W + c] = tmp[p, r, W - 1 - c]
                 acc[p, :] = 0.0
-                for t in range(len(k_cols)):
-                    w = k_cols[t]
+                for t in range(k_cols.shape[1]):
+                    w = k_cols[r, t]
                     for c in range(W):
                         acc[p, c] += w * buf[p, c + t]
+            g = norm[r]
             for c in range(W):
-                image[f, r, c] += norm * (acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c])
+                image[f, r, c] += g * (acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c])
 
 
 def _ring_down_kernel(sigma: float, probe: ProbeConfig, spacing: float) -> NDArray[np.float32]:
@@ -658,28 +688,6 @@ def _ring_down_kernel(sigma: float, probe: ProbeConfig, spacing: float) -> NDArr
     spread[radius + 1 :] = np.maximum(spread[radius + 1 :], g[r_g] * np.exp(-2.0 * m / ell))
     # correlate1d takes taps out[i] = Σ_j k[j] in[i + j − radius]: the spread reversed.
     return spread[::-1].astype(np.float32)
-
-
-def _side_lobe_kernel(sigma: float, probe: ProbeConfig, spacing: float) -> NDArray[np.float32]:
-    """Lateral intensity kernel: the Gaussian PSF plus, when ``probe.side_lobe_db`` is set,
-    its copies at ± the first side lobe's offset (:data:`SIDE_LOBE_OFFSET_PER_FWHM` × the
-    lateral FWHM) at the side lobe's intensity level 10^(dB / 10). The side lobe is drawn
-    with the main lobe's Gaussian shape (its real width is about half the main lobe's
-    null-to-null width; the level at its peak is what matters for a detector)."""
-    g = _gaussian_kernel(sigma)
-    if probe.side_lobe_db is None:
-        return g
-    offset = SIDE_LOBE_OFFSET_PER_FWHM * probe.lateral_fwhm_mm * 1e-3 / spacing  # pixels
-    level = 10.0 ** (probe.side_lobe_db / 10.0)
-    radius = int(np.ceil(offset + _TRUNCATE * sigma))
-    x = np.arange(-radius, radius + 1)
-    lobes = np.exp(-0.5 * ((x - offset) / sigma) ** 2) + np.exp(-0.5 * ((x + offset) / sigma) ** 2)
-    # Same normalisation as the main lobe: the copy's peak is `level` times the echo's.
-    k = np.zeros(2 * radius + 1)
-    r_g = len(g) // 2
-    k[radius - r_g : radius + r_g + 1] = g
-    norm = g[r_g]  # the main lobe's peak tap (its exp(0) = 1)
-    return (k + level * norm * lobes).astype(np.float32)
 
 
 # Written by hand and compiled with numba: spreading each segment over the rows it reaches
@@ -740,16 +748,17 @@ def _splat_points(
 def _blur_where_nonzero(
     image: NDArray[np.float32], k_rows: NDArray[np.float32], k_cols: NDArray[np.float32]
 ) -> None:
-    """Separable blur of frames (n, H, W) with correlation taps along rows and columns, in
-    place, limited in each frame to the row bands that hold echoes (plus the kernel
-    radius) and to their columns: surface echoes are sparse (a sphere's cap, a floor
-    line), and blurring zeros would cost most of the time. Frame by frame: the frames of
-    a sweep hold their echoes at different depths, and a band common to the sweep blurred
-    twice the pixels (the result is the same: outside its echoes a frame is zero)."""
+    """Separable blur of frames (n, H, W) with correlation taps along rows and, along
+    columns, row r's taps ``k_cols[r]`` (the lateral beam changes with depth), in place,
+    limited in each frame to the row bands that hold echoes (plus the kernel radius) and
+    to their columns: surface echoes are sparse (a sphere's cap, a floor line), and
+    blurring zeros would cost most of the time. Frame by frame: the frames of a sweep hold
+    their echoes at different depths, and a band common to the sweep blurred twice the
+    pixels (the result is the same: outside its echoes a frame is zero)."""
     n, _, W = image.shape
-    pad_r, pad_c = len(k_rows) // 2 + 1, len(k_cols) // 2 + 1
+    pad_r, pad_c = len(k_rows) // 2 + 1, k_cols.shape[1] // 2 + 1
     # The ring-down kernel is one-sided: a third of its taps are zeros.
-    (k_rows, o_rows), (k_cols, o_cols) = _without_zero_taps(k_rows), _without_zero_taps(k_cols)
+    k_rows, o_rows = _without_zero_taps(k_rows)
     window = np.ones(2 * pad_r + 1)
     for f in range(n):
         frame = image[f]
@@ -762,7 +771,28 @@ def _blur_where_nonzero(
             cols = np.flatnonzero(frame[r0:r1].any(axis=0))
             c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, W)
             block = correlate1d(frame[r0:r1, c0:c1], k_rows, axis=0, mode="constant", origin=o_rows)
-            frame[r0:r1, c0:c1] = correlate1d(block, k_cols, axis=1, mode="constant", origin=o_cols)
+            _correlate_rows(block, k_cols[r0:r1], frame[r0:r1, c0:c1])
+
+
+# Written by hand and compiled with numba: each row has its own lateral taps, which no
+# scipy filter takes; one pass over the row per tap, as in _add_blurred_intensity.
+@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def _correlate_rows(block, kernels, out):  # pragma: no cover - compiled
+    """``out[r] = block[r] ⋆ kernels[r]`` (correlation, centred taps, zeros outside)."""
+    h, w = block.shape
+    C = kernels.shape[1] // 2
+    buf = np.zeros(w + 2 * C, np.float32)
+    acc = np.zeros(w, np.float32)
+    for r in range(h):
+        buf[C : C + w] = block[r]
+        acc[:] = 0.0
+        for t in range(kernels.shape[1]):
+            k = kernels[r, t]
+            if k == 0.0:
+                continue
+            for c in range(w):
+                acc[c] += k * buf[c + t]
+        out[r, :] = acc
 
 
 def _without_zero_taps(kernel: NDArray[np.float32]) -> tuple[NDArray[np.float32], int]:

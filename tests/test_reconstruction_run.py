@@ -37,7 +37,11 @@ def test_with_every_error_source_off_the_reconstruction_fits_the_cad(errors_off,
     scan = run_scan(errors_off, kind)
     assert scan.n_sweeps == 45
     assert len(scan.q_frames) == 450
-    assert scan.frames_without_two_boundaries <= 45  # at most a tenth of the frames
+    # Nearly every frame that shows the phantom gives its two sides (the rest lie at the
+    # cone's apex, where the section curves); the frames past it show nothing at all.
+    showing = len(scan.q_frames) - scan.frames_without_echo
+    assert scan.frames_without_echo <= 45
+    assert scan.frames_without_two_boundaries - scan.frames_without_echo <= 0.07 * showing
     # The calibration is taken as exact here (its own errors-off accuracy is tested in
     # test_run); the point is the reconstruction's.
     X = make_twin(phantom_scan_scenario(errors_off, kind)).truth.T_ee_us

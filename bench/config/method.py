@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from calib.pipeline import MethodInputs, MethodSettings, declared_uncertainty
 from calib.sound import speed_ratio
 from calib.uncertainty import UncertaintyInputs, image_grid
+from sim_us.beam import axial_fwhm_m
 
 from .scenario import Scenario, layout_sigma_mm
 
@@ -54,7 +55,7 @@ def method_settings(scenario: Scenario) -> MethodSettings:
         evaluation=scenario.evaluation,
         print_tolerance_mm=scenario.phantom.tolerance_position_mm,
         radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
-        axial_fwhm_mm=scenario.imaging.axial_fwhm_mm,
+        axial_fwhm_mm=axial_fwhm_m(scenario.imaging) * 1e3,
         nominal_dh=scenario.robot.nominal_table,
     )
 
@@ -86,5 +87,5 @@ def scenario_uncertainty(
         assumed_speed_m_s=scenario.imaging.assumed_speed_m_s,
         kinematic_residual_rms_mm=kinematic_residual_rms_mm,
         radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
-        axial_fwhm_mm=scenario.imaging.axial_fwhm_mm,
+        axial_fwhm_mm=axial_fwhm_m(scenario.imaging) * 1e3,
     )

@@ -87,7 +87,8 @@ def type_text(tp: Any, meta: dict[str, Any]) -> str:
     args = typing.get_args(tp)
     if origin in (typing.Union, types.UnionType):
         inner = [a for a in args if a is not type(None)]
-        return f"{type_text(inner[0], meta)} or null"
+        text = " or ".join(type_text(a, meta) for a in inner)
+        return f"{text} or null" if type(None) in args else text
     if origin is Literal:
         return "one of " + ", ".join(repr(a) for a in args)
     if origin is tuple:
@@ -128,8 +129,16 @@ def _coerce(value: Any, tp: Any, meta: dict[str, Any], where: dict[str, Any]) ->
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        inner = next(a for a in args if a is not type(None))
-        return _coerce(value, inner, meta, where)
+        inner = [a for a in args if a is not type(None)]
+        # A named setting (a Literal member) first, then the value's own type.
+        named = [a for a in inner if typing.get_origin(a) is Literal]
+        if isinstance(value, str) and any(value in typing.get_args(a) for a in named):
+            return value
+        other = [a for a in inner if typing.get_origin(a) is not Literal]
+        if not other or (named and isinstance(value, str) and str not in other):
+            names = [str(v) for a in named for v in typing.get_args(a)]
+            fail("not an allowed value" + did_you_mean(str(value), names))
+        return _coerce(value, other[0], meta, where)
     if origin is Literal:
         if value not in args:
             fail("not an allowed value" + did_you_mean(str(value), map(str, args)))

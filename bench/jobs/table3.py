@@ -138,7 +138,7 @@ def run_scan(
     check_plan(twin.robot, plan)
     n_central = min(sc.reconstruction.central_frames, sc.protocol.frames_per_sweep)
     scale = axial_scale(sc)
-    q_frames, frame, points, missing = [], [], [], 0
+    q_frames, frame, points, missing, empty = [], [], [], 0, 0
     t_extract = 0.0
     first = (sc.protocol.frames_per_sweep - n_central) // 2
     rec = logged = None
@@ -167,6 +167,7 @@ def run_scan(
         for j in range(n_central):
             bounds = extract_boundaries(sweep.images[j], pixel_mm=pixel_mm, seed=len(q_frames))
             missing += len(bounds) < 2
+            empty += int(sweep.images[j].max() == sweep.images[j].min())
             if rec is not None and i in logged:
                 t3 = time.perf_counter()
                 rec.next_frame()
@@ -198,6 +199,7 @@ def run_scan(
         sc.protocol.target_depth_mm * 1e-3,  # image frame: metres, depth corrected
         len(plan),
         missing,
+        empty,
         twin.truth.T_base_phantom,
         {
             "simulate": time.perf_counter() - t0 - t_extract - t_record,
@@ -300,6 +302,7 @@ def reconstruct_phantom(
             "n_sweeps": scan.n_sweeps,
             "n_frames": len(scan.q_frames),
             "frames_without_two_boundaries": scan.frames_without_two_boundaries,
+            "frames_without_echo": scan.frames_without_echo,
             "timing_s": {**scan.timing_s, "register": time.perf_counter() - t0},
         }
     )

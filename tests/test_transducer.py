@@ -1,0 +1,119 @@
+"""The beam sim_us derives from the transducer, against the stored physics reference.
+
+``benchmarks/reference/beam.json`` holds pymust's two-way lateral, axial and elevation
+FWHM and first side lobe of two probes from 5 to 50 mm (``benchmarks/physics_reference.py
+--write``). sim_us is given the same datasheet figures; its beam must be the reference's
+within 12 % (widths) and 1.5 dB (side lobes), and so must what it draws.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from bench.config.scenario import ScenarioError, scenario_from_mapping
+from sim_us import MediumConfig, ProbeConfig
+from sim_us.beam import axial_fwhm_m, lateral_fwhm_m, slice_thickness
+from sim_us.raycast import AcousticScene, ScenePart
+from sim_us.simulator import BmodeSimulator
+from sim_us.transducer import beam_tables, receive_fnumber, transducer
+
+ROOT = Path(__file__).resolve().parents[1]
+STORED = json.loads((ROOT / "benchmarks" / "reference" / "beam.json").read_text())
+DEPTHS_M = np.array(STORED["depths_mm"]) * 1e-3
+MM = 1e-3
+
+
+def probe_of(array: dict) -> ProbeConfig:
+    """sim_us's probe for a stored array: its datasheet figures, nothing stated."""
+    return replace(
+        ProbeConfig(),
+        width_mm=array["elements"] * array["pitch_mm"],
+        depth_mm=50.0,
+        f_mhz=array["f_mhz"],
+        bandwidth_pct=array["bandwidth_pct"],
+        pulse_cycles=array["tx_cycles"],
+        pitch_mm=array["pitch_mm"],
+        kerf_mm=array["kerf_mm"],
+        active_elements=array["active_elements"],
+        elevation_aperture_mm=array["elevation_aperture_mm"],
+        elevation_focus_mm=array["elevation_focus_mm"],
+        assumed_speed_m_s=array["speed_m_s"],
+    )
+
+
+@pytest.mark.parametrize("name", sorted(STORED["probes"]))
+def test_the_derived_beam_is_the_reference_s(name):
+    rec = STORED["probes"][name]
+    probe, fig = probe_of(rec["array"]), rec["figures"]
+    assert receive_fnumber(transducer(probe)) == pytest.approx(rec["receive_fnumber"], rel=0.01)
+    for key, ours in (
+        ("lateral_fwhm_mm", lateral_fwhm_m(probe, DEPTHS_M)),
+        ("elevation_fwhm_mm", slice_thickness(probe, DEPTHS_M)),
+        ("axial_fwhm_mm", np.full(len(DEPTHS_M), axial_fwhm_m(probe))),
+    ):
+        ratio = ours / MM / np.array(fig[key])
+        assert np.all((ratio > 0.9) & (ratio < 1.12)), (key, np.round(ratio, 3))
+    # The profile the simulator draws with (the table's, interpolated), at the reference's
+    # first side lobe (its peak, or the shoulder a broad band leaves of it): the same level.
+    tables = beam_tables(transducer(probe), 0.052)
+    for depth, level, at_mm in zip(DEPTHS_M, fig["side_lobe_db"], fig["side_lobe_mm"], strict=True):
+        ours = 20 * np.log10(tables.lateral_profile(depth, np.array([at_mm * MM]))[0, 0])
+        assert ours == pytest.approx(level, abs=1.5), depth
+
+
+def test_what_is_drawn_is_the_derived_beam():
+    """A thin wire 18 mm deep, rendered at 0.01 mm: its lateral and axial FWHM are the
+    reference's within 10 %, and its first side lobe within 1.5 dB."""
+    rec = STORED["probes"]["paper"]
+    i = STORED["depths_mm"].index(18.0)
+    probe = replace(
+        probe_of(rec["array"]),
+        width_mm=3.0,
+        depth_mm=19.0,
+        pixel_spacing_mm=(0.01, 0.01),
+        scanline_spacing_mm=0.01,
+    )
+    wire = trimesh.creation.cylinder(radius=0.01 * MM, height=20 * MM, sections=16)
+    wire.apply_translation([0.0, 18 * MM, 0.0])
+    sim = BmodeSimulator(AcousticScene((ScenePart("wire", wire, "pla"),)), probe, MediumConfig())
+    env = sim.envelope(np.eye(4)[None])[0].astype(float)
+    r, c = np.unravel_index(int(np.argmax(env)), env.shape)
+
+    def fwhm(p: np.ndarray, k: int) -> float:
+        """mm, the half-maximum crossings interpolated linearly between samples."""
+        p = p / p[k]
+        hi = k + int(np.argmax(p[k:] < 0.5))
+        lo = k - int(np.argmax(p[: k + 1][::-1] < 0.5))
+        right = hi - 1 + (p[hi - 1] - 0.5) / (p[hi - 1] - p[hi])
+        left = lo + 1 - (p[lo + 1] - 0.5) / (p[lo + 1] - p[lo])
+        return (right - left) * 0.01
+
+    assert fwhm(env[r], c) == pytest.approx(rec["figures"]["lateral_fwhm_mm"][i], rel=0.1)
+    assert fwhm(env[:, c], r) == pytest.approx(rec["figures"]["axial_fwhm_mm"][i], rel=0.1)
+    row = env[r, c:] / env[r, c]
+    first_min = int(np.argmax(np.diff(row) > 0))
+    level = 20 * np.log10(row[first_min:].max())
+    assert level == pytest.approx(rec["figures"]["side_lobe_db"][i], abs=1.5)
+
+
+def test_stated_widths_override_the_transducer():
+    stated = replace(ProbeConfig(), lateral_fwhm_mm=0.7, axial_fwhm_mm=0.35, slice_thickness_mm=0.7)
+    assert np.allclose(lateral_fwhm_m(stated, DEPTHS_M), 0.7 * MM)
+    assert axial_fwhm_m(stated) == pytest.approx(0.35 * MM)
+    # The geometric slice: the stated thickness at the lens focus, the aperture at the face.
+    assert slice_thickness(stated, 18 * MM) == pytest.approx(0.7 * MM)
+    assert slice_thickness(stated, 0.0) == pytest.approx(np.hypot(0.7, 4.0) * MM)
+
+
+def test_side_lobes_are_the_array_s_a_level_or_none():
+    for value in ("array", -40.0, None):
+        s = scenario_from_mapping({"imaging": {"side_lobe_db": value}})
+        assert s.imaging.side_lobe_db == value
+    with pytest.raises(ScenarioError, match="did you mean 'array'"):
+        scenario_from_mapping({"imaging": {"side_lobe_db": "arry"}})
