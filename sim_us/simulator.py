@@ -51,7 +51,7 @@ from .materials import (
 from .probe import MediumConfig, ProbeConfig
 from .propagation import trace
 from .raycast import AcousticScene, RayCaster
-from .speckle import ScattererField
+from .speckle import ScattererField, _smooth_values
 
 __all__ = ["BmodeSimulator", "Timings"]
 
@@ -375,37 +375,31 @@ class BmodeSimulator:
             half = self._slab_half_rows(plane, slope)
         else:
             half = np.zeros(len(row_f))
-        # Sub-scatterers per hit: one for a point echo, one per half pixel of a slab's span.
-        m = np.where(half > _MIN_SMEAR_PX, np.ceil(4.0 * half).astype(np.int64) + 1, 1)
-        m = np.minimum(m, _MAX_SLAB_SCATTERERS)
-        hit = np.repeat(np.arange(len(m)), m)
-        start = np.cumsum(m) - m
-        u = (np.arange(len(hit)) - start[hit] + 0.5) / m[hit]  # (0, 1) along the slab
-        # Position along the slab: depth rows and elevation, with the trapezoidal density
-        # of :meth:`_slab_segments` (its share of the energy per sub-scatterer).
-        width = 2.0 * half[hit]
-        y = row_f[hit] - half[hit] + u * width
         if slope is not None:
-            p = self._shallow_share(plane[hit], row_idx[hit], slope[hit] >= 0)
-            weight = (2.0 * p + 2.0 * (1.0 - 2.0 * p) * u) / m[hit]  # ρ(y) dy / energy
-            sign = np.where(slope[hit] >= 0, 1.0, -1.0)
+            p = self._shallow_share(plane, row_idx, slope >= 0)
+            sign = np.where(slope >= 0, 1.0, -1.0)
         else:
-            weight = np.ones(len(hit))
-            sign = np.ones(len(hit))
-        dz = (u - 0.5) * self._slab[plane[hit]] * sign * (m[hit] > 1)
-        P = point[hit] + dz[:, None] * T_scene_us[frame[hit], :3, 2]
-        amp = np.sqrt(energy[hit] * np.maximum(weight, 0.0)).astype(np.float32)
-        values = self.surface_scatterers.smooth_at(P) * amp
+            p = np.full(len(row_f), 0.5)
+            sign = np.ones(len(row_f))
         out = np.zeros(n * H * W, dtype=np.complex64)
-        inside = (y > -1) & (y < H)
-        _splat_points(
+        field = self.surface_scatterers
+        _splat_surface_speckle(
             out,
             H,
             W,
-            frame[hit][inside],
-            self.columns[line[hit][inside]],
-            y[inside],
-            values[inside],
+            frame,
+            self.columns[line],
+            row_f,
+            half,
+            p,
+            sign,
+            self._slab[plane],
+            energy,
+            np.ascontiguousarray(point, dtype=np.float64),
+            np.ascontiguousarray(T_scene_us[:, :3, 2], dtype=np.float64),
+            field.table,
+            field.key,
+            field.cell_m,
         )
         return out.reshape(n, H, W)
 
@@ -550,9 +544,9 @@ class BmodeSimulator:
         if surface is not None:
             # The surfaces' speckle through the amplitude PSF h = √(|h|²) of the same
             # kernels: one scatterer alone draws exactly the smooth model's echo.
-            parts = np.concatenate([surface.real, surface.imag])
-            _blur_where_nonzero(parts, *self._amplitude_kernels)
-            image += parts[: len(T)] ** 2 + parts[len(T) :] ** 2
+            k_rows, k_cols = self._amplitude_kernels
+            occupied = surface.any(axis=2)  # (n, H): rows holding surface scatterers
+            _add_blurred_surface_speckle(image, surface, occupied, k_rows, k_cols)
         if medium.backscatter_db is not None:
             sp = self._speckle(T, medium_end, medium)
             _add_blurred_intensity(image, sp, *self._speckle_kernels, self._speckle_norm)
@@ -662,6 +656,52 @@ def _add_blurred_intensity(image, field, k_rows, k_cols, norm):  # pragma: no co
                 image[f, r, c] += g * (acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c])
 
 
+# Written by hand and compiled with numba: blurring the real and imaginary parts as two
+# stacks of whole frames, squaring and adding them made five full-frame temporaries per
+# frame; here only the rows within reach of a surface's scatterers are touched.
+@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def _add_blurred_surface_speckle(image, field, occupied, k_rows, k_cols):  # pragma: no cover
+    """``image += |h * field|²`` for frames (n, H, W): the complex ``field`` through the
+    separable amplitude PSF (correlation taps ``k_rows`` along rows, zeros outside; row
+    r's taps ``k_cols[r]`` along columns), computed only on rows within reach of an
+    ``occupied`` row."""
+    n, H, W = field.shape
+    R = len(k_rows) // 2
+    C = k_cols.shape[1] // 2
+    col = np.zeros((2, W + 2 * C), np.float32)
+    acc = np.zeros((2, W), np.float32)
+    for f in range(n):
+        for r in range(H):
+            near = False
+            for t in range(len(k_rows)):
+                rr = r + t - R
+                if 0 <= rr < H and occupied[f, rr] and k_rows[t] != 0.0:
+                    near = True
+                    break
+            if not near:
+                continue
+            col[:] = 0.0
+            for t in range(len(k_rows)):
+                rr = r + t - R
+                w = k_rows[t]
+                if rr < 0 or rr >= H or w == 0.0 or not occupied[f, rr]:
+                    continue
+                for c in range(W):
+                    v = field[f, rr, c]
+                    col[0, C + c] += w * v.real
+                    col[1, C + c] += w * v.imag
+            acc[:] = 0.0
+            for t in range(k_cols.shape[1]):
+                w = k_cols[r, t]
+                if w == 0.0:
+                    continue
+                for c in range(W):
+                    acc[0, c] += w * col[0, c + t]
+                    acc[1, c] += w * col[1, c + t]
+            for c in range(W):
+                image[f, r, c] += acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c]
+
+
 def _ring_down_kernel(sigma: float, probe: ProbeConfig, spacing: float) -> NDArray[np.float32]:
     """Axial intensity kernel (correlation taps): the Gaussian PSF, with the transducer's
     ring-down behind it when ``probe.ring_down_cycles`` > 0.
@@ -723,6 +763,54 @@ def _splat_segments(
             d0 = (ta - tb) - 0.5 * (ta * abs(ta) - tb * abs(tb))
             d1 = 0.5 * (ta * ta - tb * tb) - (ta * ta * abs(ta) - tb * tb * abs(tb)) / 3.0
             image[base[j] + i * W] += np.float32((ra + be * (i - aj)) * d0 - be * d1)
+
+
+# Written by hand and compiled with numba: the sub-scatterers of every hit built as numpy
+# arrays (≈ 20 passes over a million entries a sweep) took three quarters of a water
+# frame's time with surface speckle on; here each is made, looked up and splatted once.
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _splat_surface_speckle(
+    out, H, W, frame, col, row_f, half, share, sign, slab, energy, point, z_axis, table, key, cell
+):  # pragma: no cover - compiled
+    """Add the surfaces' incoherent echoes to flat complex frames ``out`` (n·H·W,).
+
+    Hit j stands for ``m`` sub-scatterers along its elevation slab: one for a point echo
+    (half-span ≤ _MIN_SMEAR_PX rows), else one per half pixel of its depth span
+    ``row_f ± half`` (at most _MAX_SLAB_SCATTERERS), at u = (i + ½) / m along it: depth
+    ``row_f − half + 2 u half``, elevation ``(u − ½) · slab · sign`` off the hit point
+    along its frame's z axis, energy share ``(2 p + 2 (1 − 2 p) u) / m`` (the trapezoidal
+    density of the smooth model's slab, p its shallow end's share). Each one's amplitude
+    is the scene-fixed field at its point (:func:`sim_us.speckle._smooth_values`) times
+    the root of its energy, split linearly over its two rows.
+    """
+    u3 = np.empty((1, 3))
+    val = np.empty(1, dtype=np.complex64)
+    for j in range(len(row_f)):
+        h = half[j]
+        m = 1
+        if h > _MIN_SMEAR_PX:
+            m = min(int(np.ceil(4.0 * h)) + 1, _MAX_SLAB_SCATTERERS)
+        f = frame[j]
+        for i in range(m):
+            u = (i + 0.5) / m
+            y = row_f[j] - h + 2.0 * u * h
+            if not (-1.0 < y < H):
+                continue
+            w = (2.0 * share[j] + 2.0 * (1.0 - 2.0 * share[j]) * u) / m if m > 1 else 1.0
+            if w <= 0.0:
+                continue
+            dz = (u - 0.5) * slab[j] * sign[j] if m > 1 else 0.0
+            for k in range(3):
+                u3[0, k] = (point[j, k] + dz * z_axis[f, k]) / cell
+            _smooth_values(u3, table, key, val)
+            v = val[0] * np.float32(np.sqrt(energy[j] * w))
+            r0 = int(np.floor(y))
+            frac = np.float32(y - r0)
+            base = (f * H + r0) * W + col[j]
+            if r0 >= 0:
+                out[base] += v * (np.float32(1.0) - frac)
+            if r0 + 1 < H:
+                out[base + W] += v * frac
 
 
 def _splat_points(
