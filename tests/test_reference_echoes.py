@@ -1,0 +1,185 @@
+"""The stored echo reference (``benchmarks/reference/echoes.json``, issue 35): complete,
+made with the probes and settings ``benchmarks/reference_echoes.py`` uses today, and
+consistent with the physics it claims; and one twin figure the script computes live.
+
+The file is written by ``python benchmarks/reference_echoes.py --write`` with pymust;
+these tests read it without pymust.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "reference_echoes.py"
+STORED = ROOT / "benchmarks" / "reference" / "echoes.json"
+# Fully developed speckle: a Rayleigh envelope's mean / std.
+RAYLEIGH_SNR = 1.91
+
+
+def _load_script() -> ModuleType:
+    """The benchmark script as a module (benchmarks/ is not a package)."""
+    name = "reference_echoes"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def script() -> ModuleType:
+    return _load_script()
+
+
+@pytest.fixture(scope="module")
+def reference() -> dict:
+    return json.loads(STORED.read_text())
+
+
+def _finite(values: list) -> bool:
+    return all(v is not None and math.isfinite(v) for v in values)
+
+
+def test_the_reference_says_where_it_comes_from(reference, script):
+    """The command, the pymust version, how each figure was made, and the settings the
+    script uses today."""
+    assert reference["command"] == "python benchmarks/reference_echoes.py --write"
+    assert reference["pymust_version"]
+    assert set(reference["method"]) >= {"common", "frequency_grid", "speckle", "planes", "sphere"}
+    assert all(isinstance(v, str) and v for v in reference["method"].values())
+    s = reference["settings"]
+    assert s["speckle_depths_mm"] == list(script.SPECKLE_DEPTHS_MM)
+    assert s["window_wavelengths"] == list(script.WINDOW_WAVELENGTHS)
+    assert s["scatterers_per_cell"] >= 10
+    assert s["plane_depth_mm"] == script.PLANE_DEPTH_MM
+    assert s["plane_angles_deg"] == list(script.PLANE_ANGLES_DEG)
+    assert s["sphere_depths_mm"] == list(script.SPHERE_DEPTHS_MM)
+    assert s["sphere_offsets_mm"] == list(script.SPHERE_OFFSETS_MM)
+    assert s["sphere_radius_mm"] == pytest.approx(script.SPHERE_RADIUS_M * 1e3)
+    assert s["rough_ra_um"] == script.ROUGH_RA_UM
+    assert s["rough_sigma_um"] == pytest.approx(script.ROUGH_SIGMA_M * 1e6, abs=1e-4)
+    assert s["rough_length_mm"] == pytest.approx(script.ROUGH_LENGTH_M * 1e3)
+    assert s["gel_attenuation_db_cm_mhz"] == script.GEL.attenuation_db_cm_mhz
+    assert s["water_speed_m_s"] == pytest.approx(script.WATER_C, abs=1e-4)
+    assert set(reference["probes"]) == set(script.PROBES)
+
+
+@pytest.mark.parametrize("name", ["paper", "linear75"])
+def test_the_stored_probe_is_the_script_s(reference, script, name):
+    """The reference was computed for the probe the script defines today (the paper
+    probe from scenarios/paper.yaml, through physics_reference.py): a changed probe must
+    refresh it (``reference_echoes.py --write``)."""
+    case = script.PROBES[name]()
+    rec = reference["probes"][name]
+    for key, value in asdict(case.array).items():
+        assert rec["array"][key] == pytest.approx(value, abs=1e-4), key
+    for key, value in rec["imaging"].items():
+        assert getattr(case.imaging, key) == pytest.approx(value, abs=1e-4), key
+    assert rec["receive_fnumber"] == pytest.approx(script.PR.receive_fnumber(case.array), abs=1e-4)
+    assert rec["parts"] == list(script.PARTS[name])
+
+
+@pytest.mark.parametrize("name", ["paper", "linear75"])
+def test_every_figure_is_there_and_finite(reference, script, name):
+    """Every part the probe lists, each figure at every depth, angle and offset, finite;
+    levels relative to their reference are 0 there."""
+    rec = reference["probes"][name]
+    assert set(rec["parts"]) <= set(rec)
+    assert set(rec["parts"]) <= set(rec["seconds"])
+    if "speckle" in rec["parts"]:
+        sp, n = rec["speckle"], len(script.SPECKLE_DEPTHS_MM)
+        for key in (
+            "lateral_acf_fwhm_mm",
+            "axial_acf_fwhm_mm",
+            "snr",
+            "level_db",
+            "attenuation_fc_db",
+            "attenuation_broadband_db",
+            "scatterers_per_mm3",
+        ):
+            assert len(sp[key]) == n and _finite(sp[key]), key
+        assert all(v > 0 for v in sp["lateral_acf_fwhm_mm"] + sp["axial_acf_fwhm_mm"])
+        assert sp["level_db"][0] == 0.0
+        assert math.isfinite(sp["snr_pooled"])
+    if "planes" in rec["parts"]:
+        pl, n = rec["planes"], len(script.PLANE_ANGLES_DEG)
+        for surface in ("smooth", "rough"):
+            for key in ("level_db", "granularity", "mean_peak"):
+                assert len(pl[surface][key]) == n and _finite(pl[surface][key]), key
+            assert pl[surface]["level_db"][0] == 0.0
+            assert all(v >= script.LEVEL_FLOOR_DB for v in pl[surface]["level_db"])
+            assert all(v >= 0 for v in pl[surface]["granularity"])
+        assert math.isfinite(pl["rough_at_0_re_smooth_db"])
+    if "sphere" in rec["parts"]:
+        for depth in script.SPHERE_DEPTHS_MM:
+            cap = rec["sphere"][f"{depth:g}"]
+            n = len(script.SPHERE_OFFSETS_MM)
+            assert len(cap["level_db"]) == n and _finite(cap["level_db"])
+            assert len(cap["depth_mm"]) == n and _finite(cap["depth_mm"])
+            assert cap["level_db"][script.SPHERE_OFFSETS_MM.index(0.0)] == 0.0
+    if name == "paper":
+        check = rec["aliasing_check"]
+        assert _finite(
+            [check["speckle"]["envelope_rms_difference"], check["speckle"]["intensity_bias_db"]]
+        )
+        sphere = check["sphere"]
+        assert len(sphere["level_db"]) == len(sphere["offsets_mm"])
+        assert _finite(sphere["level_db"] + sphere["level_db_default_grid"])
+
+
+@pytest.mark.parametrize("name", ["paper", "linear75"])
+def test_the_reference_s_physics(reference, script, name):
+    """What the method promises: fully developed speckle (the three windows' SNR pooled
+    within 10 % of 1.91; each window's, ≈ 150 grains, within 15 %) with a grain of about
+    a resolution cell (the axial one a wavelength or so, the lateral one λ F# or so); the
+    broadband pulse loses less to attenuation than its centre frequency would (its
+    spectrum shifts down); the sphere's brightest echo at offset 0, from its cap top (the
+    radius above the centre); the time-aliased spectrum close to pymust's own."""
+    rec, array = reference["probes"][name], reference["probes"][name]["array"]
+    lam = array["speed_m_s"] / (array["f_mhz"] * 1e6) * 1e3
+    sp = rec["speckle"]
+    assert sp["snr_pooled"] == pytest.approx(RAYLEIGH_SNR, rel=0.10)
+    for v in sp["snr"]:
+        assert v == pytest.approx(RAYLEIGH_SNR, rel=0.15)
+    for lat, ax in zip(sp["lateral_acf_fwhm_mm"], sp["axial_acf_fwhm_mm"], strict=True):
+        assert 0.5 < ax / lam < 2.0
+        assert 0.5 < lat / (lam * rec["receive_fnumber"]) < 2.0
+    for fc, band in zip(
+        sp["attenuation_fc_db"][1:], sp["attenuation_broadband_db"][1:], strict=True
+    ):
+        assert fc < band < 0.0
+    for depth in script.SPHERE_DEPTHS_MM:
+        cap = rec["sphere"][f"{depth:g}"]
+        assert max(cap["level_db"]) == 0.0
+        top = cap["depth_mm"][script.SPHERE_OFFSETS_MM.index(0.0)]
+        assert top == pytest.approx(depth - script.SPHERE_RADIUS_M * 1e3, abs=0.1)
+    if name == "paper":
+        check = rec["aliasing_check"]
+        assert check["speckle"]["envelope_rms_difference"] < 0.1
+        assert abs(check["speckle"]["intensity_bias_db"]) < 0.5
+        sphere = check["sphere"]
+        for short, default in zip(sphere["level_db"], sphere["level_db_default_grid"], strict=True):
+            assert short == pytest.approx(default, abs=1.0)
+
+
+def test_the_twin_s_gel_speckle_is_fully_developed(reference, script):
+    """The twin's gel at 20 mm, computed by the script's own function (three windows):
+    its envelope SNR is within 10 % of 1.91, as the stored reference's (pooled) is."""
+    case = script.PROBES["paper"]()
+    twin = script.twin_speckle(case, (20.0,))
+    assert twin["snr_pooled"] == pytest.approx(RAYLEIGH_SNR, rel=0.10)
+    stored = reference["probes"]["paper"]["speckle"]
+    assert stored["snr_pooled"] == pytest.approx(RAYLEIGH_SNR, rel=0.10)
+    assert twin["lateral_acf_fwhm_mm"][0] > 0 and twin["axial_acf_fwhm_mm"][0] > 0
