@@ -408,8 +408,11 @@ def test_the_plan_window_bounds_the_search(small_sphere_scan):
 def test_saturated_cap_centre_is_unbiased():
     """The saturation case, reproduced small: at +20 dB the cap clips at 255 in several
     frames, where the vertex of the peak grey levels across elevation is undefined (it
-    doubled the error); a parabola through the unclipped slices on either side keeps the
-    centre as good as at 0 dB (median within 25 %)."""
+    doubled the error); a parabola through the unclipped slices on either side, and the
+    top's depth at the echo's leading edge, keep the centre within 0.2 mm (median; 0.04 mm
+    at 0 dB). The edge lies before the peak by where the clip cuts the pulse's rise:
+    ≈ 0.15 mm for this probe's 0.35 mm pulse, ≈ 0.1 mm for the transducer's own (the
+    next test)."""
     medians = {}
     for gain in (0, 20):
         sweeps, truths, T_ee_us, scale, _ = _quick_scan(
@@ -424,8 +427,33 @@ def test_saturated_cap_centre_is_unbiased():
             if r.accepted
         ]
         assert len(err) >= 0.9 * len(sweeps)
+        assert max(err) < 0.5
         medians[gain] = float(np.median(err))
-    assert medians[20] <= 1.25 * medians[0], medians
+    assert medians[20] <= 0.2, medians
+
+
+@pytest.mark.slow
+def test_a_saturated_deep_cap_is_found_at_its_top():
+    """+20 dB, a 5 mm sphere 45 mm deep, the transducer's sharp pulse: the top's echo
+    saturates and the rest of the cap within the 3.7 mm slice saturates below it. Its
+    depth as the mean over the saturated run lay 0.5-0.8 mm deep (19 centres accepted
+    more than 1 mm off on robustness_wide.yaml); at the echo's leading edge the centres
+    stay within 0.3 mm, unbiased to 0.1 mm."""
+    sweeps, truths, T_ee_us, scale, _ = _quick_scan(
+        [
+            "imaging.gain_db=20",
+            "protocol.target_depth_mm=45",
+            "imaging.depth_mm=60",
+            "phantom.sphere_radius_mm=5",
+        ],
+        2,
+    )
+    cfg = LocalizerConfig(expected_depth_mm=45.0)
+    locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale)
+    err = np.array([(r.centre - p) / MM for r, p in zip(locs, truths, strict=True) if r.accepted])
+    assert len(err) >= 0.9 * len(sweeps)
+    assert np.linalg.norm(err, axis=1).max() < 0.4
+    assert abs(err[:, 1].mean()) < 0.1
 
 
 def test_profile_bands_are_a_shell_outside_an_interior():
