@@ -1,0 +1,840 @@
+"""The sphere localizer on frames sim_us did not draw: pymust-rendered elevational sweeps
+of a 5 mm PLA sphere in water, localized next to sim_us's frames of the same scene.
+
+What it checks. ``calib.localize.localize_sphere`` (methods "refined" and "paper") on three
+sweeps rendered by an independent acoustic model (pymust 0.1.9: ``simus`` + ``rf2iq`` +
+``dasmtx``), and on sim_us's frames of the same scene at the same poses: per sweep, the
+error of the centre found (mm, in the sweep's reference frame) or the reason it was
+rejected, the ratio of the errors pymust / sim_us and of their medians per method.
+
+The scene, the same on both sides:
+
+- A sphere of radius 5 mm, its centre fixed in the scene frame ("base"), PLA in water at
+  20 °C (``MediumConfig()``: c = 1482.3 m/s from ``calib.sound``).
+- Three sweeps of the protocol's shape, 21 frames 1 mm apart (± 10 mm) along each frame's
+  own z (elevation), the sphere's centre in the middle frame at (x, depth, elevation)
+  (0, 15, +0.3), (4, 20, −0.45) and (−6.5, 25, +0.15) mm: three depths about the 18 mm
+  lens focus, the centre on, right of and left of the centre line, and between frames
+  (what the elevation fit reads). Each sweep's probe has its own orientation in the
+  scene (the sphere is symmetric; the poses are not trivial). ``T_ee_us`` is the
+  identity and ``T_base_ee`` each frame's image-frame pose (``calib.image``'s frame:
+  x lateral centred on the image, y depth from the face, z elevation); the truth is the
+  centre in the middle frame. The three sweeps are localized together, as the pipeline
+  does for one sphere (with ``T_ee_us`` known the refined method uses their consensus).
+- The probe: physics_reference.py's paper probe (``paper_probe``, ``array_of``: 13 MHz,
+  65 % bandwidth, 0.2 mm pitch, 0.02 mm kerf, 64 active of 190 elements, 4 mm elevation
+  aperture, 18 mm lens, one-cycle excitation). sim_us gets ``ProbeConfig`` with exactly
+  these datasheet figures and its defaults otherwise (38 × 40 mm frames at 0.1 mm pixels,
+  the array's own beam and side lobes, 60 dB, surface speckle), rendered noise-free
+  (``render(T, None)``) from ``trimesh.creation.icosphere`` (5 subdivisions), material
+  "pla". Both display depth at the scanner's 1540 m/s (3.9 % deep); the localizer gets
+  ``axial_scale`` = 1482.3 / 1540 for both.
+
+How, reference side (``--write``):
+
+- Imaging: coherently compounded steered plane waves at −8°, 0°, +8° from the 64 active
+  elements centred over the sphere (the 64-element block of the 190-element face nearest
+  its column). Focused line-by-line imaging (a transmit per 0.2 mm line, each over the
+  scatterers within ±1.5 mm) was estimated at ≈ 5 × the cost, past the budget. Transmit
+  delays and beamforming use 1540 m/s (``pymust_param`` of the array as stated), the
+  propagation the water's speed (the same array at 1482.3 m/s): the scanner's depth
+  error is in the frames as in sim_us's. Receive: ``dasmtx`` with physics_reference's
+  ``receive_fnumber`` (2.31, from the element directivity) and a Hann apodization over
+  that aperture, applied to the DAS matrix's entries (dasmtx's own aperture is
+  hard-edged). I/Q by ``rf2iq`` (low-pass at fc); envelope |Σ I/Q| over the three waves.
+- Surface: the probe-facing cap of the CAD sphere, points of a Fibonacci lattice about
+  0.4 λ apart (λ in water at fc; equal area per point), each of reflection coefficient
+  PLA/water (0.30, sim_us's impedances) × its area / λ², so the level does not depend on
+  the lattice. A λ/2 lattice draws grating echoes of the steep flanks ("fans" beside and
+  below the cap: nearly as bright as the cap over the whole hemisphere, −44 dB below it
+  with the cap cut at 45°); at 0.4 λ they are below −63 dB, as with a λ/4 lattice.
+  Normals within 45° of the probe direction, tapered (raised cosine) from 20°: the
+  aperture sees specular normals within ≈ ± 13° (± 18° of receive at 20 mm, ± 8° of
+  steering), and a λ/4 lattice over the whole probe-facing hemisphere (0° wave, hard
+  receive aperture) agreed with the cap alone within 0.7 dB above −20 dB re the peak,
+  no echo of the flanks above −45 dB (the differences below: the weak dots down the
+  cap's column and the line).
+- Elevation: each frame gets the points within ± 3 mm of its own plane (the outer 0.5 mm
+  tapered): the sphere moves through the elevation beam along the sweep. pymust's
+  two-way elevation field 3 mm off the plane is −44 to −56 dB at 10-25 mm (pfield).
+  Frames more than ≈ 6.5 mm off hold no surface within reach; the echo is below the
+  60 dB display ≈ 3 mm off already: 7-9 frames at each end of a sweep are black.
+- Smooth: the CAD sphere sim_us is given (``ROUGHNESS_RA_M`` = 0). With the paper
+  scenario's printed roughness (Ra 10 µm, ℓ 0.4 mm, ``twin.printing.roughness_height``
+  along the normal) the cap's specular point moves by ≈ R × slope (0.2 mm): the refined
+  centres came 0.10-0.21 mm off (0.09-0.21 mm laterally) against 0.06-0.08 on sim_us's
+  untextured sphere; sim_us draws printed roughness as speckle and a lobe, not as a
+  moving specular point.
+- pymust's frequency grid as in reference_echoes.py: ``FrequencyStep`` set so the grid's
+  period is K / fc (K ≥ 260: pymust's elevation term re-evaluated at least every 1 MHz),
+  a uniform receive delay −t0 bringing one sweep's echo window (all its frames, all
+  elements, the pulse either side) into the first half-period, ``dasmtx`` told t0, the
+  envelope × K (simus's RF scales as 1 / K: a point's envelope × K at K = 260, 400, 700
+  agrees within 0.5 %). Element splitting pymust's default (3 per element); water's
+  attenuation at fc (0.028 dB/cm/MHz, pymust's is linear in f).
+- Pixels: each sweep's sphere is beamformed at the frame's own pixel centres
+  (``calib.image.pixel_axes``, displayed depth) over ± 6 mm about its column, from 4 mm
+  above its cap's top to 3 mm below its centre (true depths); the rest of the 401 × 381
+  frame is 0, as sim_us's noise-free water. The pixel ↔ image mapping is exact.
+- Display: 0 dB is a perfect reflector's echo, as sim_us's: the same compounded
+  envelope of a smooth unit sheet (λ/2 square grid: no Bragg echo) at the cap's depth on
+  the sphere's column, under the aperture (± 6.4 mm + the steered waves' shift + 1 mm,
+  1.5 mm tapered), ± 3 mm in elevation, without attenuation. Grey = (20 log10(envelope /
+  0 dB) + 60) · 255 / 60, rounded and clipped (sim_us's display at gain 0). The caps
+  peak at −16 to −24 dB (grey 151-187) in the frame nearest the centre (0.15-0.45 mm
+  off it), sim_us's at −13 dB (200): a sphere's cap returns less than a flat plate of
+  PLA (−10.4 dB).
+
+What remains of a plane-wave image's artefacts (frame nearest the centre, dB below the
+cap's peak): the horizontal line a specular top throws across the image (every pixel at
+its depth sums part of its echo) is gone beside the cap (≤ −40 dB 1.5-4 mm from its
+column, grey ≤ 14; −23 to −37 dB with dasmtx's hard aperture): the Hann apodization
+removed it; the steered waves' tilted copies remain faintly towards the crop's edges
+(−33 to −39 dB, grey ≤ 24, cut at ± 6 mm). The fans: the grating fans of the flanks are
+gone (above); what remains is the compounding's X-shaped tails of the cap's echo, two
+blobs 0.8-1 mm beside its column and ≈ 1 mm below its top, inside the sphere (−25 to
+−29 dB, grey ≤ 80), and a ladder of weak dots down the cap's column (−32 to −42 dB,
+grey ≤ 18).
+
+What the frames show: the cap alone (≈ 2 mm wide, fading within ± 2 mm of elevation), where
+sim_us draws the whole probe-facing outline (its surfaces' diffuse share, 0.1 in amplitude,
+−20 dB) in every frame within ± 4.5 mm. A smooth sphere's flanks send their echo away
+from the aperture; a printed one's layer lines, left out here, would return some. A
+score over the whole proximal shell sees little of a sphere in such frames.
+
+Prints one row per sweep and method (error on pymust's frames "ref", on sim_us's
+"twin", their ratio) with every rejection's reason, then the median errors and their
+ratio per method; the last line is ``worst_error_ratio=<largest ref / twin error over
+the sweeps and methods both accepted> wrong_centres=<centres accepted from pymust's
+frames more than 1 mm off>``.
+
+``--write`` renders with pymust (≈ 22 min on one core: ≈ 400 k scatterer-frames per
+sweep through three waves, and the reference sheets) and stores the frames (uint8),
+spacing, poses, ``T_ee_us``, true centres, radius, axial scale, the probe, the method,
+the pymust version and the command in ``benchmarks/reference/sweeps.npz``; then runs
+the check. Without it, the check reads that file (no pymust needed; ≈ 4 s: sim_us's 63
+frames ≈ 2 s, the localizer < 1 s).
+
+Run: python benchmarks/reference_sweeps.py [--write]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# benchmarks/sim_us.py shares its name with the package: keep this folder off the path.
+_HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
+
+import argparse  # noqa: E402
+import importlib.metadata  # noqa: E402
+import importlib.util  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import time  # noqa: E402
+from dataclasses import asdict, dataclass, replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+from types import ModuleType  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+
+from calib import se3  # noqa: E402
+from calib.image import pixel_axes  # noqa: E402
+from calib.localize import LocalizerConfig, SweepLocalization, localize_sphere  # noqa: E402
+from calib.records import Sweep  # noqa: E402
+from sim_us import MediumConfig, ProbeConfig  # noqa: E402
+from sim_us.materials import MATERIALS, amplitude_reflection, water  # noqa: E402
+from sim_us.raycast import AcousticScene, ScenePart  # noqa: E402
+from sim_us.simulator import BmodeSimulator  # noqa: E402
+from twin.printing import roughness_height  # noqa: E402
+
+ROOT = Path(_HERE).parent
+STORED = Path(_HERE) / "reference" / "sweeps.npz"
+COMMAND = "python benchmarks/reference_sweeps.py --write"
+
+Array = NDArray[np.float64]
+
+
+def _physics_reference() -> ModuleType:
+    """benchmarks/physics_reference.py (not a package): the paper probe, pymust's PARAM
+    and the receive f-number, one definition for every pymust reference."""
+    name = "physics_reference"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, Path(_HERE) / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+PR = _physics_reference()
+
+# ------------------------------------------------------------------ the scene
+
+MM = 1e-3
+RADIUS_M = 5e-3
+MEDIUM = MediumConfig()  # water at 20 °C
+WATER = water(MEDIUM.temperature_c)
+WATER_C = WATER.speed_m_s
+PLA = MATERIALS["pla"]
+# The sphere's surface: PLA's normal-incidence pressure reflection coefficient in water.
+PLA_REFLECTION = float(amplitude_reflection(WATER.impedance, PLA.impedance))
+# Printed roughness along the normal (twin/printing.py's model): off, the CAD sphere
+# sim_us is given. The paper scenario's figures (Ra 10 µm, ℓ 0.4 mm) move the cap's
+# specular point by R × slope (module docstring).
+ROUGHNESS_RA_M = 0.0
+ROUGHNESS_LENGTH_M = 0.4e-3
+SEED = 35
+# Where the sphere sits in the scene ("base") frame: any fixed point.
+CENTRE_BASE = np.array([0.30, 0.02, 0.05])
+# The protocol's sweep: 21 frames 1 mm apart along the image's elevation axis.
+FRAMES = 21
+FRAME_STEP_M = 1e-3
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """Where the sphere's centre lies in a sweep's centre frame (the ``us`` frame of its
+    middle frame: x lateral, y depth, z elevation, mm; depth true, not displayed) and the
+    probe's orientation in the scene (xyz Euler angles, degrees)."""
+
+    lateral_mm: float
+    depth_mm: float
+    elevation_mm: float
+    rotation_deg: tuple[float, float, float]
+
+
+SWEEPS = (
+    SweepSpec(0.0, 15.0, 0.3, (0.0, 0.0, 0.0)),
+    SweepSpec(4.0, 20.0, -0.45, (10.0, 35.0, -5.0)),
+    SweepSpec(-6.5, 25.0, 0.15, (-20.0, 120.0, 15.0)),
+)
+
+
+def probe_config() -> ProbeConfig:
+    """sim_us's probe: the paper probe's datasheet figures, everything else default."""
+    a = PR.paper_probe().array
+    return ProbeConfig(
+        f_mhz=a.f_mhz,
+        bandwidth_pct=a.bandwidth_pct,
+        pitch_mm=a.pitch_mm,
+        kerf_mm=a.kerf_mm,
+        active_elements=a.active_elements,
+        elevation_aperture_mm=a.elevation_aperture_mm,
+        elevation_focus_mm=a.elevation_focus_mm,
+    )
+
+
+def axial_scale(probe: ProbeConfig) -> float:
+    """True over displayed depth: c_water / the scanner's assumed speed."""
+    return WATER_C / probe.assumed_speed_m_s
+
+
+def sweep_poses(spec: SweepSpec) -> Array:
+    """(FRAMES, 4, 4): each frame's image (``us``) frame in the scene, the sweep moving
+    along its own z through the sphere; the sphere's centre in the middle frame is
+    ``spec``'s (x, y, z)."""
+    R = se3.matrix_from_euler(np.radians(spec.rotation_deg))
+    p_mid = np.array([spec.lateral_mm, spec.depth_mm, spec.elevation_mm]) * MM
+    z = (np.arange(FRAMES) - FRAMES // 2) * FRAME_STEP_M
+    return np.array([se3.make(R, CENTRE_BASE - R @ (p_mid - [0.0, 0.0, zk])) for zk in z])
+
+
+def true_centre(T_base_us: Array) -> Array:
+    """The sphere's centre (3,) in the sweep's reference frame (its middle frame)."""
+    return se3.apply(se3.invert(T_base_us[FRAMES // 2]), CENTRE_BASE)
+
+
+# ------------------------------------------------------------------ reference (pymust)
+
+# Compounded steered plane waves (degrees), the 64 active elements centred over the sphere.
+STEER_DEG = (-8.0, 0.0, 8.0)
+# Surface points: a Fibonacci lattice at this many wavelengths (in water, at fc).
+LATTICE_WAVELENGTHS = 0.4
+# The cap: outward normals within CAP_DEG[1] of the probe direction, tapered (raised
+# cosine) from CAP_DEG[0]; in elevation, within ELEVATION_REACH_M of the frame's plane,
+# the outer ELEVATION_TAPER_M tapered.
+CAP_DEG = (20.0, 45.0)
+ELEVATION_REACH_M = 3e-3
+ELEVATION_TAPER_M = 0.5e-3
+# The beamformed crop about the sphere (the rest of the frame is black): ± this laterally
+# about its centre, from this much above the cap's top to this much below the centre.
+CROP_HALF_WIDTH_M = 6e-3
+CROP_ABOVE_M = 4e-3
+CROP_BELOW_M = 3e-3
+# The perfect reflector (0 dB): a smooth unit sheet at the cap's depth, as wide as the
+# array plus the steered waves' lateral shift at that depth plus this margin, ± the
+# elevation reach; the outer SHEET_TAPER_M (lateral) and ELEVATION_TAPER_M tapered.
+SHEET_MARGIN_M = 1e-3
+SHEET_TAPER_M = 1.5e-3
+# Receive: dasmtx's f-number aperture (physics_reference's directivity F#), Hann-apodized.
+# pymust re-evaluates its elevation (MGBM) term every 20th frequency sample: the grid's
+# period K / fc keeps K ≥ this (a re-evaluation at least every 1 MHz at 13 MHz).
+MIN_PERIOD_CYCLES = 260
+
+
+def _taper(u: Array) -> Array:
+    """Raised cosine of ``u`` clipped to [0, 1]: 0 at 0, 1 at 1."""
+    return 0.5 - 0.5 * np.cos(np.pi * np.clip(u, 0.0, 1.0))
+
+
+def wavelength_m(a: Any) -> float:
+    """λ in water at the centre frequency."""
+    return WATER_C / (a.f_mhz * 1e6)
+
+
+def sphere_surface(a: Any) -> tuple[Array, Array]:
+    """The sphere in the scene: points (n, 3) of a Fibonacci lattice on its surface about
+    ``LATTICE_WAVELENGTHS`` λ apart (equal area per point), moved along the normal by
+    the printed roughness (if ``ROUGHNESS_RA_M``), and their outward normals (n, 3)."""
+    spacing = LATTICE_WAVELENGTHS * wavelength_m(a)
+    n = int(np.ceil(4 * np.pi * RADIUS_M**2 / spacing**2))
+    i = np.arange(n) + 0.5
+    cos_t = 1.0 - 2.0 * i / n
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    sin_t = np.sqrt(1.0 - cos_t**2)
+    normal = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
+    cad = CENTRE_BASE + RADIUS_M * normal
+    if ROUGHNESS_RA_M <= 0:
+        return cad, normal
+    rng = np.random.default_rng(SEED)
+    height = roughness_height(cad, ROUGHNESS_RA_M, ROUGHNESS_LENGTH_M, rng)
+    return cad + height[:, None] * normal, normal
+
+
+def cap_in_frame(points: Array, normals: Array, T_base_us: Array) -> tuple[Array, Array]:
+    """The surface points a frame can see, in its ``us`` frame (n, 3), and their cap
+    weight (n,): the outward normal within ``CAP_DEG[1]`` of the direction to the probe
+    (−y), tapered; all elevations (the frame's slab is cut per frame)."""
+    T_inv = se3.invert(T_base_us)
+    p = se3.apply(T_inv, points)
+    n = normals @ T_inv[:3, :3].T
+    beta = np.degrees(np.arccos(np.clip(-n[:, 1], -1.0, 1.0)))
+    w = _taper((CAP_DEG[1] - beta) / (CAP_DEG[1] - CAP_DEG[0]))
+    keep = w > 0
+    return p[keep], w[keep]
+
+
+def elevation_slab(p: Array, w: Array) -> tuple[Array, Array]:
+    """The points within ``ELEVATION_REACH_M`` of the image plane and their weights
+    times the elevation taper."""
+    we = w * _taper((ELEVATION_REACH_M - np.abs(p[:, 2])) / ELEVATION_TAPER_M)
+    keep = we > 0
+    return p[keep], we[keep]
+
+
+@dataclass
+class Scanner:
+    """The paper probe's 64 active elements centred at ``x_aperture`` (m, image x):
+    pymust's PARAM for the water the sound travels in (``medium``) and for the scanner's
+    assumed 1540 m/s (``scan``: transmit delays, beamforming, display)."""
+
+    array: Any
+    medium: Any
+    scan: Any
+    x_aperture: float
+    fnumber: float
+    pulse_s: float
+
+
+def scanner(a: Any, x_centre: float) -> Scanner:
+    """The active aperture nearest to ``x_centre`` (m): 64 of the 190 elements, its
+    centre on the pitch grid, inside the face."""
+    import pymust  # optional: only the reference needs pymust
+
+    pitch = a.pitch_mm * MM
+    half = (a.elements - a.active_elements) / 2
+    x_ap = float(np.clip(np.round(x_centre / pitch), -half, half) * pitch)
+    ones = np.ones(a.active_elements, np.float32)
+    medium = PR.pymust_param(replace(a, speed_m_s=WATER_C), ones)
+    scan = PR.pymust_param(a, ones)
+    for p in (medium, scan):
+        del p["TXapodization"]
+        p.fs = 4 * p.fc
+        p.radius = np.inf
+    # pymust's attenuation is linear in f: water's f² law matched at fc.
+    f = a.f_mhz
+    medium.attenuation = WATER.attenuation_db_cm_mhz * f ** (WATER.attenuation_power - 1)
+    _, tp = pymust.getpulse(medium, 2)
+    return Scanner(a, medium, scan, x_ap, PR.receive_fnumber(a), float(tp[-1]))
+
+
+def _elements_x(s: Scanner) -> Array:
+    a = s.array
+    return (np.arange(a.active_elements) - (a.active_elements - 1) / 2) * a.pitch_mm * MM
+
+
+def _pymust_xyz(p_us: Array, s: Scanner) -> tuple[Array, Array, Array]:
+    """pymust's (x lateral from the aperture's centre, y elevation, z depth) of us-frame
+    points (x lateral, y depth, z elevation)."""
+    return p_us[:, 0] - s.x_aperture, p_us[:, 2], p_us[:, 1]
+
+
+@dataclass
+class Transmit:
+    """One steered plane wave: its delays, the RF window (K, t0) all the echoes of a
+    sweep fall in, and the DAS matrix of the crop's pixels for it."""
+
+    delays: Array
+    k: int
+    t0: float
+    das: Any
+
+
+def transmit(s: Scanner, angle_deg: float, p_us: Array, x_px: Array, z_px: Array) -> Transmit:
+    """The plane wave at ``angle_deg`` for echoes of the points ``p_us`` (all a sweep's
+    frames hold, their elevations up to the slab's reach), beamformed at pixels
+    (``x_px``, ``z_px``: pymust's x, displayed depth)."""
+    import pymust  # optional: only the reference needs pymust
+
+    delays = np.asarray(pymust.txdelay(s.scan, np.radians(angle_deg)), float).reshape(1, -1)
+    x, _, z = _pymust_xyz(p_us, s)
+    dx2 = (x[:, None] - _elements_x(s)) ** 2
+    r_lo = np.sqrt(dx2 + z[:, None] ** 2)
+    r_hi = np.sqrt(dx2 + z[:, None] ** 2 + ELEVATION_REACH_M**2)
+    c = WATER_C
+    # Transmit: the plane wave reaches a point between its elements' earliest and latest
+    # wavelets; receive: its nearest and farthest element; the pulse either side.
+    t_lo = float(np.min(np.min(delays + r_lo / c, axis=1) + r_lo.min(axis=1) / c)) - s.pulse_s
+    t_hi = float(np.max(np.max(delays + r_hi / c, axis=1) + r_hi.max(axis=1) / c)) + s.pulse_s
+    span = t_hi - t_lo
+    fc = s.medium.fc
+    k = max(int(np.ceil(2.2 * span * fc)), MIN_PERIOD_CYCLES)
+    t0 = t_lo - (k / fc / 2 - span) / 2
+    p = s.scan.copy()
+    p.TXdelay = delays.copy()
+    p.t0 = np.array([t0])
+    p.fnumber = s.fnumber
+    das = pymust.dasmtx(1j * np.array([2 * k, s.array.active_elements]), x_px, z_px, p)
+    return Transmit(delays, k, t0, _hann(das, 2 * k, x_px, z_px, s))
+
+
+def _hann(das: Any, samples: int, x_px: Array, z_px: Array, s: Scanner) -> Any:
+    """The DAS matrix with a Hann receive apodization over each pixel's f-number
+    aperture (dasmtx's own is a hard-edged one): each entry weighted by its element's
+    offset from the pixel's column, 1 on it, 0 at ± depth / (2 F#). Its columns are
+    (sample, element) in column-major order, its rows the pixels (column-major)."""
+    from scipy.sparse import csr_matrix
+
+    m = das.tocoo()
+    element = m.col // samples
+    x = np.asarray(x_px, float).flatten(order="F")[m.row]
+    z = np.asarray(z_px, float).flatten(order="F")[m.row]
+    u = np.abs(x - _elements_x(s)[element]) / (z / (2.0 * s.fnumber))
+    w = 0.5 + 0.5 * np.cos(np.pi * np.clip(u, 0.0, 1.0))
+    return csr_matrix((m.data * w, (m.row, m.col)), shape=m.shape)
+
+
+def beamformed(s: Scanner, tx: Transmit, p_us: Array, rc: Array) -> NDArray[np.complex128]:
+    """I/Q at the transmit's pixels of scatterers ``p_us`` (us frame) with reflection
+    coefficients ``rc``, times K (simus's RF scales as 1 / K)."""
+    import pymust  # optional: only the reference needs pymust
+    from pymust import utils
+
+    x, y, z = _pymust_xyz(p_us, s)
+    p = s.medium.copy()
+    fc = p.fc
+    # simus's own frequency step (half the inverse of the longest path's time: its
+    # in-plane distance plus the pulse, and the largest delay), scaled so that its grid
+    # has the period K / fc; the RF advanced by t0 (a uniform receive delay: a phase per
+    # frequency, exact) puts the window's echoes in the first half-period, which simus
+    # returns.
+    p.RXdelay = np.full((1, s.array.active_elements), -tx.t0)
+    max_d = np.sqrt(np.max((x[:, None] - _elements_x(s)) ** 2 + z[:, None] ** 2))
+    max_d += s.pulse_s * WATER_C
+    step = 0.5 / (2 * max_d / WATER_C + max(float(np.max(tx.delays)), float(np.max(p.RXdelay))))
+    opt = utils.Options()
+    opt.WaitBar = False
+    opt.FrequencyStep = fc / (tx.k - 0.5) / step
+    logging.disable(logging.WARNING)  # simus warns whenever FrequencyStep > 1
+    try:
+        rf, _ = pymust.simus(
+            x[None].copy(),
+            y[None].copy(),
+            z[None].copy(),
+            rc[None].astype(float),
+            tx.delays.copy(),
+            p,
+            opt,
+        )
+    finally:
+        logging.disable(logging.NOTSET)
+    if rf.shape[0] != 2 * tx.k:
+        raise RuntimeError(
+            f"pymust's frequency grid is not the one asked for ({rf.shape[0]} RF samples, "
+            f"expected {2 * tx.k}): its simus changed"
+        )
+    iq = pymust.rf2iq(rf, p.fs, fc)
+    return np.asarray(tx.das @ iq.flatten(order="F")) * tx.k
+
+
+@dataclass(frozen=True)
+class Crop:
+    """The pixels beamformed about a sweep's sphere: rows and columns of the frame."""
+
+    rows: NDArray[np.int64]
+    cols: NDArray[np.int64]
+
+
+def crop_of(probe: ProbeConfig, centre_us: Array) -> Crop:
+    """± ``CROP_HALF_WIDTH_M`` about the sphere's column; from ``CROP_ABOVE_M`` above its
+    cap's top to ``CROP_BELOW_M`` below its centre, at displayed depths."""
+    H, W = probe.image_shape
+    sx, sy = probe.spacing_m
+    x, _ = pixel_axes(0, np.arange(W), W, (sx, sy))
+    cols = np.flatnonzero(np.abs(x - centre_us[0]) <= CROP_HALF_WIDTH_M + 1e-9)
+    shown = 1.0 / axial_scale(probe)  # displayed / true depth
+    top = (centre_us[1] - RADIUS_M - CROP_ABOVE_M) * shown / sy
+    bottom = (centre_us[1] + CROP_BELOW_M) * shown / sy
+    rows = np.arange(max(int(np.ceil(top)), 0), min(int(np.floor(bottom)), H - 1) + 1)
+    return Crop(rows, cols)
+
+
+def to_grey(envelope: Array, reference: float, dynamic_range_db: float) -> NDArray[np.uint8]:
+    """Log compression as sim_us's display does it (gain 0): 0 dB (white) at
+    ``reference``, black ``dynamic_range_db`` below, rounded to 8 bits."""
+    db = 20.0 * np.log10(np.maximum(envelope / reference, 1e-30))
+    grey = (db + dynamic_range_db) * 255.0 / dynamic_range_db + 0.5
+    return np.clip(grey, 0.0, 255.0).astype(np.uint8)
+
+
+def sheet(s: Scanner, centre_us: Array, steer_deg: tuple[float, ...]) -> tuple[Array, Array]:
+    """A perfect flat reflector (reflection coefficient 1, smooth) at the cap's true
+    depth, under the aperture: points (n, 3, us frame) of a λ/2 square grid (its first
+    Bragg echo would need sin θ_in + sin θ_out = 2: none) and their weights (taper ×
+    area per point / λ², as the sphere's)."""
+    lam = wavelength_m(s.array)
+    spacing = 0.5 * lam
+    depth = centre_us[1] - RADIUS_M
+    a = s.array
+    half_array = a.active_elements * a.pitch_mm * MM / 2
+    hx = half_array + depth * np.tan(np.radians(max(abs(v) for v in steer_deg))) + SHEET_MARGIN_M
+    hz = ELEVATION_REACH_M
+    u = np.arange(-hx, hx + 1e-12, spacing)
+    v = np.arange(-hz, hz + 1e-12, spacing)
+    w = np.outer(
+        _taper((hx - np.abs(u)) / SHEET_TAPER_M), _taper((hz - np.abs(v)) / ELEVATION_TAPER_M)
+    )
+    uu, vv = np.meshgrid(u, v, indexing="ij")
+    p = np.column_stack([s.x_aperture + uu.ravel(), np.full(uu.size, depth), vv.ravel()])
+    keep = w.ravel() > 0
+    return p[keep], w.ravel()[keep] * spacing**2 / lam**2
+
+
+def reference_level(s: Scanner, centre_us: Array, x_px: float, shown: float) -> float:
+    """The envelope (× K, compounded as the frames) of the perfect reflector at the cap's
+    depth on the sphere's column ``x_px`` (pymust's x): the frames' 0 dB. ``shown`` is
+    displayed / true depth."""
+    p, w = sheet(s, centre_us, STEER_DEG)
+    depth = (centre_us[1] - RADIUS_M) * shown
+    z = depth + np.arange(-1e-3, 1e-3 + 1e-9, 0.01e-3)
+    x = np.full_like(z, x_px)
+    medium = s.medium
+    s_flat = replace(s, medium=medium.copy())
+    s_flat.medium.attenuation = 0.0  # a reference: the perfect reflector without loss
+    iq = sum(beamformed(s_flat, transmit(s_flat, a, p, x, z), p, w) for a in STEER_DEG)
+    return float(np.max(np.abs(iq)))
+
+
+def _surface_weights(n_points: int, lam: float) -> float:
+    """A lattice point's share of the surface, per λ² (the sheet's too): reflectivity
+    per unit area, whatever the lattice."""
+    return 4 * np.pi * RADIUS_M**2 / n_points / lam**2
+
+
+def render_sweep(
+    a: Any, probe: ProbeConfig, spec: SweepSpec, surface: tuple[Array, Array], log: bool = True
+) -> tuple[NDArray[np.uint8], dict[str, Any]]:
+    """One sweep's frames (FRAMES, H, W) rendered with pymust, and what it took."""
+    t_start = time.perf_counter()
+    T = sweep_poses(spec)
+    centre = true_centre(T)
+    s = scanner(a, float(centre[0]))
+    crop = crop_of(probe, centre)
+    H, W = probe.image_shape
+    x, y = pixel_axes(crop.rows, crop.cols, W, probe.spacing_m)
+    X, Z = np.meshgrid(x - s.x_aperture, y)  # pymust's x; displayed depth
+    points, normals = surface
+    p_mid, w_cap = cap_in_frame(points, normals, T[FRAMES // 2])
+    rc = w_cap * PLA_REFLECTION * _surface_weights(len(points), wavelength_m(a))
+    txs = [transmit(s, angle, p_mid, X, Z) for angle in STEER_DEG]
+    shown = 1.0 / axial_scale(probe)
+    col = int(np.argmin(np.abs(x - centre[0])))
+    reference = reference_level(s, centre, float(x[col] - s.x_aperture), shown)
+    frames = np.zeros((FRAMES, H, W), np.uint8)
+    z = (np.arange(FRAMES) - FRAMES // 2) * FRAME_STEP_M
+    counts = []
+    for k, zk in enumerate(z):
+        p, w = elevation_slab(p_mid - [0.0, 0.0, zk], rc)
+        counts.append(len(p))
+        if not len(p):
+            continue  # nothing within the elevation reach: a black frame
+        iq = sum(beamformed(s, tx, p, w) for tx in txs)
+        env = np.abs(np.asarray(iq)).reshape(X.shape, order="F")
+        frames[k][np.ix_(crop.rows, crop.cols)] = to_grey(env, reference, probe.dynamic_range_db)
+    seconds = time.perf_counter() - t_start
+    if log:
+        print(
+            f"  pymust sweep {spec}: {sum(counts)} scatterer-frames, {seconds:.0f} s",
+            file=sys.stderr,
+        )
+    info = {
+        "scatterers_per_frame": counts,
+        "aperture_centre_mm": s.x_aperture / MM,
+        "reference_envelope": reference,
+        "window_periods_k": [tx.k for tx in txs],
+        "crop_rows": [int(crop.rows[0]), int(crop.rows[-1])],
+        "crop_cols": [int(crop.cols[0]), int(crop.cols[-1])],
+        "seconds": round(seconds, 1),
+    }
+    return frames, info
+
+
+def method_record() -> dict[str, Any]:
+    """How the stored frames were made (the module docstring in figures)."""
+    return {
+        "imaging": "coherently compounded steered plane waves (64 active elements centred "
+        "over the sphere), pymust simus (3-D, elevation lens) + rf2iq (low-pass at fc) + "
+        "dasmtx at the scanner's 1540 m/s with the directivity f-number, Hann-apodized",
+        "steer_deg": list(STEER_DEG),
+        "receive_fnumber": round(PR.receive_fnumber(PR.paper_probe().array), 4),
+        "medium": "water 20 °C (MediumConfig()): c from calib.sound, attenuation at fc "
+        "(pymust's is linear in f)",
+        "speed_m_s": WATER_C,
+        "surface": "Fibonacci lattice on the CAD sphere (roughness along the normal by "
+        "twin.printing.roughness_height if roughness_ra_m > 0), reflection coefficient "
+        "of PLA in water, weight area per point / λ²",
+        "lattice_wavelengths": LATTICE_WAVELENGTHS,
+        "roughness_ra_m": ROUGHNESS_RA_M,
+        "roughness_length_m": ROUGHNESS_LENGTH_M,
+        "pla_reflection": PLA_REFLECTION,
+        "cap_deg": list(CAP_DEG),
+        "elevation_reach_m": ELEVATION_REACH_M,
+        "elevation_taper_m": ELEVATION_TAPER_M,
+        "crop_m": {"half_width": CROP_HALF_WIDTH_M, "above_cap": CROP_ABOVE_M},
+        "crop_below_centre_m": CROP_BELOW_M,
+        "zero_db": "the compounded envelope of a smooth perfect reflector (unit sheet) at "
+        "the cap's depth on the sphere's column, no attenuation (sim_us's 0 dB)",
+        "grey": "(20 log10(envelope / 0 dB) + DR) · 255 / DR, rounded, clipped (sim_us's "
+        "display at gain 0); outside the crop 0",
+        "dynamic_range_db": probe_config().dynamic_range_db,
+        "min_period_cycles": MIN_PERIOD_CYCLES,
+        "seed": SEED,
+    }
+
+
+def write_stored(frames: list[NDArray[np.uint8]], infos: list[dict[str, Any]]) -> None:
+    """Frames (uint8), spacing, poses, true centres, the probe, the method, pymust's
+    version and the command, in ``STORED`` (compressed)."""
+    probe = probe_config()
+    poses = np.array([sweep_poses(spec) for spec in SWEEPS])
+    meta = {
+        "what": "elevational sweeps of a 5 mm PLA sphere in water rendered with pymust "
+        "(benchmarks/reference_sweeps.py's docstring)",
+        "command": COMMAND,
+        "pymust_version": importlib.metadata.version("pymust"),
+        "array": asdict(PR.paper_probe().array),
+        "probe": {
+            k: getattr(probe, k)
+            for k in (
+                "f_mhz",
+                "bandwidth_pct",
+                "pitch_mm",
+                "kerf_mm",
+                "active_elements",
+                "elevation_aperture_mm",
+                "elevation_focus_mm",
+                "width_mm",
+                "depth_mm",
+                "pixel_spacing_mm",
+                "assumed_speed_m_s",
+                "dynamic_range_db",
+            )
+        },
+        "sweeps": [asdict(spec) for spec in SWEEPS],
+        "method": method_record(),
+        "per_sweep": infos,
+    }
+    STORED.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        STORED,
+        frames=np.array(frames, np.uint8),
+        spacing=np.array(probe.spacing_m),
+        T_base_ee=poses,
+        T_ee_us=np.eye(4),
+        centre_base=CENTRE_BASE,
+        centre_ref=np.array([true_centre(T) for T in poses]),
+        radius=np.array(RADIUS_M),
+        axial_scale=np.array(axial_scale(probe)),
+        meta=np.array(json.dumps(meta, ensure_ascii=False)),
+    )
+
+
+# ------------------------------------------------------------------ the check
+
+
+def load_stored(path: Path | None = None) -> dict[str, Any]:
+    """The stored sweeps (no pickles): arrays by name, ``meta`` decoded."""
+    with np.load(path or STORED, allow_pickle=False) as f:
+        data = {k: f[k] for k in f.files}
+    data["meta"] = json.loads(str(data["meta"]))
+    return data
+
+
+def sweeps_of(frames: NDArray[np.uint8], data: dict[str, Any]) -> list[Sweep]:
+    """The localizer's sweeps of ``frames`` (S, n, H, W) at the stored poses."""
+    spacing = (float(data["spacing"][0]), float(data["spacing"][1]))
+    return [
+        Sweep("sphere_1", i, np.ascontiguousarray(f), spacing, np.zeros((len(f), 6)), T)
+        for i, (f, T) in enumerate(zip(frames, data["T_base_ee"], strict=True))
+    ]
+
+
+def twin_frames(poses: Array, probe: ProbeConfig | None = None) -> NDArray[np.uint8]:
+    """sim_us's frames (S, n, H, W) of the same scene at the same poses: an icosphere of
+    PLA in water, noise-free."""
+    probe = probe or probe_config()
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=RADIUS_M)
+    mesh.apply_translation(CENTRE_BASE)
+    sim = BmodeSimulator(AcousticScene((ScenePart("sphere", mesh, "pla"),)), probe, MEDIUM)
+    return np.array([sim.render(T, None) for T in poses])
+
+
+def localize(sweeps: list[Sweep], data: dict[str, Any], method: str) -> list[SweepLocalization]:
+    """The repository's localizer on the sweeps of one sphere (together, as the pipeline
+    runs it: with ``T_ee_us`` known, method "refined" uses their consensus)."""
+    return localize_sphere(
+        sweeps,
+        np.asarray(data["T_ee_us"]),
+        float(data["radius"]),
+        LocalizerConfig(method=method),
+        axial_scale=float(data["axial_scale"]),
+    )
+
+
+def errors_mm(locs: list[SweepLocalization], truths: Array) -> Array:
+    """Each sweep's centre error (mm; NaN where rejected)."""
+    return np.array(
+        [
+            np.linalg.norm(r.centre - t) / MM if r.accepted else np.nan
+            for r, t in zip(locs, truths, strict=True)
+        ]
+    )
+
+
+METHODS = ("refined", "paper")
+WRONG_MM = 1.0
+
+
+def _status(r: SweepLocalization) -> str:
+    return "accepted" if r.accepted else "rejected"
+
+
+def print_table(data: dict[str, Any], results: dict[str, dict[str, list]]) -> tuple[float, int]:
+    """One row per sweep and method: the error of the centre found in pymust's frames and
+    in sim_us's, and each rejection's reason; the ratio of the median errors per method.
+    Returns (the worst per-sweep error ratio pymust / sim_us over sweeps both accepted,
+    the number of centres accepted from pymust's frames more than ``WRONG_MM`` off)."""
+    truths = data["centre_ref"]
+    print(
+        "\nThe localizer on pymust's frames (ref) and on sim_us's (twin), same scene and "
+        "poses; error = |centre − truth|, mm (sweep reference frame)."
+    )
+    print(
+        f"{'sweep':>5} {'centre x/depth/elev mm':>24} {'method':>8} | {'ref mm':>7} "
+        f"{'ref':>8} | {'twin mm':>7} {'twin':>8} | {'ratio':>5}"
+    )
+    worst, wrong = float("nan"), 0
+    reasons: list[str] = []
+    for i, t in enumerate(truths):
+        where = f"{t[0] / MM:+6.2f} {t[1] / MM:6.2f} {t[2] / MM:+6.2f}"
+        for method in METHODS:
+            r_ref, r_twin = results["ref"][method][i], results["twin"][method][i]
+            e_ref = np.linalg.norm(r_ref.centre - t) / MM if r_ref.accepted else np.nan
+            e_twin = np.linalg.norm(r_twin.centre - t) / MM if r_twin.accepted else np.nan
+            ratio = e_ref / e_twin if np.isfinite(e_ref) and np.isfinite(e_twin) else np.nan
+            if np.isfinite(ratio):
+                worst = ratio if not np.isfinite(worst) else max(worst, ratio)
+            wrong += int(r_ref.accepted and e_ref > WRONG_MM)
+            print(
+                f"{i:>5} {where:>24} {method:>8} | {e_ref:7.3f} {_status(r_ref):>8} | "
+                f"{e_twin:7.3f} {_status(r_twin):>8} | {ratio:5.2f}"
+            )
+            for side, r in (("ref", r_ref), ("twin", r_twin)):
+                if not r.accepted:
+                    reasons.append(f"  sweep {i} {method} {side}: {r.reason}")
+    if reasons:
+        print("rejected:")
+        print("\n".join(reasons))
+    for method in METHODS:
+        e = {side: errors_mm(results[side][method], truths) for side in ("ref", "twin")}
+        med = {side: np.nanmedian(v) if np.isfinite(v).any() else np.nan for side, v in e.items()}
+        print(
+            f"{method}: median error ref {med['ref']:.3f} mm, twin {med['twin']:.3f} mm, "
+            f"ratio ref / twin {med['ref'] / med['twin']:.2f} "
+            f"(accepted {np.isfinite(e['ref']).sum()} / {len(truths)} ref, "
+            f"{np.isfinite(e['twin']).sum()} / {len(truths)} twin)"
+        )
+    return worst, wrong
+
+
+def render_reference(log: bool = True) -> tuple[list[NDArray[np.uint8]], list[dict[str, Any]]]:
+    """All sweeps' pymust frames, on one BLAS thread."""
+    from threadpoolctl import threadpool_limits
+
+    a = PR.paper_probe().array
+    probe = probe_config()
+    surface = sphere_surface(a)
+    frames, infos = [], []
+    with threadpool_limits(1):
+        for spec in SWEEPS:
+            f, info = render_sweep(a, probe, spec, surface, log)
+            frames.append(f)
+            infos.append(info)
+    return frames, infos
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description="the sphere localizer on pymust-rendered sweeps, next to sim_us's",
+        epilog="Details: the module docstring.",
+    )
+    parser.add_argument(
+        "--write", action="store_true", help=f"render with pymust and store {STORED}"
+    )
+    args = parser.parse_args()
+    t_start = time.perf_counter()
+    if args.write:
+        frames, infos = render_reference()
+        write_stored(frames, infos)
+        print(f"wrote {STORED.relative_to(ROOT)} ({STORED.stat().st_size / 1e6:.2f} MB)")
+    data = load_stored()
+    meta = data["meta"]
+    t0 = time.perf_counter()
+    twin = twin_frames(data["T_base_ee"])
+    t_twin = time.perf_counter() - t0
+    results: dict[str, dict[str, list]] = {"ref": {}, "twin": {}}
+    t0 = time.perf_counter()
+    for side, frames in (("ref", data["frames"]), ("twin", twin)):
+        sweeps = sweeps_of(frames, data)
+        for method in METHODS:
+            results[side][method] = localize(sweeps, data, method)
+    t_loc = time.perf_counter() - t0
+    worst, wrong = print_table(data, results)
+    render_s = sum(p["seconds"] for p in meta["per_sweep"])
+    print(
+        f"\nreference read from {STORED.relative_to(ROOT)} (pymust {meta['pymust_version']}, "
+        f"rendered in {render_s:.0f} s); sim_us {t_twin:.1f} s, localizer {t_loc:.1f} s, "
+        f"total {time.perf_counter() - t_start:.0f} s"
+    )
+    print(f"worst_error_ratio={worst:.2f} wrong_centres={wrong}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,136 @@
+"""The stored pymust sweeps (``benchmarks/reference/sweeps.npz``): consistent with the scene
+``benchmarks/reference_sweeps.py`` defines today, and localized by the refined method as
+well as sim_us's frames of the same scene are: the first check of the localizer on frames
+sim_us did not draw.
+
+The file is written by ``python benchmarks/reference_sweeps.py --write`` with pymust;
+these tests read it without pymust.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.image import us_to_pixel
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "reference_sweeps.py"
+MM = 1e-3
+
+
+def _load_script() -> ModuleType:
+    """The benchmark script as a module (benchmarks/ is not a package)."""
+    name = "reference_sweeps"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+RS = _load_script()
+
+
+@pytest.fixture(scope="module")
+def data() -> dict:
+    return RS.load_stored()
+
+
+def test_the_file_says_where_it_comes_from(data):
+    meta = data["meta"]
+    assert meta["command"] == "python benchmarks/reference_sweeps.py --write"
+    assert meta["pymust_version"]
+    assert meta["method"] == RS.method_record()
+    assert meta["array"] == asdict(RS.PR.paper_probe().array)
+    probe = RS.probe_config()
+    for key, value in meta["probe"].items():
+        np.testing.assert_allclose(value, getattr(probe, key), err_msg=key)
+    assert [tuple(s.values()) for s in meta["sweeps"]] == [
+        (s.lateral_mm, s.depth_mm, s.elevation_mm, list(s.rotation_deg)) for s in RS.SWEEPS
+    ]
+    assert RS.STORED.stat().st_size <= 3e6
+
+
+def test_frames_poses_and_truth_are_consistent(data):
+    """uint8 frames of sim_us's image size and spacing; poses that are today's sweeps
+    (a linear sweep along each frame's own z, the protocol's 21 frames 1 mm apart); the
+    true centre where the poses put the sphere; axial scale c_water / 1540."""
+    probe = RS.probe_config()
+    frames = data["frames"]
+    assert frames.dtype == np.uint8
+    assert frames.shape == (len(RS.SWEEPS), RS.FRAMES, *probe.image_shape)
+    np.testing.assert_allclose(data["spacing"], probe.spacing_m)
+    np.testing.assert_allclose(data["axial_scale"], RS.WATER_C / 1540.0)
+    assert float(data["radius"]) == RS.RADIUS_M
+    np.testing.assert_array_equal(data["T_ee_us"], np.eye(4))
+    for i, spec in enumerate(RS.SWEEPS):
+        T = data["T_base_ee"][i]
+        se3.check(T, "T_base_ee", batch=True)
+        np.testing.assert_allclose(T, RS.sweep_poses(spec), atol=1e-12)
+        step = T[0, :3, 2] * RS.FRAME_STEP_M
+        np.testing.assert_allclose(np.diff(T[:, :3, 3], axis=0), np.tile(step, (RS.FRAMES - 1, 1)))
+        np.testing.assert_allclose(T[:, :3, :3], np.broadcast_to(T[0, :3, :3], (RS.FRAMES, 3, 3)))
+        centre = data["centre_ref"][i]
+        middle = T[RS.FRAMES // 2]
+        np.testing.assert_allclose(centre, se3.apply(se3.invert(middle), data["centre_base"]))
+        np.testing.assert_allclose(
+            centre / MM, [spec.lateral_mm, spec.depth_mm, spec.elevation_mm], atol=1e-9
+        )
+
+
+def test_the_cap_is_drawn_where_the_sphere_is(data):
+    """In the frame nearest the sphere's centre, the echo within 6 dB of its peak is
+    centred (grey-weighted) on the cap's top: its displayed depth and the sphere's
+    column, within 0.1 mm (the brightest pixel itself may lie anywhere along the cap's
+    flat top: the steered waves' specular points sit ± R sin 4° apart); the brightest
+    frame is within one of it, the sweep's ends are black (the sphere beyond the
+    elevation reach), and nothing is drawn outside the beamformed crop."""
+    H, W = data["frames"].shape[2:]
+    spacing = tuple(data["spacing"])
+    shown = 1.0 / float(data["axial_scale"])
+    for i, info in enumerate(data["meta"]["per_sweep"]):
+        frames = data["frames"][i]
+        c = data["centre_ref"][i]
+        k = RS.FRAMES // 2 + round(c[2] / RS.FRAME_STEP_M)
+        f = frames[k].astype(float)
+        top_6db = np.where(f >= f.max() - 6.0 * 255.0 / RS.probe_config().dynamic_range_db, f, 0.0)
+        rows, cols = np.mgrid[0:H, 0:W]
+        r = (top_6db * rows).sum() / top_6db.sum()
+        col = (top_6db * cols).sum() / top_6db.sum()
+        top = np.array([c[0], (c[1] - RS.RADIUS_M) * shown, 0.0])
+        r_true, c_true = us_to_pixel(top, W, spacing)
+        assert abs(r - r_true) * spacing[1] < 0.1 * MM
+        assert abs(col - c_true) * spacing[0] < 0.1 * MM
+        peaks = frames.reshape(len(frames), -1).max(axis=1)
+        assert abs(int(np.argmax(peaks)) - k) <= 1 and peaks[0] == peaks[-1] == 0
+        r0, r1 = info["crop_rows"]
+        c0, c1 = info["crop_cols"]
+        outside = frames.copy()
+        outside[:, r0 : r1 + 1, c0 : c1 + 1] = 0
+        assert not outside.any()
+
+
+def test_refined_localizer_on_pymust_frames_matches_sim_us(data):
+    """The refined localizer on pymust's sweeps: no accepted centre more than 1 mm off,
+    every sweep sim_us's frames give a centre for gives one too, and each error within
+    1.5 × (or 0.1 mm more than) the error on sim_us's frames of the same scene."""
+    truths = data["centre_ref"]
+    ref = RS.localize(RS.sweeps_of(data["frames"], data), data, "refined")
+    twin = RS.localize(RS.sweeps_of(RS.twin_frames(data["T_base_ee"]), data), data, "refined")
+    e_ref, e_twin = RS.errors_mm(ref, truths), RS.errors_mm(twin, truths)
+    for r, t, er, et in zip(ref, twin, e_ref, e_twin, strict=True):
+        assert not (r.accepted and er > 1.0), r
+        if t.accepted:
+            assert r.accepted, r.reason
+            assert er <= max(1.5 * et, et + 0.1), (er, et)
