@@ -29,6 +29,7 @@ __all__ = [
     "elevation_weights",
     "lateral_amplitude",
     "lateral_fwhm_m",
+    "narrowest_lateral_fwhm_m",
     "scanline_step",
     "slab_edge_shares",
     "slice_thickness",
@@ -74,8 +75,12 @@ def scanline_step(probe: ProbeConfig, pixel_m: float) -> float:
     spacing, or half the narrowest lateral FWHM over the image, in whole columns."""
     if probe.scanline_spacing_mm is not None:
         return max(1.0, probe.scanline_spacing_mm * 1e-3 / pixel_m)
-    narrowest = float(np.min(lateral_fwhm_m(probe, np.linspace(0.0, probe.depth_mm * 1e-3, 41))))
-    return float(max(1, int(np.floor(narrowest / 2.0 / pixel_m + 1e-9))))
+    return float(max(1, int(np.floor(narrowest_lateral_fwhm_m(probe) / 2.0 / pixel_m + 1e-9))))
+
+
+def narrowest_lateral_fwhm_m(probe: ProbeConfig) -> float:
+    """The lateral FWHM (m) where the beam is narrowest over the imaging depth."""
+    return float(np.min(lateral_fwhm_m(probe, np.linspace(0.0, probe.depth_mm * 1e-3, 41))))
 
 
 def slice_thickness(

@@ -35,7 +35,7 @@ from .beam import (
     elevation_offsets,
     elevation_weights,
     lateral_amplitude,
-    lateral_fwhm_m,
+    narrowest_lateral_fwhm_m,
     scanline_step,
     slab_edge_shares,
     slice_thickness,
@@ -122,9 +122,7 @@ class BmodeSimulator:
         self.part_materials = [MATERIALS[p.material] for p in scene.parts]
         self.caster = RayCaster(scene)
         # Scatterer cells of a third of the finer resolution: ≥ 10 per PSF cell.
-        depths = np.linspace(0.0, probe.depth_mm * 1e-3, 41)
-        lateral_min = float(np.min(lateral_fwhm_m(probe, depths)))
-        cell = min(axial_fwhm_m(probe), lateral_min) / 3.0
+        cell = min(axial_fwhm_m(probe), narrowest_lateral_fwhm_m(probe)) / 3.0
         self.scatterers = ScattererField(cell, int(speckle_key))
         self._surface_speckle = probe.surface_speckle
         self.surface_scatterers = ScattererField(cell, int(speckle_key) ^ _SURFACE_FIELD_KEY)

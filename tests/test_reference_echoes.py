@@ -8,39 +8,25 @@ these tests read it without pymust.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from dataclasses import asdict
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 
+from .benchmark_scripts import load_benchmark
+
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "benchmarks" / "reference_echoes.py"
 STORED = ROOT / "benchmarks" / "reference" / "echoes.json"
 # Fully developed speckle: a Rayleigh envelope's mean / std.
 RAYLEIGH_SNR = 1.91
 
 
-def _load_script() -> ModuleType:
-    """The benchmark script as a module (benchmarks/ is not a package)."""
-    name = "reference_echoes"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def script() -> ModuleType:
-    return _load_script()
+    return load_benchmark("reference_echoes")
 
 
 @pytest.fixture(scope="module")

@@ -9,11 +9,8 @@ these tests read it without pymust.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from dataclasses import asdict
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -21,25 +18,13 @@ import pytest
 from calib import se3
 from calib.image import us_to_pixel
 
+from .benchmark_scripts import load_benchmark
+
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "benchmarks" / "reference_sweeps.py"
 MM = 1e-3
 
 
-def _load_script() -> ModuleType:
-    """The benchmark script as a module (benchmarks/ is not a package)."""
-    name = "reference_sweeps"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-RS = _load_script()
+RS = load_benchmark("reference_sweeps")
 
 
 @pytest.fixture(scope="module")
