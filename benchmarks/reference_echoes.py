@@ -16,18 +16,21 @@ side lobes). This checks what the image is made of, for the same probes (the pap
    pulse loses less, its spectrum shifting down) and, in the reference, the resolution
    cell: speckle ∝ cell volume × peak², a flat reflector ∝ cell area × peak, so the
    ratio goes as 1 / (lateral × elevation width).
-2. **A flat specular plane** (PLA in water for the twin) at 20 mm, tilted in the image
+2. **A flat specular plane** (a mirror in water for the twin) at 20 mm, tilted in the image
    plane by 0, 5, 10, 15, 20, 30°: the echo level (mean over the line of each scanline's
    envelope peak, dB relative to the same surface at 0°) and the granularity along the
    line (std / mean of those peaks), for a smooth plane and a rough one. The rough one is
    the printed-PLA roughness the twin models (``twin/printing.py``, docs/paper-comparison:
    FDM, Ra 10 µm): a Gaussian height field along the normal, σ = Ra √(π/2) = 12.5 µm,
    Gaussian covariance exp(−d² / 2ℓ²), ℓ = 0.4 mm (the extrusion width). The twin renders
-   a 3 mm PLA box, smooth = untextured PLA (its material's specular lobe θs = 15° and
-   diffuse share d = 0.1), rough = the same box textured with ``texture_rms_m`` = σ (sim_us's
-   Kirchhoff coherent factor χ = exp(−2 (k σ cos θ)²), ``rough_surface_shape``), each with
-   ``surface_speckle`` off and on.
-3. **The partial volume of a sphere**: a 5 mm PLA sphere in water, centre at 20 and 35 mm,
+   a 3 mm box of ``steel`` (diffuse share 0: the reference's sheets return nothing but
+   their own scattering), smooth = untextured (the mirror's lobe through the apertures),
+   rough = the same box textured with ``texture_rms_m`` = σ and ``texture_length_m`` = ℓ
+   (sim_us's Kirchhoff coherent factor χ = exp(−2 (k σ cos θ)²) and facets of rms slope
+   σ/ℓ, ``rough_surface_shape``), each with ``surface_speckle`` off and on. A printed
+   material's diffuse share (PLA's 0.1: layer corners and fine roughness, which the
+   reference's surfaces do not have) is not part of this comparison.
+3. **The partial volume of a sphere**: a 5 mm sphere (steel, smooth) in water, centre at 20 and 35 mm,
    moved in elevation by −4 … +4 mm: the cap's peak brightness (dB relative to offset 0)
    and the depth of that peak (true mm) against the offset.
 
@@ -103,9 +106,9 @@ averaged, SNR pooled). Note: the twin's gel picks one scatterer per lattice cell
 finest resolution) per pixel, so at pixels finer than the cell its level rises (+8.4 dB
 at these pixels for the paper probe); the level is compared relative to 10 mm, where
 that cancels, and the absolute level is printed at the probe's own pixels too. Planes:
-a 3 mm PLA box in water (20 °C), its top face through (0, 20 mm) rotated about the
+a 3 mm steel box in water (20 °C), its top face through (0, 20 mm) rotated about the
 elevation axis; each column's peak within ±0.5 mm of the line over the central 8 mm.
-Sphere: ``trimesh.creation.icosphere`` (5 subdivisions) of PLA in water, the probe moved
+Sphere: ``trimesh.creation.icosphere`` (5 subdivisions) of steel in water, the probe moved
 in elevation, a scanline over its centre, ``surface_speckle`` off and on; the frame's
 peak (no depth is shown for an echo below the −60 dB floor).
 The twin displays depths at 1540 m/s: its depths are converted to true depths (× c_water
@@ -810,7 +813,7 @@ def twin_speckle(case: Any, depths_mm: tuple[float, ...] = SPECKLE_DEPTHS_MM) ->
 
 
 def _plate(depth_m: float) -> trimesh.Trimesh:
-    """A PLA plate (lateral 40 mm, thick ``BOX_THICKNESS_M``, 30 mm in elevation), its
+    """A steel plate (lateral 40 mm, thick ``BOX_THICKNESS_M``, 30 mm in elevation), its
     top face (facing the probe) at ``depth_m``."""
     box = trimesh.creation.box(extents=[40e-3, BOX_THICKNESS_M, 30e-3])
     box.apply_translation([0.0, depth_m + BOX_THICKNESS_M / 2, 0.0])
@@ -818,8 +821,8 @@ def _plate(depth_m: float) -> trimesh.Trimesh:
 
 
 def twin_planes(case: Any) -> dict[str, Any]:
-    """The twin's plane at each tilt: smooth (untextured PLA) and rough (textured with
-    σ), surface speckle off and on; level (dB re 0°) and granularity (std/mean)."""
+    """The twin's plane at each tilt: smooth (untextured steel) and rough (textured with
+    σ and ℓ), surface speckle off and on; level (dB re 0°) and granularity (std/mean)."""
     im = case.imaging
     d = PLANE_DEPTH_MM * 1e-3
     to_display = im.assumed_speed_m_s / WATER_C  # displayed / true depth in water
@@ -830,15 +833,16 @@ def twin_planes(case: Any) -> dict[str, Any]:
     mesh = _plate(d)
     out: dict[str, Any] = {}
     for rough in (False, True):
-        part = ScenePart("plate", mesh, "pla")
+        part = ScenePart("plate", mesh, "steel")
         if rough:
             n_v = len(mesh.vertices)
             part = ScenePart(
                 "plate",
                 mesh,
-                "pla",
+                "steel",
                 np.asarray(mesh.vertices, float).copy(),
                 np.full(n_v, ROUGH_SIGMA_M),
+                ROUGH_LENGTH_M,
             )
         mean0 = None
         for speckle in (False, True):
@@ -888,7 +892,7 @@ def twin_sphere(case: Any) -> dict[str, Any]:
         probe = replace(probe, width_mm=round(2.0 * half * sx, 6))
         # The probe moved by −e in elevation: the sphere at +e in the image.
         poses = np.array([_pose(elevation_m=-e * 1e-3) for e in SPHERE_OFFSETS_MM])
-        scene = AcousticScene((ScenePart("sphere", mesh, "pla"),))
+        scene = AcousticScene((ScenePart("sphere", mesh, "steel"),))
         for speckle in (False, True):
             sim = BmodeSimulator(scene, replace(probe, surface_speckle=speckle), MediumConfig())
             env = sim.envelope(poses).astype(float)

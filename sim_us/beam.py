@@ -2,12 +2,14 @@
 
 By default every width follows from the transducer (:mod:`sim_us.transducer`): the axial
 FWHM from the pulse, the lateral profile (main lobe and side lobes) per depth from the
-focused aperture, the slice thickness per depth from the lensed element height. A probe
-measured on a wire can state its widths instead: a Gaussian PSF (σ = FWHM / 2.355) of the
-stated lateral and axial FWHM, and the geometric slice ``ST(y) = sqrt(ST_f² + (H · |y − F|
-/ F)²)`` (the aperture height ``H`` at the face, ``ST_f`` at the focus ``F``). The
-elevation profile is Gaussian with the depth's FWHM either way. Laterally the first side
-lobe of a two-way sinc² beam sits at a fixed multiple of its FWHM.
+focused aperture, the elevation profile (slice thickness, and the side lobes through which
+a bright reflector beside the slice still shows) per depth from the lensed element height,
+and the echo of a surface against its tilt from both apertures (:func:`mirror_of`). A
+probe measured on a wire can state its widths instead: a Gaussian PSF (σ = FWHM / 2.355)
+of the stated lateral and axial FWHM, and the geometric slice ``ST(y) = sqrt(ST_f² + (H ·
+|y − F| / F)²)`` (the aperture height ``H`` at the face, ``ST_f`` at the focus ``F``) with
+a Gaussian elevation profile. Laterally the first side lobe of a two-way sinc² beam sits at
+a fixed multiple of its FWHM.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .probe import ProbeConfig
-from .transducer import BeamTables, beam_tables, transducer
+from .transducer import BeamTables, MirrorTables, beam_tables, mirror_tables, transducer
 from .transducer import axial_fwhm_m as pulse_axial_fwhm_m
 
 __all__ = [
@@ -25,10 +27,13 @@ __all__ = [
     "SURFACE_KERNEL_FLOOR",
     "axial_fwhm_m",
     "beam_of",
+    "elevation_amplitude",
+    "elevation_amplitude_at",
     "elevation_offsets",
     "elevation_weights",
     "lateral_amplitude",
     "lateral_fwhm_m",
+    "mirror_of",
     "narrowest_lateral_fwhm_m",
     "scanline_step",
     "slab_edge_shares",
@@ -45,15 +50,26 @@ FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))  # 2.355
 # multiple of the configured lateral FWHM: 1.4303 / 0.8859 = 1.6145.
 SIDE_LOBE_OFFSET_PER_FWHM = 4.493409457909064 / (2.0 * 1.3915573782515103)
 
-# Sub-planes cover ± this many half slice thicknesses of the widest beam in view
-# (the two-way intensity weight there is 2^(-2c²) ≈ 0.11 of the centre's).
+# Sub-planes cover ± this many half slice thicknesses of the widest beam in view (the
+# Gaussian's two-way intensity weight there is 2^(-2c²) ≈ 0.11 of the centre's; the lensed
+# aperture's side lobes reach further: at 35 mm the paper probe's is -28 dB 3 mm out).
 _COVERAGE = 1.25
 
 
 def beam_of(probe: ProbeConfig) -> BeamTables:
     """The transducer's beam tables over the probe's depth range (cached): the imaging
     depth with room for a scale error (±10 %) and an image origin offset (≤ 5 mm)."""
-    return beam_tables(transducer(probe), round(probe.depth_mm * 1.12e-3 + 5e-3, 4))
+    return beam_tables(transducer(probe), _depth_range_m(probe))
+
+
+def _depth_range_m(probe: ProbeConfig) -> float:
+    return round(probe.depth_mm * 1.12e-3 + 5e-3, 4)
+
+
+def mirror_of(probe: ProbeConfig) -> MirrorTables:
+    """The echo of a tilted surface element through the probe's apertures (cached), from
+    its datasheet figures whatever widths it states."""
+    return mirror_tables(transducer(probe), _depth_range_m(probe))
 
 
 def axial_fwhm_m(probe: ProbeConfig) -> float:
@@ -121,6 +137,34 @@ def elevation_offsets(
     return z, np.diff(edges)
 
 
+def elevation_amplitude(
+    probe: ProbeConfig, depths_m: NDArray[np.float64], z: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Two-way elevation amplitude (len(z), depths), 1 on the axis: the lensed aperture's
+    own profile (main lobe and side lobes), or a Gaussian ``exp(−4 ln2 z² / ST²)`` of a
+    stated slice thickness."""
+    depths = np.asarray(depths_m, float)
+    z = np.asarray(z, float)
+    if probe.slice_thickness_mm is None:
+        profile = beam_of(probe).elevation_profile(depths, z).T
+        on_axis = beam_of(probe).elevation_profile(depths, np.zeros(1)).T
+        return profile / np.maximum(on_axis, 1e-30)
+    st = slice_thickness(probe, depths)[None, :]
+    return np.exp(-4.0 * np.log(2.0) * z[:, None] ** 2 / st**2)
+
+
+def elevation_amplitude_at(
+    probe: ProbeConfig, depths_m: NDArray[np.float64], z: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Two-way elevation amplitude at per-row offsets (``depths_m`` (N,), ``z`` (N, m)),
+    as :func:`elevation_amplitude` (up to a factor per row)."""
+    depths = np.asarray(depths_m, float)
+    if probe.slice_thickness_mm is None:
+        return beam_of(probe).elevation_at(depths, z)
+    st = slice_thickness(probe, depths)[:, None]
+    return np.exp(-4.0 * np.log(2.0) * np.asarray(z, float) ** 2 / st**2)
+
+
 def elevation_weights(
     probe: ProbeConfig,
     depths_m: NDArray[np.float64],
@@ -129,14 +173,12 @@ def elevation_weights(
 ) -> NDArray[np.float64]:
     """Intensity weights (planes, depths) of each sub-plane at each depth.
 
-    The two-way elevation amplitude profile is ``b(z; y) = exp(−4 ln2 z² / ST(y)²)``; a
-    sub-plane of width dz holds ``b² dz`` of the beam's energy. Weights are normalised
-    per depth so that a flat reflector across the whole beam echoes with its full
-    strength at every depth (a smaller object is dimmed: partial volume).
+    A sub-plane of width dz at elevation z holds ``b(z)² dz`` of the beam's energy, b the
+    two-way elevation amplitude (:func:`elevation_amplitude`). Weights are normalised per
+    depth so that a flat reflector across the whole beam echoes with its full strength at
+    every depth (a smaller object is dimmed: partial volume).
     """
-    st = slice_thickness(probe, depths_m)[None, :]
-    b2 = np.exp(-8.0 * np.log(2.0) * z[:, None] ** 2 / st**2)
-    energy = b2 * dz[:, None]
+    energy = elevation_amplitude(probe, depths_m, z) ** 2 * dz[:, None]
     return energy / energy.sum(axis=0, keepdims=True)
 
 
@@ -153,9 +195,8 @@ def slab_edge_shares(
     integration over elevation). Returns ``b²(lo) / (b²(lo) + b²(hi))``: 0.5 for the slab in
     the middle of the beam, less for slabs on its positive flank, more on its negative one.
     """
-    st = slice_thickness(probe, depths_m)[None, :]
-    lo = np.exp(-8.0 * np.log(2.0) * (z - dz / 2)[:, None] ** 2 / st**2)
-    hi = np.exp(-8.0 * np.log(2.0) * (z + dz / 2)[:, None] ** 2 / st**2)
+    lo = elevation_amplitude(probe, depths_m, z - dz / 2) ** 2
+    hi = elevation_amplitude(probe, depths_m, z + dz / 2) ** 2
     return lo / np.maximum(lo + hi, 1e-300)
 
 

@@ -41,11 +41,12 @@ class Material:
     backscatter_db : float or None
         Mean intensity of fully developed speckle relative to a perfect reflector (dB);
         None for a medium without scatterers (water).
-    specular_width_deg : float
-        Width θs of the specular lobe: surface echo amplitude ∝ exp(−(θ/θs)²) in the
-        incidence angle θ.
     diffuse : float
-        Angle-independent share of the surface echo amplitude (surface roughness).
+        Share (amplitude, of a mirror's) of the surface echo returned at every angle: what
+        roughness finer than the wavelength and a print's fine structure (layer corners,
+        extrusion seams) scatter. The specular lobe follows from the probe's apertures
+        (:mod:`sim_us.propagation`); a texture coarser than the wavelength is the scene
+        part's, not the material's.
     """
 
     name: str
@@ -54,7 +55,6 @@ class Material:
     attenuation_db_cm_mhz: float
     attenuation_power: float = 1.0
     backscatter_db: float | None = None
-    specular_width_deg: float = 15.0
     diffuse: float = 0.1
 
     @property
@@ -68,13 +68,16 @@ def water(temperature_c: float = 20.0) -> Material:
     return Material("water", water_speed_m_s(temperature_c), 998.0, 2.17e-3, 2.0, None)
 
 
-#: Materials by name. PLA and resin are printed solids (rough: diffuse share 0.1).
+#: Materials by name. PLA and resin are printed solids (diffuse share 0.1 and 0.08: their
+#: oblique faces show as granular lines), acrylic a cast or machined sheet, steel a polished
+#: ball bearing (a mirror: nothing returns off its specular point).
 MATERIALS: dict[str, Material] = {
     "water": water(20.0),
     "gel": Material("gel", 1540.0, 1030.0, 0.5, 1.0, -38.0),
-    "pla": Material("pla", 2220.0, 1240.0, 4.0, 1.0, None, 15.0, 0.1),
-    "resin": Material("resin", 2500.0, 1180.0, 5.0, 1.0, None, 15.0, 0.08),
-    "acrylic": Material("acrylic", 2750.0, 1190.0, 0.8, 1.0, None, 10.0, 0.02),
+    "pla": Material("pla", 2220.0, 1240.0, 4.0, 1.0, None, 0.1),
+    "resin": Material("resin", 2500.0, 1180.0, 5.0, 1.0, None, 0.08),
+    "acrylic": Material("acrylic", 2750.0, 1190.0, 0.8, 1.0, None, 0.02),
+    "steel": Material("steel", 5900.0, 7850.0, 0.05, 1.0, None, 0.0),
 }
 
 

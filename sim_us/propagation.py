@@ -2,30 +2,32 @@
 travel time and shadow.
 
 Each ray starts at the transducer face in the medium and is followed through every
-surface it meets. At a surface the echo amplitude is
+surface it meets. At a surface the echo's mean energy is
 
-    A = T · r · [(1 − d) · exp(−(θ/θs)²) + d] · 10^(−L / 20)
+    A² = (T · r · 10^(−L / 20))² · [(1 − d²) (χ² S² + (1 − χ²) S_s²) + d²]
 
-with ``r = |Z2 − Z1| / (Z2 + Z1)`` the amplitude reflection coefficient, θ the incidence
-angle, θs the surface's specular width, d its diffuse (roughness) share, ``T`` the
-two-way transmission ``Π (1 − r_j²)`` through the surfaces crossed so far and ``L`` the
-two-way attenuation (dB) of the path (its rms, with the texture below). Of it, the part
-``exp(−(θ/θs)²)`` (times the texture's coherent factor) is the coherent echo of a
-mirror, smooth in the image: all of the echo at normal incidence, none far off it. The
-rest of its energy is incoherent (the diffuse floor d, and the energy the texture
-takes), a sum of random-phase wavelets from the surface's sub-resolution facets, which
-the simulator can draw as speckle lying on the surface (``surface_speckle``). The echo
-is placed at the *apparent* depth: the travel time at each segment's true speed,
-displayed at the speed the scanner assumes.
+with ``r = |Z2 − Z1| / (Z2 + Z1)`` the amplitude reflection coefficient, ``T`` the two-way
+transmission ``Π (1 − r_j²)`` through the surfaces crossed so far and ``L`` the two-way
+attenuation (dB) of the path. ``S`` is the echo of a mirror tilted as the surface is,
+through the probe's apertures (the image plane's tilt and the elevation's, from the
+transducer: :func:`sim_us.transducer.mirror_response`), 1 facing the probe: a smooth
+surface returns nothing the aperture does not catch, −17 dB at 10° for an F# 2.3 array.
+A textured surface (a printed part's layer lines and roughness, finer than the beam's
+footprint) reflects in the Kirchhoff approximation: of its energy the coherent share χ²
+(:func:`coherent_factor`, from the texture's rms height σ) follows the mirror's lobe of
+the surface smoothed over the footprint (the ray caster's normal of the un-textured
+shape), the rest is returned by the texture's facets, tilted by their rms slope s, over
+the lobe widened by them, ``S_s`` (geometrical optics). ``d`` is the material's diffuse
+share: what sub-wavelength roughness and the print's fine structure return at every
+angle. The coherent part ``χ S`` is the echo of a mirror, smooth in the image; the rest
+is incoherent, a sum of random-phase wavelets from the surface's facets, which the
+simulator can draw as speckle lying on the surface (``surface_speckle``). The echo is
+placed at the *apparent* depth: the travel time at each segment's true speed, displayed
+at the speed the scanner assumes.
 A ray stops when it leaves the imaged depth or its echoes fall below the display floor,
 which is what makes a printed solid throw a complete shadow. Rays do not refract
 (as in the peer simulators); at the small incidence angles that carry echoes the
 bend is small.
-
-A textured surface (a printed part's layer lines and roughness, finer than the beam's
-footprint) reflects in the Kirchhoff approximation: its specular lobe follows the
-surface smoothed over the footprint (the ray caster's normal of the un-textured shape)
-and the texture of rms height σ removes coherent energy (:func:`rough_surface_shape`).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from numpy.typing import NDArray
 
 from .materials import Material, amplitude_reflection, attenuation_db_per_m
 from .raycast import RayCaster
+from .transducer import MirrorTables
 
 __all__ = ["Echoes", "coherent_factor", "rough_surface_shape", "trace"]
 
@@ -64,27 +67,28 @@ def coherent_factor(k_sigma_cos: Array) -> Array:
     return np.exp(-2.0 * np.asarray(k_sigma_cos) ** 2)
 
 
-def rough_surface_shape(spec: Array, diffuse: Array, k_sigma_cos: Array) -> tuple[Array, Array]:
-    """Echo shape factor of a textured surface, and its coherent specular factor.
+def rough_surface_shape(
+    mirror: Array, widened: Array, diffuse: Array, k_sigma_cos: Array
+) -> tuple[Array, Array]:
+    """Echo shape factor (rms amplitude re a mirror facing the probe) of a surface, and its
+    coherent part.
 
-    The smooth surface's shape ``(1 − d) S + d`` (S = exp(−(θ/θs)²) the specular lobe, d
-    the material's diffuse share) has its specular share scaled by the coherent factor χ
-    (:func:`coherent_factor`); the energy the texture takes from the coherent reflection,
-    ``(1 − d)² (1 − χ²)``, goes into the angle-independent diffuse share, and the two add
-    in intensity (they are incoherent):
+    ``mirror`` is the echo S of a smooth mirror tilted as the surface is, ``widened`` the
+    lobe S_s of facets tilted about it by the texture's slopes, ``diffuse`` the material's
+    diffuse share d, ``k_sigma_cos`` the texture's k σ cos θ (0: smooth). The energy
 
-        shape² = ((1 − d) χ S + d)² + (1 − d)² (1 − χ²)
+        shape² = (1 − d²) (χ² S² + (1 − χ²) S_s²) + d²
 
-    With σ = 0 this is the smooth shape; at normal incidence (S = 1) it never exceeds the
-    smooth mirror's 1, whatever σ (a linear sum of the two amplitude shares would, by up
-    to 25 % near χ = 1/2); for σ ≫ λ the surface returns ``√(d² + (1 − d)²)`` of a mirror
-    at every angle. Returns (shape, χ S): the latter is what a second bounce (the
-    reverberation echo) keeps, and the echo's coherent (mirror) part.
+    splits into the coherent χ S √(1 − d²) and the incoherent rest (the facets' and the
+    diffuse return, random in phase: speckle). A surface facing the probe returns all of a
+    mirror's energy when smooth, less when rough only as far as the facets' tilts send it
+    past the aperture. Returns (shape, coherent).
     """
     chi = coherent_factor(k_sigma_cos)
-    coherent = (1.0 - diffuse) * chi * spec + diffuse
-    incoherent = (1.0 - diffuse) ** 2 * (1.0 - chi**2)
-    return np.sqrt(coherent**2 + incoherent), chi * spec
+    keep = 1.0 - diffuse**2
+    coherent = np.sqrt(keep) * chi * mirror
+    energy = keep * (chi**2 * mirror**2 + (1.0 - chi**2) * widened**2) + diffuse**2
+    return np.sqrt(energy), coherent
 
 
 @dataclass(frozen=True)
@@ -110,6 +114,9 @@ class Echoes:
     slope: Array | None = None
     coherent: Array | None = None
     point: Array | None = None
+    tilt: Array | None = None
+    first: NDArray[np.bool_] | None = None
+    coherent_lateral: Array | None = None
 
 
 def trace(
@@ -122,8 +129,10 @@ def trace(
     f_mhz: float,
     assumed_speed: float,
     floor_db: float,
+    mirror: MirrorTables,
+    axes: tuple[Array, Array],
     reverberation: bool = True,
-    elevations: Array | None = None,
+    slopes: bool = False,
     points: bool = False,
 ) -> Echoes:
     """Follow rays through the scene and collect their echoes.
@@ -135,8 +144,13 @@ def trace(
     floor_db : float
         Stop a ray once no echo it could still return would reach this far below a
         perfect reflector's (dB, positive): two-way losses and transmission included.
-    elevations : (n, 3) float, scene frame, optional
-        Each ray's elevational axis: the echoes then carry their depth ``slope``.
+    mirror : MirrorTables
+        The probe's echo of a tilted surface element (:func:`sim_us.beam.mirror_of`).
+    axes : two (n, 3) float, scene frame
+        Each ray's lateral and elevational axes (the image plane's x and the probe's z):
+        a surface's tilt is read in the image plane and in elevation.
+    slopes : bool
+        The echoes carry their depth ``slope`` along the elevational axis.
     points : bool
         Also return each echo's hit point (for the surface speckle).
     """
@@ -146,7 +160,7 @@ def trace(
     speed = np.array([m.speed_m_s for m in mats])
     imped = np.array([m.impedance for m in mats])
     att_np = np.array([attenuation_db_per_m(m, f_mhz) for m in mats]) * np.log(10.0) / 20.0
-    spec_w = np.radians([m.specular_width_deg for m in mats])
+    laterals, elevations = axes
     diffuse = np.array([m.diffuse for m in mats])
     log_floor = -floor_db * np.log(10.0) / 20.0
 
@@ -161,6 +175,8 @@ def trace(
     state[:, 9] = np.arange(n)
     medium_end = np.full(n, np.inf)
     out_ray, out_depth, out_amp, out_slope, out_coh, out_point = [], [], [], [], [], []
+    out_tilt, out_first, out_coh_lat = [], [], []
+    first_pass = True
 
     for _ in range(_MAX_PASSES):
         if len(state) == 0:
@@ -183,32 +199,40 @@ def trace(
         entering = cos_in < 0
         new = np.where(entering, part + 1, 0)
         r = amplitude_reflection(imped[cur], imped[new])
-        theta = np.arccos(np.minimum(np.abs(cos_in), 1.0))
         surface = part + 1
-        spec = np.exp(-((theta / spec_w[surface]) ** 2))
-        shape = (1.0 - diffuse[surface]) * spec + diffuse[surface]
-        spec_bounce = spec
+        # The surface's tilt from facing the probe, in the image plane and in elevation.
+        facing = np.maximum(np.abs(cos_in), 1e-12)
+        tilt_lat = np.arctan(np.einsum("ij,ij->i", laterals[ray], nrm) / facing)
+        tilt_el = np.arctan(np.einsum("ij,ij->i", elevations[ray], nrm) / facing)
+        facets = hits.texture_slope[hit] if hits.texture_slope is not None else np.zeros(len(t))
+        lat0, el0, lat_w, el_w = mirror.lobes(y_app, tilt_lat, tilt_el, facets)
+        spec, widened = lat0 * el0, lat_w * el_w
         if hits.texture_rms is not None:
-            sigma = hits.texture_rms[hit]
-            rough = sigma > 0
-            if rough.any():
-                # k of the incident medium; σ along the smoothed normal, θ from it.
-                k_sigma_cos = 2 * np.pi * f_mhz * 1e6 / c * sigma * np.abs(cos_in)
-                r_shape, r_spec = rough_surface_shape(spec, diffuse[surface], k_sigma_cos)
-                shape = np.where(rough, r_shape, shape)
-                spec_bounce = np.where(rough, r_spec, spec)
+            # k of the incident medium; σ along the smoothed normal.
+            k_sigma_cos = 2 * np.pi * f_mhz * 1e6 / c * hits.texture_rms[hit] * facing
+        else:
+            k_sigma_cos = np.zeros(len(t))
+        shape, coherent = rough_surface_shape(spec, widened, diffuse[surface], k_sigma_cos)
+        # What a second bounce (the reverberation echo) keeps: the mirror's share.
+        spec_bounce = coherent_factor(k_sigma_cos) * spec
         path = np.exp(log_gain)
         amp = path * r * shape
         out_ray.append(ray)
         out_depth.append(y_app)
         out_amp.append(amp)
-        # The coherent (mirror) echo is the specular lobe times χ: all of a smooth
-        # surface's echo at normal incidence, none far off it, where only the incoherent
-        # diffuse floor d remains; between, the rest of the mean energy is incoherent.
-        out_coh.append(path * r * spec_bounce)
+        # The coherent (mirror) echo: all of a smooth surface's echo facing the probe,
+        # none far off it, where only the incoherent facets' and diffuse returns remain.
+        out_coh.append(path * r * coherent)
+        out_tilt.append(tilt_el)
+        # The coherent echo per unit of the elevation lobe: the caller may integrate that
+        # lobe over elevation more finely than one tilt per ray.
+        out_coh_lat.append(
+            path * r * np.sqrt(1.0 - diffuse[surface] ** 2) * coherent_factor(k_sigma_cos) * lat0
+        )
+        out_first.append(np.full(len(ray), first_pass))
         if points:
             out_point.append(state[:, 0:3] + t[:, None] * dirs)
-        if elevations is not None:
+        if slopes:
             # The surface's tangent plane n·(p − p_hit) = 0: shifting the ray by dz along
             # its elevational axis e moves the hit by dt = −(n·e)/(n·d) dz along the ray,
             # displayed at the speed the scanner assumes (the path before the surface is
@@ -225,9 +249,12 @@ def trace(
             out_depth.append(2 * y_app[keep])
             out_amp.append((amp * r * _FACE_REFLECTION * spec_bounce * path)[keep])
             out_coh.append(out_amp[-1])  # the specular part only: coherent
+            out_tilt.append(2.0 * tilt_el[keep])
+            out_coh_lat.append(np.zeros(int(keep.sum())))
+            out_first.append(np.zeros(int(keep.sum()), dtype=bool))
             if points:
                 out_point.append(out_point[-1][keep])
-            if elevations is not None:
+            if slopes:
                 out_slope.append(2 * out_slope[-1][keep])  # twice the path, twice the slope
         first_entry = entering & (cur == 0)
         hit_rays = ray[first_entry]
@@ -237,6 +264,7 @@ def trace(
         state[:, 7] = log_gain + np.log1p(-(r**2))
         state[:, 8] = new
         state = state[(state[:, 7] > log_floor) & (y_app < max_depth)]
+        first_pass = False
 
     if not out_ray:
         return Echoes(
@@ -244,16 +272,22 @@ def trace(
             np.empty(0),
             np.empty(0),
             medium_end,
-            np.empty(0) if elevations is not None else None,
+            np.empty(0) if slopes else None,
             np.empty(0),
             np.empty((0, 3)) if points else None,
+            np.empty(0),
+            np.empty(0, dtype=bool),
+            np.empty(0),
         )
     return Echoes(
         np.concatenate(out_ray),
         np.concatenate(out_depth),
         np.concatenate(out_amp),
         medium_end,
-        np.concatenate(out_slope) if elevations is not None else None,
+        np.concatenate(out_slope) if slopes else None,
         np.concatenate(out_coh),
         np.concatenate(out_point) if points else None,
+        np.concatenate(out_tilt),
+        np.concatenate(out_first),
+        np.concatenate(out_coh_lat),
     )

@@ -36,8 +36,10 @@ class ScenePart:
     the sound's specular lobe follows: ``acoustic_vertices`` (V, 3), the part's vertices
     before the texture (same faces as ``mesh``; the part's shape error included), and
     ``texture_rms_m`` (V,), the rms height of the texture along the normal at each vertex
-    (m). The echo's position stays on ``mesh``; its normal and its coherent share come
-    from these (see :mod:`sim_us.propagation`). None: an untextured part.
+    (m), with ``texture_length_m`` its correlation length along the surface (m; the
+    texture's facets tilt by ``rms / length`` rms). The echo's position stays on ``mesh``;
+    its normal and its coherent share come from these (see :mod:`sim_us.propagation`).
+    None: an untextured part.
     """
 
     name: str
@@ -45,6 +47,7 @@ class ScenePart:
     material: str
     acoustic_vertices: Array | None = None
     texture_rms_m: Array | None = None
+    texture_length_m: float = 4e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,13 +65,15 @@ class Hits:
     ``t`` distance (m; inf for a miss), ``part`` index into the scene's parts (−1 for a
     miss), ``normal`` outward unit surface normal (smooth: interpolated vertex normals;
     textured: the un-textured surface's). ``texture_rms`` (n,) the rms texture height at
-    the hit (m, 0 off textured parts); None when no part of the scene is textured.
+    the hit (m, 0 off textured parts) and ``texture_slope`` (n,) the rms tilt of its
+    facets (rad); None when no part of the scene is textured.
     """
 
     t: Array
     part: NDArray[np.int64]
     normal: Array
     texture_rms: Array | None = None
+    texture_slope: Array | None = None
 
 
 class RayCaster:
@@ -159,8 +164,9 @@ class RayCaster:
         part = np.full(n, -1, dtype=np.int64)
         normal = np.zeros((n, 3))
         rms = np.zeros(n) if self.textured else None
+        slope = np.zeros(n) if self.textured else None
         if n == 0 or self._scene is None:
-            return Hits(t, part, normal, rms)
+            return Hits(t, part, normal, rms, slope)
         res = self._scene.run(
             (origins - self.origin).astype(np.float32),
             directions.astype(np.float32),
@@ -196,4 +202,5 @@ class RayCaster:
             rms[idx[sel]] = (
                 w0[:, 0] * h[tri[:, 0]] + w1[:, 0] * h[tri[:, 1]] + w2[:, 0] * h[tri[:, 2]]
             )
-        return Hits(t, part, normal, rms)
+            slope[idx[sel]] = rms[idx[sel]] / self.parts[g].texture_length_m
+        return Hits(t, part, normal, rms, slope)

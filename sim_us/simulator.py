@@ -32,9 +32,11 @@ from calib.image import pixel_to_us, us_to_pixel
 from .beam import (
     FWHM_PER_SIGMA,
     axial_fwhm_m,
+    elevation_amplitude_at,
     elevation_offsets,
     elevation_weights,
     lateral_amplitude,
+    mirror_of,
     narrowest_lateral_fwhm_m,
     scanline_step,
     slab_edge_shares,
@@ -49,7 +51,7 @@ from .materials import (
     medium_material,
 )
 from .probe import MediumConfig, ProbeConfig
-from .propagation import trace
+from .propagation import Echoes, trace
 from .raycast import AcousticScene, RayCaster
 from .speckle import ScattererField, _smooth_values
 
@@ -74,6 +76,8 @@ _TRUNCATE = 3.0
 # good model near a sphere's silhouette (it would carry the echo past the sphere's
 # equator), and that steep only the weak diffuse echo remains (specular share < 1e-7).
 _MAX_ELEVATION_SLOPE = 2.0
+# The elevation lobe is integrated over each sub-plane's slab at this many points.
+_SLAB_SAMPLES = 8
 # Below this half-span (pixels) a hit is splatted as a point, as in the discrete model.
 _MIN_SMEAR_PX = 0.05
 # Surface speckle: at most this many scatterers stand for one hit's elevation slab.
@@ -121,6 +125,7 @@ class BmodeSimulator:
         self.medium = medium_material(medium.kind, medium.temperature_c)
         self.part_materials = [MATERIALS[p.material] for p in scene.parts]
         self.caster = RayCaster(scene)
+        self.mirror = mirror_of(probe)
         # Scatterer cells of a third of the finer resolution: ≥ 10 per PSF cell.
         cell = min(axial_fwhm_m(probe), narrowest_lateral_fwhm_m(probe)) / 3.0
         self.scatterers = ScattererField(cell, int(speckle_key))
@@ -261,8 +266,13 @@ class BmodeSimulator:
             self.probe.f_mhz,
             self.probe.assumed_speed_m_s,
             floor_db,
+            self.mirror,
+            (
+                np.repeat(T_scene_us[:, :3, 0], K * L, axis=0),
+                np.repeat(T_scene_us[:, :3, 2], K * L, axis=0),
+            ),
             self.probe.reverberation,
-            np.repeat(T_scene_us[:, :3, 2], K * L, axis=0) if self._smear else None,
+            slopes=self._smear,
             points=self._surface_speckle,
         )
         t1 = time.perf_counter()
@@ -273,21 +283,38 @@ class BmodeSimulator:
         P_image = np.zeros((len(echoes.depth), 3))
         P_image[:, 1] = echoes.depth - self.offset[1]
         row_f = us_to_pixel(P_image, W, self.true_spacing)[0]
-        amplitude = echoes.amplitude
+        amplitude, coherent = echoes.amplitude, echoes.coherent
+        assert coherent is not None
+        shift, span = np.zeros(len(amplitude)), self._slab[plane].astype(float)
+        if len(self.z) > 1:
+            coherent, amplitude, shift, span = self._elevation_lobe_integrated(
+                echoes, frame, plane, line, n
+            )
+        # Where the mirror's echo dominates what is drawn smooth, it is drawn from where
+        # in the slab it comes from (all of it with surface speckle: the rest is speckle).
+        mirror_like = (coherent**2 >= 0.5 * amplitude**2) | self._surface_speckle
+        row_smooth = row_f
+        if self._smear:
+            assert echoes.slope is not None
+            slope = np.clip(echoes.slope, -_MAX_ELEVATION_SLOPE, _MAX_ELEVATION_SLOPE)
+            row_smooth = row_f + np.where(mirror_like, slope * shift, 0.0) / self.true_spacing[1]
+            span = np.where(mirror_like, span, self._slab[plane])
         speckled = None
         if self._surface_speckle:
             # The coherent share is drawn as a smooth echo, the rest as surface speckle.
-            assert echoes.coherent is not None and echoes.point is not None
-            incoherent = np.sqrt(np.maximum(amplitude**2 - echoes.coherent**2, 0.0))
-            amplitude = echoes.coherent
+            assert echoes.point is not None
+            incoherent = np.sqrt(np.maximum(amplitude**2 - coherent**2, 0.0))
+            amplitude = coherent
             speckled = self._speckle_of_surfaces(
                 T_scene_us, frame, plane, line, row_f, incoherent, echoes.point, echoes.slope
             )
+        row_f = row_smooth
         half = None
         if self._smear:
-            # Half the depth span (rows) of each hit's slab along its tangent plane.
+            # Half the depth span (rows) of each hit's echo along its tangent plane.
             assert echoes.slope is not None
-            half = self._slab_half_rows(plane, echoes.slope)
+            slope = np.clip(echoes.slope, -_MAX_ELEVATION_SLOPE, _MAX_ELEVATION_SLOPE)
+            half = 0.5 * np.abs(slope) * span / self.true_spacing[1]
         wide = half > _MIN_SMEAR_PX if half is not None else np.zeros(len(row_f), dtype=bool)
         slabs = None
         if wide.any():
@@ -300,6 +327,7 @@ class BmodeSimulator:
                 half[wide],
                 echoes.slope[wide] >= 0,
                 amplitude[wide] ** 2,
+                np.where(mirror_like[wide] & echoes.first[wide], 0.5, np.nan),
             )
         narrow = ~wide
         frame, plane, line, col, row_f = (v[narrow] for v in (frame, plane, line, col, row_f))
@@ -316,6 +344,87 @@ class BmodeSimulator:
         self.timings.formation += time.perf_counter() - t1
         medium_end = echoes.medium_end.reshape(n, K, L)[:, :, self._line_of_column]
         return image.reshape(n, H, W), speckled, medium_end
+
+    def _elevation_lobe_integrated(
+        self,
+        echoes: Echoes,
+        frame: NDArray[np.int64],
+        plane: NDArray[np.int64],
+        line: NDArray[np.int64],
+        n: int,
+    ) -> tuple[Array, Array, Array, Array]:
+        """The echoes' coherent share and amplitude with the mirror's elevation lobe
+        integrated over each sub-plane's slab, and where in the slab the coherent echo
+        comes from (its offset from the sub-plane and its width, m).
+
+        One ray per sub-plane reads one tilt; a curved surface turns across the slab (a
+        sphere's top faces the probe at one elevation only), and the mirror's elevation
+        lobe is sharp (−13 dB at 5° for the paper probe at 20 mm), so the tilt at the ray
+        alone would miss a specular point between two sub-planes. Across the slab the tilt
+        is taken linear between the ray's and its neighbour sub-planes' (same frame and
+        scanline, first surface, depths within the tangent plane's reach), and the
+        coherent share is the lobe's rms over the slab weighted by the beam's two-way
+        intensity b²: ∫ b² E(φ(z))² dz over ∫ b² dz. The incoherent share is kept.
+        The mirror's echo comes from near the specular point, not from the whole slab:
+        its depth is that of the tangent plane at the b² E²-weighted mean elevation, its
+        depth span that of the weighted spread.
+        """
+        assert echoes.tilt is not None and echoes.first is not None
+        assert echoes.coherent is not None and echoes.coherent_lateral is not None
+        coherent, amplitude = echoes.coherent.copy(), echoes.amplitude.copy()
+        first = np.flatnonzero(echoes.first)
+        if not len(first):
+            return coherent, amplitude, np.zeros(len(amplitude)), self._slab[plane].astype(float)
+        K, L = len(self.z), len(self.columns)
+        f, k, ln = frame[first], plane[first], line[first]
+        phi, depth = echoes.tilt[first], echoes.depth[first]
+        tilts = np.full((n, K, L), np.nan)
+        depths = np.full((n, K, L), np.nan)
+        tilts[f, k, ln], depths[f, k, ln] = phi, depth
+        z0, dz = self.z[k], self._slab[k]
+        u = (np.arange(_SLAB_SAMPLES) + 0.5) / _SLAB_SAMPLES - 0.5
+        zs = z0[:, None] + dz[:, None] * u[None, :]
+        # The tilt's rate of change towards each neighbour (NaN where there is none),
+        # and on a side without one, the other side's (a surface keeps turning).
+        rates = []
+        for step in (-1, 1):
+            kn = np.clip(k + step, 0, K - 1)
+            t_n, d_n, z_n = tilts[f, kn, ln], depths[f, kn, ln], self.z[kn]
+            near = (
+                (kn != k)
+                & np.isfinite(t_n)
+                & (np.abs(d_n - depth) <= _MAX_ELEVATION_SLOPE * np.abs(z_n - z0))
+            )
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rates.append(np.where(near, (t_n - phi) / (z_n - z0), np.nan))
+        lo, hi = rates
+        lo = np.where(np.isnan(lo), hi, lo)
+        hi = np.where(np.isnan(hi), lo, hi)
+        rate = np.where(zs < z0[:, None], lo[:, None], hi[:, None])
+        phis = phi[:, None] + np.nan_to_num(rate) * (zs - z0[:, None])
+        b2 = elevation_amplitude_at(self.probe, depth, zs) ** 2
+        lobe2 = self.mirror.elevation_lobe(depth, phis) ** 2
+        total = b2.sum(axis=1)
+        # Where in the slab the mirror's echo comes from: the mean and spread (as the
+        # width of a uniform band) of z under b² E².
+        w = b2 * lobe2
+        wsum = w.sum(axis=1)
+        ok = wsum > 0
+        wn = np.divide(w, wsum[:, None], out=np.zeros_like(w), where=ok[:, None])
+        mean = (wn * (zs - z0[:, None])).sum(axis=1)
+        spread = np.sqrt(
+            np.maximum((wn * (zs - z0[:, None] - mean[:, None]) ** 2).sum(axis=1), 0.0)
+        )
+        shift, span = np.zeros(len(amplitude)), self._slab[plane].astype(float).copy()
+        shift[first] = np.where(ok, mean, 0.0)
+        span[first] = np.where(ok, np.minimum(np.sqrt(12.0) * spread, dz), dz)
+        e_eff = np.sqrt(
+            np.divide((b2 * lobe2).sum(axis=1), total, out=np.zeros_like(total), where=total > 0)
+        )
+        incoherent2 = np.maximum(amplitude[first] ** 2 - coherent[first] ** 2, 0.0)
+        coherent[first] = echoes.coherent_lateral[first] * e_eff
+        amplitude[first] = np.sqrt(coherent[first] ** 2 + incoherent2)
+        return coherent, amplitude, shift, span
 
     def _shallow_share(
         self, plane: NDArray[np.int64], row_idx: NDArray[np.int64], rising: NDArray[np.bool_]
@@ -410,6 +519,7 @@ class BmodeSimulator:
         half: Array,
         rising: NDArray[np.bool_],
         amplitude2: Array,
+        share: Array | None = None,
     ) -> tuple[NDArray[np.int64], Array, Array, Array, Array]:
         """Continuous elevation integration of the hits whose slab spans a depth interval:
         the segments to splat (see :func:`_splat_segments`).
@@ -441,6 +551,8 @@ class BmodeSimulator:
         frame, plane, line, a, b, energy = (v[keep] for v in (frame, plane, line, a, b, energy))
         # Density (per row) at the shallow end a and the deep end b; it integrates to energy.
         p = self._shallow_share(plane, row_idx[keep], rising[keep])
+        if share is not None:  # a stated share where given (NaN: the slab's own)
+            p = np.where(np.isnan(share[keep]), p, share[keep])
         width = b - a
         rho_a = 2.0 * energy * p / width
         beta = 2.0 * energy * (1.0 - 2.0 * p) / width**2  # dρ/dy

@@ -25,7 +25,22 @@ elevation aperture (element height) with its lens focus. From these follow:
   integrals), ``1/√r`` again. Two-way is transmit × receive of the same aperture, i.e. the
   square of the one-way field; broadband, its RMS over the pulse's spectrum.
   The lateral profile through the focus keeps its side lobes; the elevation beam narrows
-  in front of the lens focus (focal shift of a weakly focused aperture) and widens past it.
+  in front of the lens focus (focal shift of a weakly focused aperture) and widens past it;
+- **the echo of a mirror** (a smooth surface's specular reflection) against its tilt, in
+  the image plane and in elevation: by the image method, the wave from each transmitting
+  point of the aperture reaches each receiving point along the path through the mirror
+  image, delayed as the focusing (laterally) or the lens (in elevation) does not expect;
+  the received pulse is the sum of the pulses of every such pair (each element's
+  directivity at both ends laterally, the obliquity in elevation, ``1/√r``), and the echo
+  is its envelope's peak within the pulse's duration of the mirror's depth, relative to the
+  untilted mirror's. A tilt θ moves the reflected beam by ``2 z tan θ`` across the
+  aperture, so a mirror in focus returns the overlap of the aperture with itself shifted
+  by that much (``1 − 2 F# tan θ`` of it laterally): the echo fades by 4 dB at 5° and
+  17 dB at 10° for an F# 2.3 array, and past ``atan(1 / 2F#)`` only edge waves remain
+  (pymust: 4.1, 17.0 dB). A surface rough on a scale larger than the wavelength (facets of
+  rms slope s) returns its incoherent share over this lobe widened by the facets' tilts
+  (Gaussian, s per axis): the geometrical-optics limit of the Kirchhoff model (Ogilvy,
+  *Theory of Wave Scattering from Random Rough Surfaces*, 1991, ch. 4).
 
 The figures are checked against pymust (MUST/SIMUS, itself validated against Field II) by
 ``benchmarks/physics_reference.py``: lateral and elevation FWHM within a few per cent of
@@ -49,10 +64,14 @@ from .probe import ProbeConfig
 
 __all__ = [
     "DIRECTIVITY_AT_EDGE",
+    "MIRROR_SLOPES",
     "BeamTables",
+    "MirrorTables",
     "Transducer",
     "axial_fwhm_m",
     "beam_tables",
+    "mirror_response",
+    "mirror_tables",
     "receive_fnumber",
     "transducer",
     "two_way_profile",
@@ -79,6 +98,17 @@ _NODE_SPACING_M = (0.5e-3, 2e-3)
 _FIRST_NODE_M = 1e-3
 # Elevation profiles: this many samples out to the reach below.
 _ELEVATION_SAMPLES = 161
+# Mirror echo tables: tilts from 0 to this angle (past it every probe's echo is edge
+# waves below -60 dB) at this step; the elevation aperture sampled every half of the
+# shortest wavelength of the band (no grating lobe of the sampling); pulses summed on a
+# time grid of this many samples per period at fc; the echo's peak taken within this many
+# pulse durations (the envelope's -40 dB span) of the mirror's depth.
+_MIRROR_MAX_DEG = 45.0
+_MIRROR_STEP_DEG = 1.0
+_MIRROR_SAMPLES_PER_PERIOD = 16
+_MIRROR_WINDOW = 1.0
+# Facet slopes (rms, rad) of the rough-surface tables: the lobe widened by each.
+MIRROR_SLOPES = (0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32)
 
 
 @dataclass(frozen=True)
@@ -219,6 +249,144 @@ def two_way_profile(t: Transducer, depth_m: float, x: Array, z: Array) -> Array:
     return out / np.max(out)
 
 
+# ------------------------------------------------------------------ the mirror's echo
+
+
+def _mirror_paths(p: Array, q: Array, depth_m: float, tilts: Array) -> tuple[Array, Array, Array]:
+    """Paths (tilts, len(p), len(q)) from points ``p`` of the face (along one axis, m) to
+    points ``q`` through a mirror through ``(0, depth_m)`` tilted by ``tilts`` (rad) about
+    the other axis: the length (m), and the sines of the path's angle to the face's normal
+    at ``p`` and at ``q`` (image method: the path to ``q`` is the straight line to its
+    mirror image)."""
+    a = tilts[:, None, None]
+    nx, ny = np.sin(a), -np.cos(a)  # the mirror's normal, towards the probe at 0
+    P, Q = p[None, :, None], q[None, None, :]
+
+    def image(x: Array) -> tuple[Array, Array]:
+        s = x * nx + (0.0 - depth_m) * ny  # (point - centre) . n, the point at depth 0
+        return x - 2.0 * s * nx, -2.0 * s * ny
+
+    qx, qy = image(Q)
+    px, py = image(P)
+    length = np.hypot(qx - P, qy)
+    return length, (qx - P) / length, (px - Q) / np.hypot(px - Q, py)
+
+
+def _spectra(delays: Array, weights: Array, fs: float, n: int) -> NDArray[np.complex128]:
+    """Spectra (tilts, n) of impulse trains: ``weights`` at ``delays`` (s; tilts × pairs)
+    on a grid of ``n`` samples at ``fs`` centred on 0, each impulse shared between its two
+    nearest samples (linear fractional delay: rounding to one sample would leave a phase
+    noise in the sum of the pairs that should cancel, ≈ -35 dB at 16 samples per period);
+    pairs outside the grid are dropped (they arrive too far from the mirror's depth to be
+    part of its echo)."""
+    x = delays * fs + n // 2
+    k = np.floor(x).astype(np.int64)
+    frac = x - k
+    rows = np.broadcast_to(np.arange(len(delays))[:, None], k.shape) * n
+    h = np.zeros(len(delays) * n)
+    for kk, ww in ((k, weights * (1.0 - frac)), (k + 1, weights * frac)):
+        ok = (kk >= 0) & (kk < n)
+        h += np.bincount((rows + kk)[ok], weights=ww[ok], minlength=len(delays) * n)
+    return np.fft.fft(h.reshape(len(delays), n), axis=1)
+
+
+def _mirror_spectra(
+    t: Transducer, depth_m: float, tilts: Array, fs: float, n: int
+) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """Impulse-response spectra of a mirror at ``depth_m`` tilted in the image plane
+    (lateral: the scanline's aperture focused at the depth, element directivity at fc) and
+    in elevation (the lensed element height, obliquity)."""
+    c, lam = t.speed_m_s, t.wavelength_m
+    u = _aperture(t, depth_m)
+    w = t.pitch_m - t.kerf_m
+    length, su, sv = _mirror_paths(u, u, depth_m, tilts)
+    r0 = np.hypot(u, depth_m)
+    delay = (length - r0[None, :, None] - r0[None, None, :]) / c
+
+    def directivity(s: Array) -> Array:
+        return np.sqrt(1.0 - s**2) * np.sinc(w * s / lam)
+
+    amp = directivity(su) * directivity(sv) / np.sqrt(length)
+    lateral = _spectra(delay.reshape(len(tilts), -1), amp.reshape(len(tilts), -1), fs, n)
+    H, F = t.elevation_aperture_m, t.elevation_focus_m
+    lam_min = c / (t.f_hz * (1.0 + t.bandwidth / 2.0))
+    m = max(int(np.ceil(H / (lam_min / 2.0))), 2)
+    zeta = (np.arange(m) + 0.5) * H / m - H / 2.0
+    length, su, sv = _mirror_paths(zeta, zeta, depth_m, tilts)
+    lens = np.hypot(zeta, F) - F  # the lens's delay (as a path) at each height
+    delay = (length - 2.0 * depth_m - lens[None, :, None] - lens[None, None, :]) / c
+    amp = np.sqrt(1.0 - su**2) * np.sqrt(1.0 - sv**2) / np.sqrt(length)
+    elevation = _spectra(delay.reshape(len(tilts), -1), amp.reshape(len(tilts), -1), fs, n)
+    return lateral, elevation
+
+
+def _echo_pulse(t: Transducer, fs: float, n: int) -> NDArray[np.complex128]:
+    """Spectrum of the two-way echo pulse (the excitation through the pulse-echo
+    response) on the ``n``-sample grid at ``fs``, times 2 at positive frequencies and 0 at
+    negative ones: its inverse transform is the analytic signal, whose modulus is the
+    envelope."""
+    f = np.fft.fftfreq(n, 1.0 / fs)
+    time = np.arange(n) / fs
+    burst = np.where(time < t.pulse_cycles / t.f_hz, np.sin(2 * np.pi * t.f_hz * time), 0.0)
+    spectrum = np.fft.fft(burst) * _pulse_echo_response(t, f)
+    return spectrum * np.where(f > 0, 2.0, np.where(f == 0, 1.0, 0.0))
+
+
+def mirror_response(t: Transducer, depth_m: float, tilts: Array) -> tuple[Array, Array]:
+    """Echo amplitude of a mirror at ``depth_m`` (the transmit focus) against its tilt
+    (rad) in the image plane and in elevation, each relative to the untilted mirror's
+    (module docstring): two arrays like ``tilts``."""
+    fs = _MIRROR_SAMPLES_PER_PERIOD * t.f_hz
+    n = 64 * _MIRROR_SAMPLES_PER_PERIOD  # ± 32 periods
+    pulse = _echo_pulse(t, fs, n)
+    tilts = np.asarray(tilts, float)
+    lateral, elevation = _mirror_spectra(t, depth_m, tilts, fs, n)
+    # The pulse's duration: where its envelope stays above -40 dB (it starts at sample 0).
+    env = np.abs(np.fft.ifft(pulse))
+    above = np.flatnonzero(env >= 1e-2 * env.max())
+    start, stop = int(above[0]), int(above[-1])
+    span = _MIRROR_WINDOW * (stop - start)
+    # The impulse responses sit about sample n/2: the echo of an arrival at 0 spans
+    # n/2 + [start, stop]; the window extends it by a pulse duration both ways.
+    lo, hi = n // 2 + start - int(span), n // 2 + stop + int(span)
+
+    def peak(spectra: NDArray[np.complex128]) -> Array:
+        return np.abs(np.fft.ifft(spectra * pulse, axis=1))[:, lo : hi + 1].max(axis=1)
+
+    # Each aperture's lobe with the other's mirror taken as perfect (an impulse): the
+    # product of the two is the separable approximation, without the cross terms of the
+    # two apertures' edge waves (which the reference's smooth elevation beam lacks too).
+    lat, el = peak(lateral), peak(elevation)
+    return _tidy(lat / lat[0]), _tidy(el / el[0])
+
+
+def _tidy(lobe: Array) -> Array:
+    """A lobe (on increasing tilts) at most 1, and falling for good once below -40 dB: past
+    the main lobe a few of the sampled aperture's pairs land in the window by chance and
+    leave spurious bumps (a continuous aperture leaves edge waves that fade with the
+    tilt)."""
+    lobe = np.minimum(lobe, 1.0)
+    low = np.flatnonzero(lobe < 1e-2)
+    if len(low):
+        lobe[low[0] :] = np.minimum.accumulate(lobe[low[0] :])
+    return lobe
+
+
+def _widened(angles: Array, lobe: Array, slope: float) -> Array:
+    """The amplitude lobe (on ``angles`` ≥ 0, symmetric) of a surface of Gaussian facets of
+    rms slope ``slope`` (rad): each facet tilted by β returns the lobe at θ − β; intensities
+    averaged over β."""
+    if slope == 0.0:
+        return lobe
+    full = np.concatenate([-angles[:0:-1], angles])
+    intensity = np.concatenate([lobe[:0:-1], lobe]) ** 2
+    step = angles[1] - angles[0]
+    beta = np.arange(-int(np.ceil(4 * slope / step)), int(np.ceil(4 * slope / step)) + 1) * step
+    g = np.exp(-0.5 * (beta / slope) ** 2)
+    widened = np.convolve(np.pad(intensity, len(beta)), g / g.sum(), mode="same")
+    return np.sqrt(widened[len(beta) : len(beta) + len(full)][len(angles) - 1 :])
+
+
 # ------------------------------------------------------------------ tables per depth
 
 
@@ -229,7 +397,8 @@ class BeamTables:
     ``lateral`` holds the two-way amplitude profile through the focus (peak 1) at
     ``lateral_x`` (m) for each node; ``lateral_fwhm`` and ``elevation_fwhm`` the FWHMs (m);
     ``side_lobe_db`` / ``side_lobe_x`` the first lateral side lobe (two-way level, dB; its
-    offset, m), NaN where the broad band leaves none.
+    offset, m), NaN where the broad band leaves none. ``elevation`` holds the two-way
+    elevation amplitude profile (peak 1 at each node) at ``elevation_z`` (m).
     """
 
     depths: Array
@@ -241,10 +410,32 @@ class BeamTables:
     side_lobe_x: Array
     axial_fwhm: float
     f_number: float
+    elevation_z: Array
+    elevation: Array
 
     def at(self, name: str, depth_m: Array | float) -> Array:
         """A per-node figure interpolated (linearly, held past the ends) at depths."""
         return np.interp(np.asarray(depth_m, float), self.depths, getattr(self, name))
+
+    def elevation_at(self, depth_m: Array, z: Array) -> Array:
+        """Two-way elevation amplitude at per-row offsets: ``depth_m`` (N,) m, ``z`` (N, m)
+        m; bilinear in depth node and |z|, 0 past the table's reach."""
+        d = np.asarray(depth_m, float)
+        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
+        i0 = np.minimum(np.floor(pos).astype(np.int64), len(self.depths) - 1)[:, None]
+        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
+        wd = pos[:, None] - i0
+        step = self.elevation_z[1] - self.elevation_z[0]
+        last = len(self.elevation_z) - 1
+        a = np.abs(np.asarray(z, float)) / step
+        a0 = np.minimum(np.floor(a).astype(np.int64), last - 1)
+        wa = np.minimum(a - a0, 1.0)
+        out = np.zeros(np.shape(a))
+        for i, wi in ((i0, 1.0 - wd), (i1, wd)):
+            p = self.elevation[i[:, 0]]
+            rows = np.arange(len(d))[:, None]
+            out += wi * ((1.0 - wa) * p[rows, a0] + wa * p[rows, a0 + 1])
+        return np.where(a >= last, 0.0, out)
 
     def lateral_profile(self, depth_m: Array | float, x: Array) -> Array:
         """Two-way lateral amplitude profiles (depths, len(x)) at offsets ``x`` (m): each
@@ -258,6 +449,18 @@ class BeamTables:
         ax = np.abs(np.asarray(x, float))
         nodes = CubicSpline(self.lateral_x, self.lateral, axis=1, bc_type="clamped")(ax)
         nodes = np.where(ax[None, :] <= self.lateral_x[-1], np.clip(nodes, 0.0, None), 0.0)
+        return (1.0 - w) * nodes[i0] + w * nodes[i1]
+
+    def elevation_profile(self, depth_m: Array | float, z: Array) -> Array:
+        """Two-way elevation amplitude (depths, len(z)) at elevation offsets ``z`` (m),
+        linear in z and depth; 0 past the table's reach."""
+        d = np.atleast_1d(np.asarray(depth_m, float))
+        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
+        i0 = np.minimum(np.floor(pos).astype(int), len(self.depths) - 1)
+        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
+        w = (pos - i0)[:, None]
+        az = np.abs(np.asarray(z, float))
+        nodes = np.stack([np.interp(az, self.elevation_z, p, right=0.0) for p in self.elevation])
         return (1.0 - w) * nodes[i0] + w * nodes[i1]
 
 
@@ -285,16 +488,20 @@ def beam_tables(t: Transducer, max_depth_m: float) -> BeamTables:
     H, F = t.elevation_aperture_m, t.elevation_focus_m
     lateral = np.empty((n, len(x)))
     lat_fwhm, el_fwhm, sl_db, sl_x = (np.empty(n) for _ in range(4))
+    # The elevation profile on one grid reaching past the widest beam's (the face's, or
+    # the deepest node's past the focus).
+    reach = 0.75 * H * max(1.0, abs(depths[-1] - F) / F) + 0.5e-3
+    ez = np.linspace(0.0, reach, _ELEVATION_SAMPLES)
+    elevation = np.empty((n, len(ez)))
     for i, d in enumerate(depths):
         lateral[i] = two_way_profile(t, float(d), x, np.zeros_like(x))
         xm, pm = np.concatenate([-x[:0:-1], x]), np.concatenate([lateral[i][:0:-1], lateral[i]])
         lat_fwhm[i] = _fwhm(xm, pm)
         sl_db[i], sl_x[i] = _first_side_lobe(x, lateral[i])
-        reach = 0.75 * max(H, H * abs(d - F) / F) + 0.5e-3
-        z = np.linspace(0.0, reach, _ELEVATION_SAMPLES)
-        pe = two_way_profile(t, float(d), np.zeros_like(z), z)
-        zm, pz = np.concatenate([-z[:0:-1], z]), np.concatenate([pe[:0:-1], pe])
-        el_fwhm[i] = _fwhm(zm, pz, outer=True)
+        elevation[i] = two_way_profile(t, float(d), np.zeros_like(ez), ez)
+        zm = np.concatenate([-ez[:0:-1], ez])
+        el_fwhm[i] = _fwhm(zm, np.concatenate([elevation[i][:0:-1], elevation[i]]), outer=True)
+    elevation /= elevation.max(axis=1, keepdims=True)
     return BeamTables(
         depths=depths,
         lateral_x=x,
@@ -305,7 +512,93 @@ def beam_tables(t: Transducer, max_depth_m: float) -> BeamTables:
         side_lobe_x=sl_x,
         axial_fwhm=axial_fwhm_m(t),
         f_number=fn,
+        elevation_z=ez,
+        elevation=elevation,
     )
+
+
+@dataclass(frozen=True)
+class MirrorTables:
+    """The echo of a surface element against its tilt, for the simulator to interpolate.
+
+    ``lateral`` / ``elevation`` (depth nodes, slopes, tilts) hold the echo of a mirror
+    tilted by ``tilts`` (rad) in the image plane / in elevation, relative to the untilted
+    one (:func:`mirror_response`), for facets of rms slope :data:`MIRROR_SLOPES` (0: a
+    smooth mirror).
+    """
+
+    depths: Array
+    tilts: Array
+    lateral: Array
+    elevation: Array
+
+    def lobes(
+        self, depth_m: Array, tilt_lateral: Array, tilt_elevation: Array, slope: Array
+    ) -> tuple[Array, Array, Array, Array]:
+        """Echo of a surface element (per hit: its depth (m), its tilts in the image plane
+        and in elevation (rad, either sign) and its facets' rms slope (rad)) relative to a
+        mirror facing the probe, as its factors: the smooth mirror's lateral and elevation
+        lobes, then the rough facets' (the echo is each pair's product)."""
+        d = np.asarray(depth_m, float)
+        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
+        i0 = np.minimum(np.floor(pos).astype(np.int64), len(self.depths) - 1)
+        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
+        wd = pos - i0
+        sl = np.interp(np.asarray(slope, float), MIRROR_SLOPES, np.arange(len(MIRROR_SLOPES)))
+        s0 = np.minimum(np.floor(sl).astype(np.int64), len(MIRROR_SLOPES) - 1)
+        s1 = np.minimum(s0 + 1, len(MIRROR_SLOPES) - 1)
+        ws = sl - s0
+        zero = ((np.zeros_like(s0), 1.0),)
+        rough = ((s0, 1.0 - ws), (s1, ws))
+        return (
+            self._lookup(self.lateral, (i0, i1, wd), tilt_lateral, zero),
+            self._lookup(self.elevation, (i0, i1, wd), tilt_elevation, zero),
+            self._lookup(self.lateral, (i0, i1, wd), tilt_lateral, rough),
+            self._lookup(self.elevation, (i0, i1, wd), tilt_elevation, rough),
+        )
+
+    def elevation_lobe(self, depth_m: Array, tilt: Array) -> Array:
+        """The smooth mirror's elevation lobe at ``tilt`` (rad, any shape, rows of
+        ``depth_m``'s length) for depths ``depth_m`` (m, 1-D)."""
+        d = np.asarray(depth_m, float)
+        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
+        i0 = np.minimum(np.floor(pos).astype(np.int64), len(self.depths) - 1)
+        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
+        tilt = np.asarray(tilt, float)
+        extra = (slice(None),) + (None,) * (tilt.ndim - 1)
+        depth = (i0[extra], i1[extra], (pos - i0)[extra])
+        return self._lookup(self.elevation, depth, tilt, ((0, 1.0),))
+
+    def _lookup(self, table: Array, depth: tuple, tilt: Array, slopes: tuple) -> Array:
+        """Bilinear in depth node and tilt, weighted over slope indices; 0 past the
+        table's last tilt (no echo)."""
+        i0, i1, wd = depth
+        step = self.tilts[1] - self.tilts[0]
+        last = len(self.tilts) - 1
+        a = np.abs(np.asarray(tilt, float)) / step
+        past = a >= last
+        a0 = np.minimum(np.floor(a).astype(np.int64), last - 1)
+        wa = np.minimum(a - a0, 1.0)
+        out = np.zeros(np.shape(a))
+        for i, wi in ((i0, 1.0 - wd), (i1, wd)):
+            for j, wj in slopes:
+                out += wi * wj * ((1.0 - wa) * table[i, j, a0] + wa * table[i, j, a0 + 1])
+        return np.where(past, 0.0, out)
+
+
+@functools.lru_cache(maxsize=16)
+def mirror_tables(t: Transducer, max_depth_m: float) -> MirrorTables:
+    """The mirror echo of ``t`` at the depth nodes of its beam tables (cached; ≈ 1 s)."""
+    depths = beam_tables(t, max_depth_m).depths
+    tilts = np.radians(np.arange(0.0, _MIRROR_MAX_DEG + 1e-9, _MIRROR_STEP_DEG))
+    lateral = np.empty((len(depths), len(MIRROR_SLOPES), len(tilts)))
+    elevation = np.empty_like(lateral)
+    for i, d in enumerate(depths):
+        lat, el = mirror_response(t, float(d), tilts)
+        for j, slope in enumerate(MIRROR_SLOPES):
+            lateral[i, j] = _widened(tilts, lat, slope)
+            elevation[i, j] = _widened(tilts, el, slope)
+    return MirrorTables(depths=depths, tilts=tilts, lateral=lateral, elevation=elevation)
 
 
 def _fwhm(x: Array, p: Array, outer: bool = False) -> float:
