@@ -66,3 +66,28 @@ def simulator(parts, probe=SMALL_PROBE, medium=None, **probe_changes) -> BmodeSi
 def elevation_shift(e_mm: float) -> np.ndarray:
     """Probe pose moved by e along its elevational axis, (1, 4, 4)."""
     return se3.make(np.eye(3), [0.0, 0.0, e_mm * MM])[None]
+
+
+def trace_along_y(caster, materials, medium, origins, directions, **kwargs):
+    """``sim_us.propagation.trace`` for rays of SMALL_PROBE's transducer whose lateral axis
+    is the scene's x and elevational axis its z (the probe at the origin looking along +y):
+    50 mm deep, 13 MHz, displayed at 1540 m/s, a 200 dB floor."""
+    from sim_us.beam import mirror_of
+    from sim_us.propagation import trace
+
+    n = len(origins)
+    axes = (np.tile([1.0, 0.0, 0.0], (n, 1)), np.tile([0.0, 0.0, 1.0], (n, 1)))
+    return trace(
+        caster,
+        materials,
+        medium,
+        origins,
+        directions,
+        0.05,
+        SMALL_PROBE.f_mhz,
+        1540.0,
+        200.0,
+        mirror_of(SMALL_PROBE),
+        axes,
+        **kwargs,
+    )

@@ -78,7 +78,8 @@ def test_discrete_elevation_reproduces_the_frame_from_before():
     frame stored before these sources existed comes out again (stored anew twice since:
     when the gel's speckle started summing a thinned lattice past the elevation focus, and
     when the speckle's lateral PSF became one per row, cut at −40 dB instead of 3 σ: ≤ 5
-    grey levels on 17 % of the pixels)."""
+    grey levels on 17 % of the pixels; and when a surface's echo became the mirror lobe of
+    the probe's apertures instead of a stated specular width)."""
     frame = golden_scene(replace(SMALL_PROBE, continuous_elevation=False)).render(
         T_IDENTITY, np.random.default_rng(2026)
     )[0]
@@ -144,8 +145,10 @@ def test_thick_slice_gives_one_thickened_echo(thick_slice_caps):
 
     # The discrete sub-planes draw separate arcs: dips of more than 6 dB between peaks.
     assert bumps(thick_slice_caps[False]).max() > 6.0
-    # Integrated continuously: one echo, unimodal along depth in every column.
-    assert bumps(thick_slice_caps[True]).max() < 1.0
+    # Integrated continuously: one echo in every column. Not quite unimodal: the mirror's
+    # echo of each slab comes from near its specular point, so the slabs' echoes stack
+    # near the cap's top with a ripple of ≈ 3 dB, not as separate arcs.
+    assert bumps(thick_slice_caps[True]).max() < 4.0
     # Thickened: it spans more depth than the point-like PSF (FWHM ≈ 0.35 mm).
     p = thick_slice_caps[True][:, 100]
     above = np.flatnonzero(p > p.max() / 100)  # 20 dB down

@@ -14,9 +14,8 @@ import pytest
 
 from calib import se3
 from sim_us import MediumConfig
-from sim_us.beam import slice_thickness
+from sim_us.beam import mirror_of, slice_thickness
 from sim_us.materials import MATERIALS, amplitude_reflection, water, water_speed_m_s
-from sim_us.propagation import trace
 from sim_us.raycast import AcousticScene, RayCaster
 
 from .sim_us_scenes import (
@@ -27,6 +26,7 @@ from .sim_us_scenes import (
     simulator,
     slab,
     sphere,
+    trace_along_y,
     wire,
 )
 
@@ -158,34 +158,36 @@ def test_shadow_below_pla_sphere():
 
 # 5 ------------------------------------------------------------------ angle dependence
 @pytest.mark.parametrize("tilt_deg", [0.0, 5.0, 10.0, 20.0, 30.0, 45.0])
-def test_echo_amplitude_follows_angle_model(tilt_deg):
+def test_echo_amplitude_follows_the_apertures_mirror_lobe(tilt_deg):
+    """A plate tilted in the image plane echoes as a mirror seen through the aperture
+    (its lobe, from the transducer) plus the material's diffuse share at every angle."""
     caster = RayCaster(AcousticScene((slab(15.0, tilt_deg=tilt_deg),)))
     medium = water(20.0)
     pla = MATERIALS["pla"]
-    echoes = trace(
-        caster,
-        [pla],
-        medium,
-        np.zeros((1, 3)),
-        np.array([[0.0, 1.0, 0.0]]),
-        0.05,
-        13.0,
-        1540.0,
-        200.0,
-        reverberation=False,
+    echoes = trace_along_y(
+        caster, [pla], medium, np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), reverberation=False
     )
     first = np.argmin(echoes.depth)
     r = amplitude_reflection(medium.impedance, pla.impedance)
-    theta = np.radians(tilt_deg)
-    shape = (1 - pla.diffuse) * np.exp(-((theta / np.radians(pla.specular_width_deg)) ** 2))
-    shape += pla.diffuse
+    depth = 15.0 * MM * 1540.0 / medium.speed_m_s
+    lobe = mirror_of(SMALL_PROBE).lobes(
+        np.array([depth]), np.radians([tilt_deg]), np.zeros(1), np.zeros(1)
+    )
+    spec = float(lobe[0][0] * lobe[1][0])
+    d = pla.diffuse
+    shape = np.sqrt((1 - d**2) * spec**2 + d**2)
     # The plate turns about the point where it crosses the ray: the path is 15 mm.
-    assert echoes.depth[first] == pytest.approx(15.0 * MM * 1540.0 / medium.speed_m_s)
+    assert echoes.depth[first] == pytest.approx(depth)
     water_loss = 10 ** (-2 * 100 * medium.attenuation_db_cm_mhz * 13.0**2 * 15.0 * MM / 20)
     assert echoes.amplitude[first] == pytest.approx(r * shape * water_loss, rel=1e-6)
-    # And the model itself falls off: strong at normal incidence, diffuse floor beyond.
-    if tilt_deg >= 30:
-        assert echoes.amplitude[first] < 0.3 * r
+    # The lobe itself: the aperture's (F# 2.3): -4 dB at 5°, about -17 dB at 10° (pymust
+    # 4.1 and 17.0 dB), nothing past atan(1 / 2F#) but the diffuse floor.
+    expected_db = {0.0: 0.0, 5.0: -4.2, 10.0: -17.0}
+    if tilt_deg in expected_db:
+        assert 20 * np.log10(spec) == pytest.approx(expected_db[tilt_deg], abs=1.5)
+    else:
+        assert spec < 10 ** (-40 / 20)
+        assert echoes.amplitude[first] == pytest.approx(r * d * water_loss, rel=0.01)
 
 
 # 6 ------------------------------------------------------------------ gain
