@@ -30,9 +30,9 @@ side lobes). This checks what the image is made of, for the same probes (the pap
    σ/ℓ, ``rough_surface_shape``), each with ``surface_speckle`` off and on. A printed
    material's diffuse share (PLA's 0.1: layer corners and fine roughness, which the
    reference's surfaces do not have) is not part of this comparison.
-3. **The partial volume of a sphere**: a 5 mm sphere (steel, smooth) in water, centre at 20 and 35 mm,
-   moved in elevation by −4 … +4 mm: the cap's peak brightness (dB relative to offset 0)
-   and the depth of that peak (true mm) against the offset.
+3. **The partial volume of a sphere**: a 5 mm sphere (steel, smooth) in water, centre at
+   20 and 35 mm, moved in elevation by −4 … +4 mm: the cap's peak brightness (dB relative
+   to offset 0) and the depth of that peak (true mm) against the offset.
 
 How, reference side (pymust 0.1.9, ``simus`` + ``rf2iq`` + ``dasmtx``):
 
@@ -1170,9 +1170,9 @@ def print_planes(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: Ta
 
 def print_sphere(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: Tally) -> None:
     print(
-        f"\n{case.name} sphere (radius {SPHERE_RADIUS_M * 1e3:g} mm, PLA in water) moved in "
-        "elevation: the cap's peak (dB re offset 0) and its true depth (mm); twin off/on = "
-        "surface_speckle"
+        f"\n{case.name} sphere (radius {SPHERE_RADIUS_M * 1e3:g} mm, smooth steel in water) "
+        "moved in elevation: the cap's peak (dB re offset 0) and its true depth (mm); "
+        "twin off/on = surface_speckle"
     )
     for k in (f"{d:g}" for d in SPHERE_DEPTHS_MM):
         print(f"  centre at {k} mm (cap top at {float(k) - SPHERE_RADIUS_M * 1e3:g} mm)")

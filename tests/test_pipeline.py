@@ -27,11 +27,16 @@ from .conftest import QUICK
 
 @pytest.fixture(scope="module")
 def two_spheres_with_touches(tmp_path_factory):
-    """quick.yaml on spheres 1 and 2 (7 frames a sweep), with the 24 stylus touches,
+    """quick.yaml on spheres 1 and 2 (11 frames a sweep, 1 mm apart), with the 24 stylus touches,
     saved as dataset files: (scenario, twin truth, acquisition, dataset directory)."""
     sc = load_scenario(
         QUICK,
-        ["protocol.spheres=[1, 2]", "protocol.frames_per_sweep=7", "evaluation.initialisations=2"],
+        [
+            "protocol.spheres=[1, 2]",
+            "protocol.frames_per_sweep=11",
+            "protocol.sweep_half_length_mm=5",
+            "evaluation.initialisations=2",
+        ],
     )
     twin = make_twin(sc)
     touches = simulate_touches(sc, twin, dataset_rngs(sc, 0)["touch_contact"])

@@ -215,6 +215,24 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         z_new, z_sigma = _elevation_vertex(
             top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius
         )
+        if z_sigma > 0:
+            # The brightness vertex is uncertain where few frames see the top (a sharp
+            # specular echo, frames far apart): the cap's depth in each frame measures
+            # the elevation too, through the sphere's known radius.
+            geometric = _elevation_from_depths(
+                vol,
+                rs,
+                cs[np.abs(xs - x_new) <= max(dx, 0.25 * _M_PER_MM)],
+                level,
+                radius,
+                z_new,
+                ys,
+            )
+            if geometric is not None:
+                z_geo, s_geo = geometric
+                w_v, w_g = 1.0 / z_sigma**2, 1.0 / s_geo**2
+                z_new = (w_v * z_new + w_g * z_geo) / (w_v + w_g)
+                z_sigma = float(np.sqrt(1.0 / (w_v + w_g)))
         # Top of the cap: the column under (x, z) in the nearest frames.
         col = np.abs(xs - x_new) <= max(dx, 0.25 * _M_PER_MM)
         frames = np.abs(zs - z_new) <= 0.75 * dz
@@ -234,6 +252,56 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
     if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _M_PER_MM):
         return seed, 0.0
     return current, z_sigma
+
+
+def _elevation_from_depths(
+    vol: SweepVolume,
+    rs: NDArray[np.int64],
+    cs: NDArray[np.int64],
+    level: float,
+    radius: float,
+    z_guess: float,
+    ys: Array,
+) -> tuple[float, float] | None:
+    """Elevation of the centre (and its standard error) from the depth of the cap's top
+    in each frame: a frame at elevation z cuts the sphere in a circle whose top lies
+    ``√(R² − (z − z_c)²)`` above the centre, so the tops across the frames trace an arc of
+    the known radius whose apex is the centre's elevation. Least squares over the frames
+    within 0.8 R of ``z_guess`` whose column (rows ``rs``, columns ``cs``) holds an echo
+    above ``level`` (the depth of each from :func:`_axial_peak`); the centre's depth is
+    solved for at each trial elevation. The standard error from the fit's curvature and
+    the depths' scatter (at least a quarter pixel: two or three frames leave no estimate
+    of it). None with fewer than two frames."""
+    K = vol.shape[0]
+    dz, dy = vol.spacing[2], vol.spacing[1]
+    zs = vol.z0 + np.arange(K) * dz
+    depths, heights = [], []
+    for k in np.flatnonzero(np.abs(zs - z_guess) <= 0.8 * radius):
+        grey = vol.intensity(np.array([k]), rs, cs, level=level)
+        if grey.max() <= 0:
+            continue
+        profile = np.maximum(grey.sum(axis=(0, 2)), 0.0)
+        depths.append(_axial_peak(grey, 255.0 - level, ys, profile))
+        heights.append(zs[k])
+    if len(depths) < 2:
+        return None
+    d, z = np.array(depths), np.array(heights)
+    lo, hi = z.max() - 0.999 * radius, z.min() + 0.999 * radius
+    if hi <= lo:
+        return None
+    trial = np.linspace(lo, hi, 401)
+    rise = np.sqrt(np.maximum(radius**2 - (z[None, :] - trial[:, None]) ** 2, 0.0))
+    y_c = (d[None, :] + rise).mean(axis=1)
+    sse = (((y_c[:, None] - rise) - d[None, :]) ** 2).sum(axis=1)
+    i = int(np.clip(np.argmin(sse), 1, len(trial) - 2))
+    step = trial[1] - trial[0]
+    curvature = (sse[i - 1] - 2.0 * sse[i] + sse[i + 1]) / step**2
+    if curvature <= 0:
+        return None
+    z_c = float(trial[i] + 0.5 * (sse[i - 1] - sse[i + 1]) / (curvature * step))
+    # The depths' scatter, with two pseudo-observations of a quarter pixel's.
+    s2 = (float(sse[i]) + 2.0 * (0.25 * dy) ** 2) / (len(d) - 2 + 2)
+    return z_c, float(np.sqrt(2.0 * s2 / curvature))
 
 
 def _axial_peak(grey: Array, clip: float, ys: Array, w: Array) -> float:
