@@ -363,8 +363,10 @@ class BmodeSimulator:
         alone would miss a specular point between two sub-planes. Across the slab the tilt
         is taken linear between the ray's and its neighbour sub-planes' (same frame and
         scanline, first surface, depths within the tangent plane's reach), and the
-        coherent share is the lobe's rms over the slab weighted by the beam's two-way
-        intensity b²: ∫ b² E(φ(z))² dz over ∫ b² dz. The incoherent share is kept.
+        coherent share carries ∫ b² E(φ(z))² dz over the slab (b the beam's two-way
+        elevation amplitude), where the sub-plane's weight holds b² at its own elevation
+        times the slab's width: on a flank of the beam b² changes by orders of magnitude
+        across a slab. The incoherent share is kept.
         The mirror's echo comes from near the specular point, not from the whole slab:
         its depth is that of the tangent plane at the b² E²-weighted mean elevation, its
         depth span that of the weighted spread.
@@ -404,7 +406,8 @@ class BmodeSimulator:
         phis = phi[:, None] + np.nan_to_num(rate) * (zs - z0[:, None])
         b2 = elevation_amplitude_at(self.probe, depth, zs) ** 2
         lobe2 = self.mirror.elevation_lobe(depth, phis) ** 2
-        total = b2.sum(axis=1)
+        # The sub-plane's weight holds b² at its own elevation times the slab's width.
+        centre = elevation_amplitude_at(self.probe, depth, z0[:, None])[:, 0] ** 2 * _SLAB_SAMPLES
         # Where in the slab the mirror's echo comes from: the mean and spread (as the
         # width of a uniform band) of z under b² E².
         w = b2 * lobe2
@@ -419,7 +422,7 @@ class BmodeSimulator:
         shift[first] = np.where(ok, mean, 0.0)
         span[first] = np.where(ok, np.minimum(np.sqrt(12.0) * spread, dz), dz)
         e_eff = np.sqrt(
-            np.divide((b2 * lobe2).sum(axis=1), total, out=np.zeros_like(total), where=total > 0)
+            np.divide((b2 * lobe2).sum(axis=1), centre, out=np.zeros_like(centre), where=centre > 0)
         )
         incoherent2 = np.maximum(amplitude[first] ** 2 - coherent[first] ** 2, 0.0)
         coherent[first] = echoes.coherent_lateral[first] * e_eff
