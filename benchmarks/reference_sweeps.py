@@ -27,8 +27,9 @@ The scene, the same on both sides:
   these datasheet figures and its defaults otherwise (38 × 40 mm frames at 0.1 mm pixels,
   the array's own beam and side lobes, 60 dB, surface speckle), rendered noise-free
   (``render(T, None)``) from ``trimesh.creation.icosphere`` (5 subdivisions), material
-  "pla". Both display depth at the scanner's 1540 m/s (3.9 % deep); the localizer gets
-  ``axial_scale`` = 1482.3 / 1540 for both.
+  "pla", no reverberation (pymust follows no wave twice). Both display depth at the
+  scanner's 1540 m/s (3.9 % deep); the localizer gets ``axial_scale`` = 1482.3 / 1540 for
+  both.
 
 How, reference side (``--write``):
 
@@ -185,6 +186,12 @@ WATER_C = WATER.speed_m_s
 PLA = MATERIALS["pla"]
 # The sphere's surface: PLA's normal-incidence pressure reflection coefficient in water.
 PLA_REFLECTION = float(amplitude_reflection(WATER.impedance, PLA.impedance))
+# sim_us renders the sphere as the scenarios print it: PLA with its diffuse share (the
+# reference's sphere is a mirror; rendered smooth too, sim_us draws its cap alone and the
+# localizer finds 1 of the 3 sweeps, where on the reference's frames the compounding's
+# edge waves under the cap make it more sphere-like: README, "The images against
+# physics").
+SPHERE_MATERIAL = "pla"
 # Printed roughness along the normal (twin/printing.py's model): off, the CAD sphere
 # sim_us is given. The paper scenario's figures (Ra 10 µm, ℓ 0.4 mm) move the cap's
 # specular point by R × slope (module docstring).
@@ -218,9 +225,12 @@ SWEEPS = (
 
 
 def probe_config() -> ProbeConfig:
-    """sim_us's probe: the paper probe's datasheet figures, everything else default."""
+    """sim_us's probe: the paper probe's datasheet figures, no reverberation (pymust
+    follows no wave twice: the cap's echo bounced off the probe face and back, at twice
+    its depth, has no counterpart in the reference), everything else default."""
     a = PR.paper_probe().array
     return ProbeConfig(
+        reverberation=False,
         f_mhz=a.f_mhz,
         bandwidth_pct=a.bandwidth_pct,
         pitch_mm=a.pitch_mm,
@@ -702,7 +712,8 @@ def twin_frames(poses: Array, probe: ProbeConfig | None = None) -> NDArray[np.ui
     probe = probe or probe_config()
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=RADIUS_M)
     mesh.apply_translation(CENTRE_BASE)
-    sim = BmodeSimulator(AcousticScene((ScenePart("sphere", mesh, "pla"),)), probe, MEDIUM)
+    scene = AcousticScene((ScenePart("sphere", mesh, SPHERE_MATERIAL),))
+    sim = BmodeSimulator(scene, probe, MEDIUM)
     return np.array([sim.render(T, None) for T in poses])
 
 
