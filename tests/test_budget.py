@@ -28,7 +28,10 @@ PAPER = ROOT / "scenarios" / "paper.yaml"
 # One sphere, short sweeps, the speed of sound left uncorrected: a run takes ≈ 1 s.
 SMALL = (
     "protocol.spheres=[1]",
-    "protocol.frames_per_sweep=9",
+    # 13 frames 1 mm apart: a sphere's specular cap needs elevation steps of ~1 mm, and
+    # ± 6 mm holds the sphere whatever the coarse mount's error.
+    "protocol.frames_per_sweep=13",
+    "protocol.sweep_half_length_mm=6",
     "imaging.sound_speed_correction=false",
 )
 

@@ -195,12 +195,13 @@ def test_connection_lost_mid_sweep_keeps_finished_sweeps_and_resumes(controller,
 @pytest.mark.slow
 def test_protective_stop_mid_move_ends_the_acquisition_cleanly(controller, tmp_path):
     dataset = tmp_path / "ds"
-    # Sweeps of 7 frames (3.3 mm apart): the calibration below must be able to localize
-    # the sphere in them (3 frames 10 mm apart cannot resolve its elevation).
-    frames = ["--set", "protocol.frames_per_sweep=7"]
+    # Sweeps of 13 frames 1 mm apart: the calibration below must be able to localize the
+    # sphere in them (3 frames 10 mm apart cannot resolve its elevation, nor 7 frames
+    # 3.3 mm apart the specular cap's).
+    frames = ["--set", "protocol.frames_per_sweep=13", "--set", "protocol.sweep_half_length_mm=6"]
     args = ["acquire", str(controller.hw), "--out", str(dataset), "--yes", *ONE_SPHERE, *frames]
     line = _one_line_error(uscal(*args))
-    assert "protective stop" in line and "2 of 45 sweeps are saved" in line
+    assert "protective stop" in line and "1 of 45 sweeps are saved" in line
     assert controller.dashboard("safetystatus") == "Safetystatus: PROTECTIVE_STOP"
     # The operator clears the stop; the acquisition resumes where it ended.
     assert controller.dashboard("unlock protective stop") == "Protective stop releasing"

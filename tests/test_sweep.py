@@ -26,8 +26,11 @@ from .test_cli import uscal, uscal_here
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "scenarios" / "quick.yaml"
-# One sphere, short sweeps: a point takes a few seconds.
-SMALL = "  protocol.spheres: [[1]]\n  protocol.frames_per_sweep: [9]\n"
+# One sphere, short sweeps (13 frames 1 mm apart): a point takes a few seconds.
+SMALL = (
+    "  protocol.spheres: [[1]]\n  protocol.frames_per_sweep: [13]\n"
+    "  protocol.sweep_half_length_mm: [6]\n"
+)
 
 
 def _write(path: Path, text: str) -> Path:
@@ -139,7 +142,12 @@ def test_a_dask_cluster_gives_the_local_pools_results(tmp_path):
     assert _rows(tmp_path / "local") == _rows(tmp_path / "dask")
     rows = _rows(tmp_path / "local")
     assert [r["method"] for r in rows] == ["refined", "fixed_threshold"] * 2
-    assert list(rows[0])[:3] == ["protocol.spheres", "protocol.frames_per_sweep", "imaging.gain_db"]
+    assert list(rows[0])[:4] == [
+        "protocol.spheres",
+        "protocol.frames_per_sweep",
+        "protocol.sweep_half_length_mm",
+        "imaging.gain_db",
+    ]
     assert all(
         float(r["localization_median_error_mm"]) < 1.0 for r in rows if r["method"] == "refined"
     )
