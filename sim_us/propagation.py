@@ -91,6 +91,51 @@ def rough_surface_shape(
     return np.sqrt(energy), coherent
 
 
+def _with_treads(
+    widened: Array,
+    share: Array,
+    part: NDArray[np.int64],
+    normal: Array,
+    ray: NDArray[np.int64],
+    depth: Array,
+    layers: tuple[Array, Array],
+    axes: tuple[Array, Array],
+    directions: Array,
+    mirror: MirrorTables,
+) -> Array:
+    """The texture's incoherent lobe with a print's layer treads in it: of the energy the
+    texture scatters, the layer staircase's share ``share`` comes back from its treads,
+    small mirrors facing the build direction b (on the side the surface faces), each
+    ``h / tan α`` wide (h the layer height, α the surface's angle to the build plate);
+    treads narrower than the focal spot (λ F#) fill it in part, returning ``w / spot`` of
+    its energy (a row of them, at depths a layer apart, adds in energy). The echo of the
+    treads is the mirror's lobe at b's tilt from the beam: a printed sphere seen along its
+    build direction echoes from its whole cap, seen from aside only about its top. The
+    rest (the roughness's share) keeps the facets' widened lobe."""
+    height, axis = layers
+    surface = part + 1
+    h = height[surface]
+    b = axis[surface]
+    printed = (share > 0) & (h > 0)
+    if not printed.any():
+        return widened
+    cos_a = np.einsum("ij,ij->i", b, normal)
+    b = np.where(cos_a[:, None] < 0, -b, b)  # the treads face out of the surface
+    cos_a = np.abs(cos_a)
+    sin_a = np.sqrt(np.maximum(1.0 - cos_a**2, 0.0))
+    width = np.divide(h * cos_a, sin_a, out=np.full(len(sin_a), np.inf), where=sin_a > 0)
+    fill = np.minimum(1.0, width / mirror.focal_spot_m) if mirror.focal_spot_m > 0 else 1.0
+    laterals, elevations = axes
+    facing = np.maximum(np.abs(np.einsum("ij,ij->i", directions, b)), 1e-12)
+    tilt_lat = np.arctan(np.einsum("ij,ij->i", laterals[ray], b) / facing)
+    tilt_el = np.arctan(np.einsum("ij,ij->i", elevations[ray], b) / facing)
+    away = np.einsum("ij,ij->i", directions, b) > 0  # treads facing away from the probe
+    lat, el, _, _ = mirror.lobes(depth, tilt_lat, tilt_el, np.zeros(len(depth)))
+    treads2 = np.where(away, 0.0, fill * (lat * el) ** 2)
+    energy = (1.0 - share) * widened**2 + share * treads2
+    return np.where(printed, np.sqrt(energy), widened)
+
+
 @dataclass(frozen=True)
 class Echoes:
     """Surface echoes of a batch of rays.
@@ -161,6 +206,16 @@ def trace(
     imped = np.array([m.impedance for m in mats])
     att_np = np.array([attenuation_db_per_m(m, f_mhz) for m in mats]) * np.log(10.0) / 20.0
     laterals, elevations = axes
+    # Printed parts: layer height and build direction (index 0, the medium: none).
+    layers = (
+        np.array([0.0, *(p.layer_m for p in caster.parts)]),
+        np.array(
+            [
+                np.zeros(3),
+                *(np.zeros(3) if p.build_axis is None else p.build_axis for p in caster.parts),
+            ]
+        ),
+    )
     diffuse = np.array([m.diffuse for m in mats])
     log_floor = -floor_db * np.log(10.0) / 20.0
 
@@ -207,6 +262,19 @@ def trace(
         facets = hits.texture_slope[hit] if hits.texture_slope is not None else np.zeros(len(t))
         lat0, el0, lat_w, el_w = mirror.lobes(y_app, tilt_lat, tilt_el, facets)
         spec, widened = lat0 * el0, lat_w * el_w
+        if hits.layer_share is not None:
+            widened = _with_treads(
+                widened,
+                hits.layer_share[hit],
+                part,
+                nrm,
+                ray,
+                y_app,
+                layers,
+                (laterals, elevations),
+                dirs,
+                mirror,
+            )
         if hits.texture_rms is not None:
             # k of the incident medium; σ along the smoothed normal.
             k_sigma_cos = 2 * np.pi * f_mhz * 1e6 / c * hits.texture_rms[hit] * facing

@@ -36,8 +36,11 @@ class ScenePart:
     the sound's specular lobe follows: ``acoustic_vertices`` (V, 3), the part's vertices
     before the texture (same faces as ``mesh``; the part's shape error included), and
     ``texture_rms_m`` (V,), the rms height of the texture along the normal at each vertex
-    (m), with ``texture_length_m`` its correlation length along the surface (m; the
-    texture's facets tilt by ``rms / length`` rms). The echo's position stays on ``mesh``;
+    (m), with ``texture_length_m`` its roughness's correlation length along the surface (m;
+    its facets tilt by ``rms / length`` rms). A printed part's share of that variance which
+    is its layer staircase, ``texture_layer_share`` (V,), with the layer height ``layer_m``
+    (m) and the build direction ``build_axis`` (3,), scene frame: the staircase's treads
+    are small mirrors facing the build direction. The echo's position stays on ``mesh``;
     its normal and its coherent share come from these (see :mod:`sim_us.propagation`).
     None: an untextured part.
     """
@@ -48,6 +51,9 @@ class ScenePart:
     acoustic_vertices: Array | None = None
     texture_rms_m: Array | None = None
     texture_length_m: float = 4e-4
+    texture_layer_share: Array | None = None
+    layer_m: float = 0.0
+    build_axis: Array | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,8 +71,9 @@ class Hits:
     ``t`` distance (m; inf for a miss), ``part`` index into the scene's parts (−1 for a
     miss), ``normal`` outward unit surface normal (smooth: interpolated vertex normals;
     textured: the un-textured surface's). ``texture_rms`` (n,) the rms texture height at
-    the hit (m, 0 off textured parts) and ``texture_slope`` (n,) the rms tilt of its
-    facets (rad); None when no part of the scene is textured.
+    the hit (m, 0 off textured parts), ``texture_slope`` (n,) the rms tilt of its
+    roughness's facets (rad) and ``layer_share`` (n,) the layer staircase's share of its
+    variance; None when no part of the scene is textured.
     """
 
     t: Array
@@ -74,6 +81,7 @@ class Hits:
     normal: Array
     texture_rms: Array | None = None
     texture_slope: Array | None = None
+    layer_share: Array | None = None
 
 
 class RayCaster:
@@ -88,6 +96,7 @@ class RayCaster:
         # texture's rms height per vertex.
         self._smooth_faces: list[NDArray[np.bool_] | None] = []
         self._texture_rms: list[Array | None] = []
+        self._layer_share: list[Array | None] = []
         self.textured = any(p.acoustic_vertices is not None for p in scene.parts)
         self._scene = rtcore_scene.EmbreeScene() if scene.parts else None
         if not scene.parts:  # an empty scene (e.g. a gel block): every ray misses
@@ -114,6 +123,7 @@ class RayCaster:
                 continue
             self._smooth_faces.append(None)
             self._texture_rms.append(None)
+            self._layer_share.append(None)
             # Smooth (interpolated vertex) normals only for smooth surfaces such as the
             # spheres; a box's or cone's vertex normals average across its sharp edges.
             smooth = part.mesh.face_adjacency_angles.max() < _SMOOTH_MAX_ANGLE
@@ -150,6 +160,12 @@ class RayCaster:
         self._texture_rms.append(
             np.zeros(len(vn)) if rms is None else np.broadcast_to(np.asarray(rms, float), len(vn))
         )
+        share = part.texture_layer_share
+        self._layer_share.append(
+            np.zeros(len(vn))
+            if share is None
+            else np.broadcast_to(np.asarray(share, float), len(vn))
+        )
 
     def first_hits(self, origins: Array, directions: Array, max_dist: Array) -> Hits:
         """Nearest surface along each ray within ``max_dist`` (m).
@@ -165,8 +181,9 @@ class RayCaster:
         normal = np.zeros((n, 3))
         rms = np.zeros(n) if self.textured else None
         slope = np.zeros(n) if self.textured else None
+        share = np.zeros(n) if self.textured else None
         if n == 0 or self._scene is None:
-            return Hits(t, part, normal, rms, slope)
+            return Hits(t, part, normal, rms, slope, share)
         res = self._scene.run(
             (origins - self.origin).astype(np.float32),
             directions.astype(np.float32),
@@ -202,5 +219,11 @@ class RayCaster:
             rms[idx[sel]] = (
                 w0[:, 0] * h[tri[:, 0]] + w1[:, 0] * h[tri[:, 1]] + w2[:, 0] * h[tri[:, 2]]
             )
-            slope[idx[sel]] = rms[idx[sel]] / self.parts[g].texture_length_m
-        return Hits(t, part, normal, rms, slope)
+            q = self._layer_share[g]
+            share[idx[sel]] = (
+                w0[:, 0] * q[tri[:, 0]] + w1[:, 0] * q[tri[:, 1]] + w2[:, 0] * q[tri[:, 2]]
+            )
+            # The roughness's facets (the rest of the variance) tilt by σ_r / ℓ.
+            sigma_r = rms[idx[sel]] * np.sqrt(np.clip(1.0 - share[idx[sel]], 0.0, 1.0))
+            slope[idx[sel]] = sigma_r / self.parts[g].texture_length_m
+        return Hits(t, part, normal, rms, slope, share)

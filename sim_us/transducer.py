@@ -98,17 +98,19 @@ _NODE_SPACING_M = (0.5e-3, 2e-3)
 _FIRST_NODE_M = 1e-3
 # Elevation profiles: this many samples out to the reach below.
 _ELEVATION_SAMPLES = 161
-# Mirror echo tables: tilts from 0 to this angle (past it every probe's echo is edge
-# waves below -60 dB) at this step; the elevation aperture sampled every half of the
-# shortest wavelength of the band (no grating lobe of the sampling); pulses summed on a
-# time grid of this many samples per period at fc; the echo's peak taken within this many
-# pulse durations (the envelope's -40 dB span) of the mirror's depth.
-_MIRROR_MAX_DEG = 45.0
+# Mirror echo tables: tilts from 0 to a surface seen edge-on (a mirror's own lobe is
+# edge waves below -60 dB past ≈ 30°; rough facets widen it) at this step; the elevation
+# aperture sampled every half of the shortest wavelength of the band (no grating lobe of
+# the sampling); pulses summed on a time grid of this many samples per period at fc; the
+# echo's peak taken within this many pulse durations (the envelope's -40 dB span) of the
+# mirror's depth.
+_MIRROR_MAX_DEG = 90.0
+_MIRROR_OWN_DEG = 45.0
 _MIRROR_STEP_DEG = 1.0
 _MIRROR_SAMPLES_PER_PERIOD = 16
 _MIRROR_WINDOW = 1.0
 # Facet slopes (rms, rad) of the rough-surface tables: the lobe widened by each.
-MIRROR_SLOPES = (0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32)
+MIRROR_SLOPES = (0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28)
 
 
 @dataclass(frozen=True)
@@ -531,6 +533,7 @@ class MirrorTables:
     tilts: Array
     lateral: Array
     elevation: Array
+    focal_spot_m: float = 0.0  # λ F#: the width a mirror must have to fill the focus
 
     def lobes(
         self, depth_m: Array, tilt_lateral: Array, tilt_elevation: Array, slope: Array
@@ -593,12 +596,21 @@ def mirror_tables(t: Transducer, max_depth_m: float) -> MirrorTables:
     tilts = np.radians(np.arange(0.0, _MIRROR_MAX_DEG + 1e-9, _MIRROR_STEP_DEG))
     lateral = np.empty((len(depths), len(MIRROR_SLOPES), len(tilts)))
     elevation = np.empty_like(lateral)
+    # A mirror's own lobe is computed to 45° (past it, edge waves below -60 dB): zero on.
+    own = tilts <= np.radians(_MIRROR_OWN_DEG) + 1e-9
     for i, d in enumerate(depths):
-        lat, el = mirror_response(t, float(d), tilts)
+        lat, el = np.zeros(len(tilts)), np.zeros(len(tilts))
+        lat[own], el[own] = mirror_response(t, float(d), tilts[own])
         for j, slope in enumerate(MIRROR_SLOPES):
             lateral[i, j] = _widened(tilts, lat, slope)
             elevation[i, j] = _widened(tilts, el, slope)
-    return MirrorTables(depths=depths, tilts=tilts, lateral=lateral, elevation=elevation)
+    return MirrorTables(
+        depths=depths,
+        tilts=tilts,
+        lateral=lateral,
+        elevation=elevation,
+        focal_spot_m=t.wavelength_m * receive_fnumber(t),
+    )
 
 
 def _fwhm(x: Array, p: Array, outer: bool = False) -> float:

@@ -32,7 +32,18 @@ def acoustic_scene(scene: Scene) -> AcousticScene:
             smooth = part.acoustic_vertices
             if smooth is not None:  # a textured part: its un-textured surface, moved alike
                 smooth = trimesh.transform_points(smooth, T)
-            parts.append(ScenePart(part.name, mesh, part.material, smooth, part.texture_rms_m))
+            parts.append(
+                ScenePart(
+                    part.name,
+                    mesh,
+                    part.material,
+                    smooth,
+                    part.texture_rms_m,
+                    texture_layer_share=part.texture_layer_share,
+                    layer_m=part.layer_m,
+                    build_axis=T[:3, 2].copy(),  # the CAD's z: the build direction
+                )
+            )
     return AcousticScene(tuple(parts))
 
 

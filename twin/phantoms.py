@@ -290,7 +290,9 @@ class PhantomPart:
 
     A textured (printed) part also carries, for the ultrasound simulator, its vertices
     before the texture ``acoustic_vertices`` (V, 3) and the texture's rms height per
-    vertex ``texture_rms_m`` (V,), metres (see twin/printing.py); None when untextured."""
+    vertex ``texture_rms_m`` (V,), metres, with the layer staircase's share of it
+    ``texture_layer_share`` (V,) and the layer height ``layer_m`` (see twin/printing.py);
+    None when untextured. The CAD frame's z is the build direction."""
 
     name: str
     mesh: trimesh.Trimesh
@@ -298,6 +300,8 @@ class PhantomPart:
     collision_mesh: trimesh.Trimesh | None = None
     acoustic_vertices: Array | None = None
     texture_rms_m: Array | None = None
+    texture_layer_share: Array | None = None
+    layer_m: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -423,6 +427,8 @@ def _printed_part(name: str, mesh: trimesh.Trimesh) -> PhantomPart:
         hull,
         mesh.metadata.get("acoustic_vertices"),
         mesh.metadata.get("texture_rms_m"),
+        mesh.metadata.get("texture_layer_share"),
+        float(mesh.metadata.get("layer_m", 0.0)),
     )
 
 

@@ -39,7 +39,9 @@ A textured part also keeps what the ultrasound simulator needs to reflect from i
 rough surface (Kirchhoff approximation, see ``sim_us.propagation``): in its mesh's
 ``metadata``, ``acoustic_vertices`` (its vertices before the texture, the shape error
 included: the surface averaged over the beam's footprint) and ``texture_rms_m`` (the
-texture's rms height along the normal per vertex, :func:`texture_rms`).
+texture's rms height along the normal per vertex, :func:`texture_rms`) with
+``texture_layer_share`` (the layer staircase's share of it, :func:`layer_share`) and
+``layer_m`` (the layer height).
 
 Each printed part draws from its own random stream, a child of the phantom's generator's
 seed sequence with a named spawn key per effect (``*_SPAWN_KEY`` below) and the part's
@@ -66,6 +68,7 @@ __all__ = [
     "fit_sphere",
     "forget_parts",
     "layer_offset",
+    "layer_share",
     "part_stream",
     "printed_cone",
     "printed_prism",
@@ -166,6 +169,10 @@ def forget_parts() -> None:
         memo.clear()
 
 
+# What a cached part holds; raised when that changes (files of an older format are not read).
+_PART_FORMAT = 2
+
+
 def _cached(build):
     """Memoize a printed-part builder per process: a run builds its twin many times (one
     per dataset, per scan), and a textured part takes ≈ 0.3-1.5 s. The key is the
@@ -202,7 +209,7 @@ def _from_disk(build, key: tuple, args: tuple):
     time sees the whole file or none)."""
     if _DISK_CACHE is None:
         return build(*args)
-    digest = hashlib.sha256(pickle.dumps((build.__name__, key))).hexdigest()[:32]
+    digest = hashlib.sha256(pickle.dumps((build.__name__, _PART_FORMAT, key))).hexdigest()[:32]
     path = _DISK_CACHE / f"{build.__name__}-{digest}.pkl"
     if path.exists():
         with path.open("rb") as f:
@@ -272,12 +279,24 @@ def texture_rms(n_z: Array, s: PrintSettings) -> Array:
     return np.sqrt(layer**2 + (s.ra * np.sqrt(np.pi / 2)) ** 2)
 
 
+def layer_share(n_z: Array, s: PrintSettings) -> Array:
+    """Share of the texture's variance (of the energy it scatters) that is the layer
+    staircase's, per point with the normal's z component ``n_z`` (the rest is the
+    roughness's): the simulator sends it back as the treads' echo, mirrors facing the
+    build direction (sim_us.propagation)."""
+    layer2 = (s.layer / 2 * np.abs(np.asarray(n_z, dtype=float)) / np.sqrt(3.0)) ** 2
+    total = layer2 + (s.ra * np.sqrt(np.pi / 2)) ** 2
+    return np.divide(layer2, total, out=np.zeros_like(total), where=total > 0)
+
+
 def _acoustic(mesh: trimesh.Trimesh, smooth: Array, n_z: Array, s: PrintSettings) -> None:
     """Keep a textured mesh's un-textured vertices ``smooth`` and its texture's rms height
     in its metadata (nothing when the texture is off: the part renders as before)."""
     if s.surface:
         mesh.metadata["acoustic_vertices"] = smooth
         mesh.metadata["texture_rms_m"] = texture_rms(n_z, s)
+        mesh.metadata["texture_layer_share"] = layer_share(n_z, s)
+        mesh.metadata["layer_m"] = s.layer
 
 
 def _kink_rows(z0: float, z1: float, n_z: float, s: PrintSettings) -> Array:

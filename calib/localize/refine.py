@@ -281,6 +281,8 @@ def _elevation_from_depths(
         if grey.max() <= 0:
             continue
         profile = np.maximum(grey.sum(axis=(0, 2)), 0.0)
+        if profile.sum() <= 0:
+            continue
         depths.append(_axial_peak(grey, 255.0 - level, ys, profile))
         heights.append(zs[k])
     if len(depths) < 2:
