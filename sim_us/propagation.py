@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from .materials import Material, amplitude_reflection, attenuation_db_per_m
 from .raycast import RayCaster
-from .transducer import MirrorTables
+from .transducer import MIRROR_SLOPES, MirrorTables
 
 __all__ = ["Echoes", "coherent_factor", "rough_surface_shape", "trace"]
 
@@ -109,7 +109,8 @@ def _with_treads(
     ``h / tan α`` wide (h the layer height, α the surface's angle to the build plate);
     treads narrower than the focal spot (λ F#) fill it in part, returning ``w / spot`` of
     its energy (a row of them, at depths a layer apart, adds in energy). The echo of the
-    treads is the mirror's lobe at b's tilt from the beam: a printed sphere seen along its
+    treads is the mirror's lobe at b's tilt from the beam, widened by the tread's own
+    diffraction (≈ λ / 2w, as facets of that rms tilt): a printed sphere seen along its
     build direction echoes from its whole cap, seen from aside only about its top. The
     rest (the roughness's share) keeps the facets' widened lobe."""
     height, axis = layers
@@ -130,7 +131,9 @@ def _with_treads(
     tilt_lat = np.arctan(np.einsum("ij,ij->i", laterals[ray], b) / facing)
     tilt_el = np.arctan(np.einsum("ij,ij->i", elevations[ray], b) / facing)
     away = np.einsum("ij,ij->i", directions, b) > 0  # treads facing away from the probe
-    lat, el, _, _ = mirror.lobes(depth, tilt_lat, tilt_el, np.zeros(len(depth)))
+    # A tread narrower than the focal spot diffracts: its echo spreads over ≈ λ / 2w.
+    spread = np.minimum(mirror.wavelength_m / (2.0 * width), MIRROR_SLOPES[-1])
+    _, _, lat, el = mirror.lobes(depth, tilt_lat, tilt_el, spread)
     treads2 = np.where(away, 0.0, fill * (lat * el) ** 2)
     energy = (1.0 - share) * widened**2 + share * treads2
     return np.where(printed, np.sqrt(energy), widened)

@@ -534,6 +534,7 @@ class MirrorTables:
     lateral: Array
     elevation: Array
     focal_spot_m: float = 0.0  # λ F#: the width a mirror must have to fill the focus
+    wavelength_m: float = 0.0
 
     def lobes(
         self, depth_m: Array, tilt_lateral: Array, tilt_elevation: Array, slope: Array
@@ -610,6 +611,7 @@ def mirror_tables(t: Transducer, max_depth_m: float) -> MirrorTables:
         lateral=lateral,
         elevation=elevation,
         focal_spot_m=t.wavelength_m * receive_fnumber(t),
+        wavelength_m=t.wavelength_m,
     )
 
 
