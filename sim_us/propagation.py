@@ -132,7 +132,11 @@ def _with_treads(
     tilt_el = np.arctan(np.einsum("ij,ij->i", elevations[ray], b) / facing)
     away = np.einsum("ij,ij->i", directions, b) > 0  # treads facing away from the probe
     # A tread narrower than the focal spot diffracts: its echo spreads over ≈ λ / 2w.
-    spread = np.minimum(mirror.wavelength_m / (2.0 * width), MIRROR_SLOPES[-1])
+    top = MIRROR_SLOPES[-1]
+    spread = np.minimum(
+        np.divide(mirror.wavelength_m, 2.0 * width, out=np.full(len(width), top), where=width > 0),
+        top,
+    )
     _, _, lat, el = mirror.lobes(depth, tilt_lat, tilt_el, spread)
     treads2 = np.where(away, 0.0, fill * (lat * el) ** 2)
     energy = (1.0 - share) * widened**2 + share * treads2
