@@ -434,9 +434,8 @@ class BeamTables:
         wa = np.minimum(a - a0, 1.0)
         out = np.zeros(np.shape(a))
         for i, wi in ((i0, 1.0 - wd), (i1, wd)):
-            p = self.elevation[i[:, 0]]
-            rows = np.arange(len(d))[:, None]
-            out += wi * ((1.0 - wa) * p[rows, a0] + wa * p[rows, a0 + 1])
+            table = self.elevation
+            out += wi * ((1.0 - wa) * table[i, a0] + wa * table[i, a0 + 1])
         return np.where(a >= last, 0.0, out)
 
     def lateral_profile(self, depth_m: Array | float, x: Array) -> Array:
