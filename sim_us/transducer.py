@@ -422,11 +422,9 @@ class BeamTables:
 
     def elevation_at(self, depth_m: Array, z: Array) -> Array:
         """Two-way elevation amplitude at per-row offsets: ``depth_m`` (N,) m, ``z`` (N, m)
-        m; bilinear in depth node and |z|, 0 past the table's reach (compiled)."""
+        m; linear in depth node and |z|, 0 past the table's reach (compiled)."""
         d = np.asarray(depth_m, float)
-        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
-        i0 = np.minimum(np.floor(pos).astype(np.int64), len(self.depths) - 1)
-        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
+        i0, i1, wd = _node_weights(self.depths, d)
         z = np.asarray(z, float)
         shape = z.shape
         extra = (slice(None),) + (None,) * (z.ndim - 1)
@@ -435,12 +433,16 @@ class BeamTables:
             return np.ascontiguousarray(np.broadcast_to(v, shape), dtype=dtype).reshape(-1)
 
         step = float(self.elevation_z[1] - self.elevation_z[0])
-        out = _bilinear(
-            self.elevation,
+        none = np.zeros(z.size, dtype=np.int64)  # one "slope": the profile itself
+        out = _trilinear(
+            self.elevation[:, None, :],
             flat(i0[extra], np.int64),
             flat(i1[extra], np.int64),
-            flat((pos - i0)[extra], np.float64),
+            flat(wd[extra], np.float64),
             np.abs(z.reshape(-1)) / step,
+            none,
+            none,
+            np.zeros(z.size),
         )
         return out.reshape(shape)
 
@@ -449,10 +451,8 @@ class BeamTables:
         node's profile interpolated along x by a cubic spline (linear interpolation would
         put kinks into its dB slope), then linearly in depth; 0 past the table's reach."""
         d = np.atleast_1d(np.asarray(depth_m, float))
-        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
-        i0 = np.minimum(np.floor(pos).astype(int), len(self.depths) - 1)
-        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
-        w = (pos - i0)[:, None]
+        i0, i1, w = _node_weights(self.depths, d)
+        w = w[:, None]
         ax = np.abs(np.asarray(x, float))
         nodes = CubicSpline(self.lateral_x, self.lateral, axis=1, bc_type="clamped")(ax)
         nodes = np.where(ax[None, :] <= self.lateral_x[-1], np.clip(nodes, 0.0, None), 0.0)
@@ -462,30 +462,20 @@ class BeamTables:
         """Two-way elevation amplitude (depths, len(z)) at elevation offsets ``z`` (m),
         linear in z and depth; 0 past the table's reach."""
         d = np.atleast_1d(np.asarray(depth_m, float))
-        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
-        i0 = np.minimum(np.floor(pos).astype(int), len(self.depths) - 1)
-        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
-        w = (pos - i0)[:, None]
+        i0, i1, w = _node_weights(self.depths, d)
+        w = w[:, None]
         az = np.abs(np.asarray(z, float))
         nodes = np.stack([np.interp(az, self.elevation_z, p, right=0.0) for p in self.elevation])
         return (1.0 - w) * nodes[i0] + w * nodes[i1]
 
 
-@numba.njit(cache=True, nogil=True, boundscheck=False)
-def _bilinear(table, i0, i1, wd, a):  # pragma: no cover - compiled
-    """``table[i, a]`` (nodes, samples) interpolated linearly in both; 0 past its end."""
-    n = len(a)
-    last = table.shape[1] - 1
-    out = np.zeros(n)
-    for k in range(n):
-        if a[k] >= last:
-            continue
-        t0 = int(a[k])
-        wa = a[k] - t0
-        lo = (1.0 - wa) * table[i0[k], t0] + wa * table[i0[k], t0 + 1]
-        hi = (1.0 - wa) * table[i1[k], t0] + wa * table[i1[k], t0 + 1]
-        out[k] = (1.0 - wd[k]) * lo + wd[k] * hi
-    return out
+def _node_weights(depths: Array, d: Array) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
+    """The depth nodes either side of each depth ``d`` and the weight of the deeper one
+    (held at the first and last node past the ends)."""
+    pos = np.clip(np.interp(d, depths, np.arange(len(depths))), 0, None)
+    i0 = np.minimum(np.floor(pos).astype(np.int64), len(depths) - 1)
+    i1 = np.minimum(i0 + 1, len(depths) - 1)
+    return i0, i1, pos - i0
 
 
 @functools.lru_cache(maxsize=16)
@@ -566,16 +556,17 @@ class MirrorTables:
         mirror facing the probe, as its factors: the smooth mirror's lateral and elevation
         lobes, then the rough facets' (the echo is each pair's product)."""
         d = np.asarray(depth_m, float)
-        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
-        i0 = np.minimum(np.floor(pos).astype(np.int64), len(self.depths) - 1)
-        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
-        wd = pos - i0
+        i0, i1, wd = _node_weights(self.depths, d)
         sl = np.interp(np.asarray(slope, float), MIRROR_SLOPES, np.arange(len(MIRROR_SLOPES)))
         s0 = np.minimum(np.floor(sl).astype(np.int64), len(MIRROR_SLOPES) - 1)
         s1 = np.minimum(s0 + 1, len(MIRROR_SLOPES) - 1)
         ws = sl - s0
         zero = (0, 0, 0.0)
         rough = (s0, s1, ws)
+        if not np.any(np.asarray(slope) > 0):  # smooth everywhere: the same lobes
+            lat = self._lookup(self.lateral, (i0, i1, wd), tilt_lateral, zero)
+            el = self._lookup(self.elevation, (i0, i1, wd), tilt_elevation, zero)
+            return lat, el, lat, el
         return (
             self._lookup(self.lateral, (i0, i1, wd), tilt_lateral, zero),
             self._lookup(self.elevation, (i0, i1, wd), tilt_elevation, zero),
@@ -587,12 +578,10 @@ class MirrorTables:
         """The smooth mirror's elevation lobe at ``tilt`` (rad, any shape, rows of
         ``depth_m``'s length) for depths ``depth_m`` (m, 1-D)."""
         d = np.asarray(depth_m, float)
-        pos = np.clip(np.interp(d, self.depths, np.arange(len(self.depths))), 0, None)
-        i0 = np.minimum(np.floor(pos).astype(np.int64), len(self.depths) - 1)
-        i1 = np.minimum(i0 + 1, len(self.depths) - 1)
+        i0, i1, wd = _node_weights(self.depths, d)
         tilt = np.asarray(tilt, float)
         extra = (slice(None),) + (None,) * (tilt.ndim - 1)
-        depth = (i0[extra], i1[extra], (pos - i0)[extra])
+        depth = (i0[extra], i1[extra], wd[extra])
         return self._lookup(self.elevation, depth, tilt, (0, 0, 0.0))
 
     def _lookup(self, table: Array, depth: tuple, tilt: Array, slopes: tuple) -> Array:
