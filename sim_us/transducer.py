@@ -74,6 +74,8 @@ __all__ = [
     "mirror_response",
     "mirror_tables",
     "receive_fnumber",
+    "slope_index",
+    "table_at",
     "transducer",
     "two_way_profile",
 ]
@@ -574,6 +576,17 @@ class MirrorTables:
             self._lookup(self.elevation, (i0, i1, wd), tilt_elevation, rough),
         )
 
+    @property
+    def tilt_step(self) -> float:
+        """The tables' tilt step (rad)."""
+        return float(self.tilts[1] - self.tilts[0])
+
+    def depth_nodes(
+        self, depth_m: Array
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
+        """The depth nodes either side of each depth (m) and the deeper one's weight."""
+        return _node_weights(self.depths, np.asarray(depth_m, float))
+
     def elevation_lobe(self, depth_m: Array, tilt: Array) -> Array:
         """The smooth mirror's elevation lobe at ``tilt`` (rad, any shape, rows of
         ``depth_m``'s length) for depths ``depth_m`` (m, 1-D)."""
@@ -595,13 +608,12 @@ class MirrorTables:
         def flat(v: Array | float, dtype: type) -> Array:
             return np.ascontiguousarray(np.broadcast_to(v, shape), dtype=dtype).reshape(-1)
 
-        step = float(self.tilts[1] - self.tilts[0])
         out = _trilinear(
             table,
             flat(i0, np.int64),
             flat(i1, np.int64),
             flat(wd, np.float64),
-            np.abs(flat(tilt, np.float64)) / step,
+            np.abs(flat(tilt, np.float64)) / self.tilt_step,
             flat(j0, np.int64),
             flat(j1, np.int64),
             flat(wj, np.float64),
@@ -609,24 +621,48 @@ class MirrorTables:
         return out.reshape(shape)
 
 
+@numba.njit(cache=True, nogil=True, boundscheck=False, inline="always")
+def table_at(table, i0, i1, wd, a, j0, j1, wj):  # pragma: no cover - compiled
+    """``table[i, j, a]`` (nodes, slopes, tilts) at fractional tilt index ``a``, linear
+    between nodes i0 and i1 (weight ``wd`` of i1), slopes j0 and j1 (weight ``wj`` of j1)
+    and the tilts either side of ``a``; 0 at and past the table's last tilt."""
+    last = table.shape[2] - 1
+    if a >= last:
+        return 0.0
+    t0 = int(a)
+    wa = a - t0
+    acc = 0.0
+    for i, wi in ((i0, 1.0 - wd), (i1, wd)):
+        for j, wjj in ((j0, 1.0 - wj), (j1, wj)):
+            w = wi * wjj
+            if w != 0.0:
+                acc += w * ((1.0 - wa) * table[i, j, t0] + wa * table[i, j, t0 + 1])
+    return acc
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False, inline="always")
+def slope_index(slope):  # pragma: no cover - compiled
+    """The two :data:`MIRROR_SLOPES` either side of a facet slope (rad) and the weight of
+    the upper one (held at the ends), as ``np.interp`` on the slope grid gives them."""
+    grid = MIRROR_SLOPES
+    last = len(grid) - 1
+    if not slope > grid[0]:
+        return 0, 0, 0.0
+    if slope >= grid[last]:
+        return last, last, 0.0
+    j = 0
+    while grid[j + 1] <= slope:
+        j += 1
+    return j, j + 1, (slope - grid[j]) / (grid[j + 1] - grid[j])
+
+
 @numba.njit(cache=True, nogil=True, boundscheck=False)
 def _trilinear(table, i0, i1, wd, a, j0, j1, wj):  # pragma: no cover - compiled
-    """``table[i, j, a]`` (nodes, slopes, tilts) interpolated linearly in each index."""
+    """:func:`table_at` for arrays of lookups."""
     n = len(a)
-    last = table.shape[2] - 1
     out = np.zeros(n)
     for k in range(n):
-        if a[k] >= last:
-            continue
-        t0 = int(a[k])
-        wa = a[k] - t0
-        acc = 0.0
-        for i, wi in ((i0[k], 1.0 - wd[k]), (i1[k], wd[k])):
-            for j, wjj in ((j0[k], 1.0 - wj[k]), (j1[k], wj[k])):
-                w = wi * wjj
-                if w != 0.0:
-                    acc += w * ((1.0 - wa) * table[i, j, t0] + wa * table[i, j, t0 + 1])
-        out[k] = acc
+        out[k] = table_at(table, i0[k], i1[k], wd[k], a[k], j0[k], j1[k], wj[k])
     return out
 
 
