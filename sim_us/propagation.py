@@ -174,12 +174,24 @@ def _surface_echoes(
             if not d_b > 0:  # treads facing away from the probe return nothing
                 s0, s1, ws = slope_index(spread)
                 lat = table_at(
-                    lateral_table, i0[q], i1[q], wd[q],
-                    abs(np.arctan(lat_b / facing_b)) * per_tilt, s0, s1, ws,
+                    lateral_table,
+                    i0[q],
+                    i1[q],
+                    wd[q],
+                    abs(np.arctan(lat_b / facing_b)) * per_tilt,
+                    s0,
+                    s1,
+                    ws,
                 )
                 el = table_at(
-                    elevation_table, i0[q], i1[q], wd[q],
-                    abs(np.arctan(el_b / facing_b)) * per_tilt, s0, s1, ws,
+                    elevation_table,
+                    i0[q],
+                    i1[q],
+                    wd[q],
+                    abs(np.arctan(el_b / facing_b)) * per_tilt,
+                    s0,
+                    s1,
+                    ws,
                 )
                 treads2 = fill * (lat * el) ** 2
             widened = np.sqrt((1.0 - share) * widened**2 + share * treads2)
@@ -263,7 +275,10 @@ def trace(
     # Printed parts: layer height and build direction (index 0, the medium: none).
     layer_height = np.array([0.0, *(p.layer_m for p in caster.parts)])
     build_axis = np.array(
-        [np.zeros(3), *(np.zeros(3) if p.build_axis is None else p.build_axis for p in caster.parts)],
+        [
+            np.zeros(3),
+            *(np.zeros(3) if p.build_axis is None else p.build_axis for p in caster.parts),
+        ],
         dtype=float,
     )
     diffuse = np.array([m.diffuse for m in mats])

@@ -581,9 +581,7 @@ class MirrorTables:
         """The tables' tilt step (rad)."""
         return float(self.tilts[1] - self.tilts[0])
 
-    def depth_nodes(
-        self, depth_m: Array
-    ) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
+    def depth_nodes(self, depth_m: Array) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
         """The depth nodes either side of each depth (m) and the deeper one's weight."""
         return _node_weights(self.depths, np.asarray(depth_m, float))
 
