@@ -12,10 +12,11 @@ side lobes). This checks what the image is made of, for the same probes (the pap
    the mean level against depth, in dB relative to the 10 mm window, each depth's level
    taken relative to the echo of a perfect flat reflector at that depth imaged the same
    way (sim_us's ``backscatter_db`` is defined so: relative to a perfect reflector).
-   The level change holds the attenuation (sim_us: at the centre frequency; the broadband
-   pulse loses less, its spectrum shifting down) and, in the reference, the resolution
-   cell: speckle ∝ cell volume × peak², a flat reflector ∝ cell area × peak, so the
-   ratio goes as 1 / (lateral × elevation width).
+   The level change holds the attenuation of the broadband pulse (its spectrum shifts
+   down: it loses less than at the centre frequency; sim_us: ``transducer.band_loss``)
+   and the resolution cell: speckle ∝ cell volume × peak², a flat reflector ∝ cell area ×
+   peak, so the ratio goes as 1 / (lateral × elevation width) (sim_us:
+   ``beam.speckle_cell_gain``, its FWHMs).
 2. **A flat specular plane** (a mirror in water for the twin) at 20 mm, tilted in the image
    plane by 0, 5, 10, 15, 20, 30°: the echo level (mean over the line of each scanline's
    envelope peak, dB relative to the same surface at 0°) and the granularity along the
@@ -161,9 +162,11 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
 from sim_us.beam import (  # noqa: E402
     axial_fwhm_m,
+    band_attenuation_db,
     lateral_fwhm_m,
     scanline_step,
     slice_thickness,
+    speckle_cell_gain,
 )
 from sim_us.materials import MATERIALS, water_speed_m_s  # noqa: E402
 from sim_us.raycast import AcousticScene, ScenePart  # noqa: E402
@@ -1111,10 +1114,14 @@ def print_speckle(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: T
         f"  SNR of the {len(SPECKLE_DEPTHS_MM)} windows pooled: ref {_num(ref['snr_pooled']):.2f}, "
         f"twin {twin['snr_pooled']:.2f} (one window holds ≈ 150 grains: ±7 % for one)"
     )
-    nominal = [
-        GEL.backscatter_db - 2 * GEL.attenuation_db_cm_mhz * im.f_mhz * d / 10
-        for d in SPECKLE_DEPTHS_MM
-    ]
+    # The twin's model: the gel's level at the elevation focus, the broadband two-way
+    # loss, the resolution cell's gain against the focus's.
+    depths_m = np.array(SPECKLE_DEPTHS_MM) * 1e-3
+    nominal = (
+        GEL.backscatter_db
+        - band_attenuation_db(im, GEL, depths_m)
+        + 10 * np.log10(speckle_cell_gain(im, depths_m))
+    )
     print(
         "  twin absolute level dB (re a perfect reflector) at "
         + ", ".join(f"{d:g}" for d in SPECKLE_DEPTHS_MM)

@@ -14,11 +14,21 @@ a fixed multiple of its FWHM.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
+from .materials import Material, attenuation_db_per_m
 from .probe import ProbeConfig
-from .transducer import BeamTables, MirrorTables, beam_tables, mirror_tables, transducer
+from .transducer import (
+    BeamTables,
+    MirrorTables,
+    band_loss,
+    beam_tables,
+    mirror_tables,
+    transducer,
+)
 from .transducer import axial_fwhm_m as pulse_axial_fwhm_m
 
 __all__ = [
@@ -26,6 +36,7 @@ __all__ = [
     "SIDE_LOBE_OFFSET_PER_FWHM",
     "SURFACE_KERNEL_FLOOR",
     "axial_fwhm_m",
+    "band_attenuation_db",
     "beam_of",
     "elevation_amplitude",
     "elevation_amplitude_at",
@@ -38,6 +49,7 @@ __all__ = [
     "scanline_step",
     "slab_edge_shares",
     "slice_thickness",
+    "speckle_cell_gain",
 ]
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))  # 2.355
@@ -84,6 +96,26 @@ def lateral_fwhm_m(probe: ProbeConfig, depth_m: NDArray[np.float64] | float) -> 
     if probe.lateral_fwhm_mm is not None:
         return np.full(np.shape(depth_m), probe.lateral_fwhm_mm * 1e-3)
     return beam_of(probe).at("lateral_fwhm", depth_m)
+
+
+def speckle_cell_gain(
+    probe: ProbeConfig, depth_m: NDArray[np.float64] | float
+) -> NDArray[np.float64]:
+    """Mean speckle intensity relative to a flat reflector's echo at depth(s), re the
+    elevation focus: a medium's speckle sums the scatterers of the resolution cell
+    (intensity ∝ its volume × the peak²) where a flat reflector sums the cell's area
+    coherently (∝ (area × peak)²), so their ratio goes as 1 / (lateral × elevation FWHM);
+    the axial width is the same at every depth."""
+    focus = probe.elevation_focus_mm * 1e-3
+    cell = lateral_fwhm_m(probe, depth_m) * slice_thickness(probe, depth_m)
+    return lateral_fwhm_m(probe, focus) * slice_thickness(probe, focus) / cell
+
+
+def band_attenuation_db(probe: ProbeConfig, medium: Material, depth_m: Any) -> Any:
+    """Two-way loss (dB) of the probe's broadband echo from depth(s) in a medium with
+    power-law attenuation (its spectrum shifts down: less than at the centre frequency)."""
+    fc_db = 2.0 * attenuation_db_per_m(medium, probe.f_mhz) * np.asarray(depth_m, float)
+    return band_loss(transducer(probe), medium.attenuation_power).loss(fc_db)
 
 
 def scanline_step(probe: ProbeConfig, pixel_m: float) -> float:

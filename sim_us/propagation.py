@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from .materials import Material, amplitude_reflection, attenuation_db_per_m
 from .raycast import RayCaster
-from .transducer import MIRROR_SLOPES, MirrorTables, slope_index, table_at
+from .transducer import MIRROR_SLOPES, BandLoss, MirrorTables, slope_index, table_at
 
 __all__ = ["Echoes", "coherent_factor", "rough_surface_shape", "trace"]
 
@@ -51,6 +51,13 @@ _FACE_REFLECTION = 0.5
 # A new pass starts this far past the last hit so the same surface is not found again.
 _STEP_M = 1e-6
 _MAX_PASSES = 24
+_NP_PER_DB = np.log(10.0) / 20.0
+
+
+def _medium_loss_db(fc_db: Array, band: BandLoss | None) -> Array:
+    """The broadband echo's loss (dB) for the medium's two-way loss at fc (0 without a
+    band model: the medium's loss is then in the path gain at fc)."""
+    return np.zeros(len(fc_db)) if band is None else band.loss(fc_db)
 
 
 def coherent_factor(k_sigma_cos: Array) -> Array:
@@ -245,6 +252,7 @@ def trace(
     reverberation: bool = True,
     slopes: bool = False,
     points: bool = False,
+    band: BandLoss | None = None,
 ) -> Echoes:
     """Follow rays through the scene and collect their echoes.
 
@@ -264,6 +272,11 @@ def trace(
         The echoes carry their depth ``slope`` along the elevational axis.
     points : bool
         Also return each echo's hit point (for the surface speckle).
+    band : BandLoss, optional
+        The probe's broadband echo's loss against its centre frequency's for the medium's
+        attenuation law (:func:`sim_us.transducer.band_loss`): the medium's path loses
+        that; None, the centre frequency's. The parts (printed solids, tens of dB/cm)
+        attenuate at the centre frequency.
     """
     n = len(origins)
     # Material table: index 0 is the medium, i + 1 is part i.
@@ -287,12 +300,16 @@ def trace(
     # State of the rays still travelling, one row per ray, compacted with a single gather
     # per pass: position (3), direction (3), apparent depth, log path gain, material, ray.
     # ``log gain`` is the log of the path's two-way transmission times attenuation.
-    state = np.empty((n, 10))
+    # Column 10: the two-way loss at fc (dB) of the path's share in the medium, whose
+    # broadband loss ``band`` gives (``log gain`` holds the parts' attenuation).
+    medium_db_per_m = 2.0 * attenuation_db_per_m(medium, f_mhz)
+    state = np.empty((n, 11))
     state[:, 0:3] = origins
     state[:, 3:6] = directions
     state[:, 6:8] = 0.0
     state[:, 8] = 0  # the medium
     state[:, 9] = np.arange(n)
+    state[:, 10] = 0.0
     medium_end = np.full(n, np.inf)
     out_ray, out_depth, out_amp, out_slope, out_coh, out_point = [], [], [], [], [], []
     out_tilt, out_first, out_coh_lat = [], [], []
@@ -303,10 +320,18 @@ def trace(
             break
         cur = state[:, 8].astype(np.int64)
         c = speed[cur]
+        in_medium = cur == 0
         a2 = 2.0 * att_np[cur]  # two-way attenuation, nepers per metre
+        medium_loss = _medium_loss_db(state[:, 10], band)
+        budget = state[:, 7] - medium_loss * _NP_PER_DB - log_floor  # nepers left
         max_geo = (max_depth - state[:, 6]) * c / assumed_speed
-        with np.errstate(divide="ignore"):
-            max_att = np.where(a2 > 0, (state[:, 7] - log_floor) / a2, np.inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            max_att = np.where(a2 > 0, budget / a2, np.inf)
+            if band is not None and medium_db_per_m > 0:
+                # In the medium: as far as its broadband loss leaves the budget.
+                fc_end = band.fc_for(medium_loss + budget / _NP_PER_DB)
+                max_att = np.where(in_medium, (fc_end - state[:, 10]) / medium_db_per_m, max_att)
+        a2 = np.where(in_medium, 0.0, a2) if band is not None else a2
         hits = caster.first_hits(state[:, 0:3], state[:, 3:6], np.minimum(max_geo, max_att))
         hit = hits.part >= 0
         state, cur, c, a2 = state[hit], cur[hit], c[hit], a2[hit]
@@ -315,6 +340,9 @@ def trace(
         ray = state[:, 9].astype(np.int64)
         y_app = state[:, 6] + t * assumed_speed / c
         log_gain = state[:, 7] - a2 * t
+        if band is not None:
+            state[:, 10] += np.where(cur == 0, medium_db_per_m * t, 0.0)
+        path_gain = log_gain - _medium_loss_db(state[:, 10], band) * _NP_PER_DB
         cos_in = np.einsum("ij,ij->i", dirs, nrm)
         entering = cos_in < 0
         new = np.where(entering, part + 1, 0)
@@ -346,7 +374,7 @@ def trace(
             mirror.focal_spot_m,
             mirror.wavelength_m,
         )
-        path = np.exp(log_gain)
+        path = np.exp(path_gain)
         amp = path * r * shape
         out_ray.append(ray)
         out_depth.append(y_app)
@@ -392,7 +420,8 @@ def trace(
         state[:, 6] = y_app
         state[:, 7] = log_gain + np.log1p(-(r**2))
         state[:, 8] = new
-        state = state[(state[:, 7] > log_floor) & (y_app < max_depth)]
+        alive = state[:, 7] - _medium_loss_db(state[:, 10], band) * _NP_PER_DB > log_floor
+        state = state[alive & (y_app < max_depth)]
         first_pass = False
 
     if not out_ray:

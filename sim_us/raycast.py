@@ -21,6 +21,8 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from numpy.typing import NDArray
 
+from .materials import Material
+
 __all__ = ["AcousticScene", "Hits", "RayCaster", "ScenePart"]
 
 Array = NDArray[np.float64]
@@ -30,7 +32,8 @@ _SMOOTH_MAX_ANGLE = np.radians(20.0)
 
 @dataclass(frozen=True, eq=False)
 class ScenePart:
-    """A closed mesh of one material, in the scene frame (metres).
+    """A closed mesh of one material (a name from :data:`~sim_us.materials.MATERIALS`, or
+    a :class:`~sim_us.materials.Material` of its own), in the scene frame (metres).
 
     A textured part (a printed surface: layer lines, roughness) also carries the surface
     the sound's specular lobe follows: ``acoustic_vertices`` (V, 3), the part's vertices
@@ -47,7 +50,7 @@ class ScenePart:
 
     name: str
     mesh: trimesh.Trimesh
-    material: str
+    material: str | Material
     acoustic_vertices: Array | None = None
     texture_rms_m: Array | None = None
     texture_length_m: float = 4e-4

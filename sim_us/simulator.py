@@ -32,6 +32,7 @@ from calib.image import pixel_to_us, us_to_pixel
 from .beam import (
     FWHM_PER_SIGMA,
     axial_fwhm_m,
+    band_attenuation_db,
     elevation_amplitude_at,
     elevation_offsets,
     elevation_weights,
@@ -41,19 +42,20 @@ from .beam import (
     scanline_step,
     slab_edge_shares,
     slice_thickness,
+    speckle_cell_gain,
 )
 from .display import NoiseSource, gain_profile_db, to_bmode
 from .materials import (
     MATERIALS,
     Material,
     amplitude_reflection,
-    attenuation_db_per_m,
     medium_material,
 )
 from .probe import MediumConfig, ProbeConfig
 from .propagation import Echoes, trace
 from .raycast import AcousticScene, RayCaster
 from .speckle import ScattererField, _smooth_values
+from .transducer import band_loss, transducer
 
 __all__ = ["BmodeSimulator", "Timings"]
 
@@ -123,7 +125,10 @@ class BmodeSimulator:
         self.probe = probe
         self.medium_config = medium
         self.medium = medium_material(medium.kind, medium.temperature_c)
-        self.part_materials = [MATERIALS[p.material] for p in scene.parts]
+        self.part_materials = [
+            p.material if isinstance(p.material, Material) else MATERIALS[p.material]
+            for p in scene.parts
+        ]
         self.caster = RayCaster(scene)
         self.mirror = mirror_of(probe)
         # Scatterer cells of a third of the finer resolution: ≥ 10 per PSF cell.
@@ -274,6 +279,7 @@ class BmodeSimulator:
             self.probe.reverberation,
             slopes=self._smear,
             points=self._surface_speckle,
+            band=band_loss(transducer(self.probe), medium.attenuation_power),
         )
         t1 = time.perf_counter()
         self.timings.raycast += t1 - t0
@@ -571,9 +577,11 @@ class BmodeSimulator:
         x = pixel_to_us(0, np.arange(W), W, self.true_spacing)[:, 0] + self.offset[0]
         assert medium.backscatter_db is not None
         level = 10.0 ** (medium.backscatter_db / 20.0)
-        att = attenuation_db_per_m(medium, self.probe.f_mhz)
-        # Two-way attenuation in the medium (apparent ≈ true depth in a uniform medium).
-        amp_row = level * 10.0 ** (-2.0 * att * depth / 20.0)
+        # Two-way attenuation of the broadband echo in the medium (apparent ≈ true depth in
+        # a uniform medium); the speckle's level against a flat reflector's follows the
+        # resolution cell (``backscatter_db`` holds at the elevation focus).
+        loss_db = band_attenuation_db(self.probe, medium, depth)
+        amp_row = level * 10.0 ** (-loss_db / 20.0) * np.sqrt(speckle_cell_gain(self.probe, depth))
         cell = self.scatterers.cell_m
         st = slice_thickness(self.probe, depth)
         reach = _SPECKLE_COVERAGE * st / 2  # elevation half-span summed at each depth (m)

@@ -66,10 +66,12 @@ from .probe import ProbeConfig
 __all__ = [
     "DIRECTIVITY_AT_EDGE",
     "MIRROR_SLOPES",
+    "BandLoss",
     "BeamTables",
     "MirrorTables",
     "Transducer",
     "axial_fwhm_m",
+    "band_loss",
     "beam_tables",
     "mirror_response",
     "mirror_tables",
@@ -183,6 +185,40 @@ def axial_fwhm_m(t: Transducer) -> float:
     return _fwhm(np.arange(n) / fs, env) * t.speed_m_s / 2.0
 
 
+@dataclass(frozen=True)
+class BandLoss:
+    """What a broadband echo loses to a power-law attenuation α(f) = α(fc) (f / fc)^n:
+    ``loss_db`` against ``fc_db``, the two-way loss at the centre frequency (dB, rising),
+    both for the echo's energy (its mean intensity: a speckle's, and for a spectrum near
+    Gaussian also the envelope peak's). The high frequencies go first: the spectrum shifts
+    down and the echo loses less than its centre frequency does (≈ 11 of 13 dB through
+    2 cm of gel at 13 MHz, 65 %)."""
+
+    fc_db: Array
+    loss_db: Array
+
+    def loss(self, fc_db: Array | float) -> Array:
+        """The echo's loss (dB) for two-way losses at fc (dB)."""
+        return np.interp(fc_db, self.fc_db, self.loss_db)
+
+    def fc_for(self, loss_db: Array | float) -> Array:
+        """The two-way loss at fc (dB) at which the echo has lost ``loss_db``."""
+        return np.interp(loss_db, self.loss_db, self.fc_db)
+
+
+@functools.lru_cache(maxsize=64)
+def band_loss(t: Transducer, power: float) -> BandLoss:
+    """The echo's loss against its centre frequency's for attenuation ∝ f^power, from the
+    two-way echo spectrum (excitation × pulse-echo response)."""
+    f = np.linspace(0.0, 3.0 * t.f_hz, 3001)[1:]
+    energy = (_excitation(t, f) * _pulse_echo_response(t, f)) ** 2
+    fc_db = np.concatenate([np.linspace(0.0, 20.0, 201), np.linspace(20.5, 600.0, 1160)])
+    share = np.exp(-np.log(10.0) / 10.0 * fc_db[:, None] * (f[None, :] / t.f_hz) ** power)
+    kept = (share * energy[None, :]).sum(axis=1) / energy.sum()
+    return BandLoss(fc_db, -10.0 * np.log10(np.maximum(kept, 1e-300)))
+
+
+# ------------------------------------------------------------------ the aperture
 # ------------------------------------------------------------------ the aperture
 
 

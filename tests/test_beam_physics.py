@@ -79,7 +79,8 @@ def test_discrete_elevation_reproduces_the_frame_from_before():
     when the gel's speckle started summing a thinned lattice past the elevation focus, and
     when the speckle's lateral PSF became one per row, cut at −40 dB instead of 3 σ: ≤ 5
     grey levels on 17 % of the pixels; and when a surface's echo became the mirror lobe of
-    the probe's apertures instead of a stated specular width)."""
+    the probe's apertures instead of a stated specular width; and when the gel's speckle
+    level came to follow the broadband loss and the resolution cell)."""
     frame = golden_scene(replace(SMALL_PROBE, continuous_elevation=False)).render(
         T_IDENTITY, np.random.default_rng(2026)
     )[0]

@@ -14,8 +14,14 @@ import pytest
 
 from calib import se3
 from sim_us import MediumConfig
-from sim_us.beam import mirror_of, slice_thickness
-from sim_us.materials import MATERIALS, amplitude_reflection, water, water_speed_m_s
+from sim_us.beam import band_attenuation_db, mirror_of, slice_thickness, speckle_cell_gain
+from sim_us.materials import (
+    MATERIALS,
+    amplitude_reflection,
+    attenuation_db_per_m,
+    water,
+    water_speed_m_s,
+)
 from sim_us.raycast import AcousticScene, RayCaster
 
 from .sim_us_scenes import (
@@ -207,14 +213,35 @@ def test_gain_shifts_grey_levels(gain_db):
 
 # 7 ------------------------------------------------------------------ attenuation in gel
 def test_gel_attenuation_slope_without_tgc():
+    """The gel's speckle fades with depth as the broadband echo's two-way loss (less than
+    the centre frequency's 13 dB/cm: the spectrum shifts down) and the resolution cell
+    (speckle against a flat reflector ∝ 1 / (lateral × elevation width)) make it."""
     sim = simulator([], medium=MediumConfig(kind="gel"), width_mm=10.0, depth_mm=30.0)
     poses = np.array([se3.make(np.eye(3), [i * 4 * MM, 0, 0]) for i in range(4)])
     intensity = sim.intensity(poses)
     log_mean = np.mean(10 * np.log10(intensity[:, 20:-20]), axis=(0, 2))
     depth_cm = (np.arange(20, intensity.shape[1] - 20)) * 0.01
     slope = np.polyfit(depth_cm, log_mean, 1)[0]
-    expected = -2 * MATERIALS["gel"].attenuation_db_cm_mhz * SMALL_PROBE.f_mhz
-    assert slope == pytest.approx(expected, rel=0.05)
+    gel = MATERIALS["gel"]
+    depth_m = depth_cm * 1e-2
+    model = -band_attenuation_db(sim.probe, gel, depth_m) + 10 * np.log10(
+        speckle_cell_gain(sim.probe, depth_m)
+    )
+    assert slope == pytest.approx(np.polyfit(depth_cm, model, 1)[0], rel=0.05)
+    at_fc = -2 * gel.attenuation_db_cm_mhz * SMALL_PROBE.f_mhz
+    assert at_fc < np.polyfit(depth_cm, -band_attenuation_db(sim.probe, gel, depth_m), 1)[0]
+
+
+def test_broadband_loss_is_the_centre_frequencys_for_a_narrow_band():
+    """A narrow-band echo loses what its centre frequency does; a broad one less, the more
+    so the further it goes (its spectrum shifts down), never more."""
+    gel = MATERIALS["gel"]
+    depth_m = np.array([0.005, 0.02, 0.04])
+    at_fc = 2 * attenuation_db_per_m(gel, 13.0) * depth_m
+    narrow = replace(SMALL_PROBE, f_mhz=13.0, bandwidth_pct=5.0)
+    np.testing.assert_allclose(band_attenuation_db(narrow, gel, depth_m), at_fc, rtol=0.01)
+    broad = band_attenuation_db(replace(narrow, bandwidth_pct=80.0), gel, depth_m)
+    assert np.all(broad < at_fc) and np.all(np.diff(at_fc - broad) > 0)
 
 
 # 8 ------------------------------------------------------------------ slice thickness
