@@ -27,7 +27,17 @@ The scene, the same on both sides:
   these datasheet figures and its defaults otherwise (38 × 40 mm frames at 0.1 mm pixels,
   the array's own beam and side lobes, 60 dB, surface speckle), rendered noise-free
   (``render(T, None)``) from ``trimesh.creation.icosphere`` (5 subdivisions), material
-  "pla", no reverberation (pymust follows no wave twice). Both display depth at the
+  PLA (without its diffuse share for the smooth sphere), no reverberation (pymust
+  follows no wave twice).
+- Two spheres (``SURFACES``): "smooth", a mirror; "diffuse", PLA as the scenarios print
+  it, its ``Material.diffuse`` share (0.1 in amplitude) returned at every angle. In
+  pymust the diffuse share is random scatterers uniform on the sphere (one per λ² on
+  average, unit-variance Gaussian amplitudes, fixed by ``SEED`` + 1), those facing the
+  probe in each sweep, scaled per sweep so that a sheet of them (the perfect reflector's
+  extent and taper, same density) facing the probe returns a mean compounded intensity
+  of (0.1 × PLA's reflection × the perfect reflector's)² at the mirror's peak depth over
+  ± 5 mm of the sphere's column (two sheets averaged): the share's definition in sim_us;
+  the mirror's lattice keeps √(1 − 0.1²). Both display depth at the
   scanner's 1540 m/s (3.9 % deep); the localizer gets ``axial_scale`` = 1482.3 / 1540 for
   both.
 
@@ -97,11 +107,11 @@ blobs 0.8-1 mm beside its column and ≈ 1 mm below its top, inside the sphere (
 −29 dB, grey ≤ 80), and a ladder of weak dots down the cap's column (−32 to −42 dB,
 grey ≤ 18).
 
-What the frames show: the cap alone (≈ 2 mm wide, fading within ± 2 mm of elevation), where
-sim_us draws the whole probe-facing outline (its surfaces' diffuse share, 0.1 in amplitude,
-−20 dB) in every frame within ± 4.5 mm. A smooth sphere's flanks send their echo away
-from the aperture; a printed one's layer lines, left out here, would return some. A
-score over the whole proximal shell sees little of a sphere in such frames.
+What the frames show. The smooth sphere: the cap alone (≈ 2 mm wide, fading within ± 2 mm
+of elevation) in both models; a smooth sphere's flanks send their echo away from the
+aperture, and a score over the whole proximal shell sees little of a sphere in such
+frames. The diffuse sphere: the cap and, ≈ 20 dB below it, the whole probe-facing
+outline as granular speckle in every frame the sphere reaches.
 
 Prints one row per sweep and method (error on pymust's frames "ref", on sim_us's
 "twin", their ratio) with every rejection's reason, then the median errors and their
@@ -109,14 +119,14 @@ ratio per method; the last line is ``worst_error_ratio=<largest ref / twin error
 the sweeps and methods both accepted> wrong_centres=<centres accepted from pymust's
 frames more than 1 mm off>``.
 
-``--write`` renders with pymust (≈ 22 min on one core: ≈ 400 k scatterer-frames per
-sweep through three waves, and the reference sheets) and stores the frames (uint8),
-spacing, poses, ``T_ee_us``, true centres, radius, axial scale, the probe, the method,
-the pymust version and the command in ``benchmarks/reference/sweeps.npz``; then runs
-the check. Without it, the check reads that file (no pymust needed; ≈ 4 s: sim_us's 63
-frames ≈ 2 s, the localizer < 1 s).
+``--write [smooth|diffuse]`` renders a sphere with pymust (the smooth one ≈ 22 min on one
+core: ≈ 400 k scatterer-frames per sweep through three waves, and the reference sheets)
+and stores the frames (uint8), spacing, poses, ``T_ee_us``, true centres, radius, axial
+scale, the probe, the method, the pymust version and the command in
+``benchmarks/reference/sweeps.npz`` (smooth) or ``sweeps_diffuse.npz``; then runs the
+check. Without it, the check reads those files (no pymust needed; ≈ 10 s).
 
-Run: python benchmarks/reference_sweeps.py [--write]
+Run: python benchmarks/reference_sweeps.py [--write [smooth|diffuse]]
 """
 
 from __future__ import annotations

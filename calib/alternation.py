@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +43,33 @@ class AlternationResult:
     observations: list[Observation]
     localizations: dict[str, list[SweepLocalization]]
     history: list[dict[str, float]]
+
+    def retained_localizations(self) -> dict[str, list[SweepLocalization]]:
+        """The final localizations as the calibration used them: a centre the localizer
+        accepted but the calibration rejected as an outlier is not a localized sphere
+        (it is marked rejected, with the calibration's reason). What a user is shown;
+        ``localizations`` keeps the localizer's own verdicts (seeds for a next run)."""
+        reasons = self.result.rejection_reasons
+        dropped = {
+            (o.target, o.pose_id): reasons.get(f"{o.target}/{o.pose_id}", "")
+            for o, k in zip(self.observations, self.result.retained, strict=True)
+            if not k
+        }
+        out: dict[str, list[SweepLocalization]] = {}
+        for target, locs in self.localizations.items():
+            out[target] = [
+                replace(
+                    loc,
+                    accepted=False,
+                    centre=np.full(3, np.nan),
+                    reason="rejected by the calibration: "
+                    + (dropped[(target, loc.pose_id)] or "an outlier of the fit"),
+                )
+                if loc.accepted and (target, loc.pose_id) in dropped
+                else loc
+                for loc in locs
+            ]
+        return out
 
 
 def _observations(

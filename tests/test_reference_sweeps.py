@@ -27,16 +27,22 @@ MM = 1e-3
 RS = load_benchmark("reference_sweeps")
 
 
-@pytest.fixture(scope="module")
-def data() -> dict:
-    return RS.load_stored()
+@pytest.fixture(
+    scope="module",
+    params=[s for s in RS.SURFACES if RS.stored_path(s).exists() or s == "smooth"],
+)
+def data(request) -> dict:
+    """A surface's stored sweeps (the smooth sphere's are always there; the diffuse one's
+    when rendered)."""
+    return RS.load_stored(request.param)
 
 
 def test_the_file_says_where_it_comes_from(data):
     meta = data["meta"]
-    assert meta["command"] == "python benchmarks/reference_sweeps.py --write"
+    surface = data["surface"]
+    assert meta["command"] == RS.command(surface)
     assert meta["pymust_version"]
-    assert meta["method"] == RS.method_record()
+    assert meta["method"] == RS.method_record(surface)
     assert meta["array"] == asdict(RS.PR.paper_probe().array)
     probe = RS.probe_config()
     for key, value in meta["probe"].items():
@@ -44,7 +50,7 @@ def test_the_file_says_where_it_comes_from(data):
     assert [tuple(s.values()) for s in meta["sweeps"]] == [
         (s.lateral_mm, s.depth_mm, s.elevation_mm, list(s.rotation_deg)) for s in RS.SWEEPS
     ]
-    assert RS.STORED.stat().st_size <= 3e6
+    assert RS.stored_path(surface).stat().st_size <= 3e6
 
 
 def test_frames_poses_and_truth_are_consistent(data):
@@ -106,16 +112,23 @@ def test_the_cap_is_drawn_where_the_sphere_is(data):
         assert not outside.any()
 
 
-def test_refined_localizer_on_pymust_frames_matches_sim_us(data):
-    """The refined localizer on pymust's sweeps: no accepted centre more than 1 mm off,
-    every sweep sim_us's frames give a centre for gives one too, and each error within
-    1.5 × (or 0.1 mm more than) the error on sim_us's frames of the same scene."""
+@pytest.mark.parametrize("method", RS.METHODS)
+def test_the_localizer_on_pymust_frames_matches_sim_us(data, method):
+    """The localizer on pymust's sweeps: no accepted centre more than 1 mm off, and each
+    error within 1.5 × (or 0.1 mm more than) the error on sim_us's frames of the same
+    scene where both accept the sweep. Every sweep sim_us's frames of the diffuse sphere
+    give a centre for gives one too (on the smooth sphere, pymust's plane-wave
+    compounding draws edge-wave tails under the cap that a focused scanner's image has
+    not: there the two models may part on whether a bare cap is a sphere)."""
     truths = data["centre_ref"]
-    ref = RS.localize(RS.sweeps_of(data["frames"], data), data, "refined")
-    twin = RS.localize(RS.sweeps_of(RS.twin_frames(data["T_base_ee"]), data), data, "refined")
+    ref = RS.localize(RS.sweeps_of(data["frames"], data), data, method)
+    twin_frames = RS.twin_frames(data["T_base_ee"], data["surface"])
+    twin = RS.localize(RS.sweeps_of(twin_frames, data), data, method)
     e_ref, e_twin = RS.errors_mm(ref, truths), RS.errors_mm(twin, truths)
     for r, t, er, et in zip(ref, twin, e_ref, e_twin, strict=True):
         assert not (r.accepted and er > 1.0), r
-        if t.accepted:
+        assert not (t.accepted and et > 1.0), t
+        if t.accepted and data["surface"] == "diffuse":
             assert r.accepted, r.reason
+        if t.accepted and r.accepted:
             assert er <= max(1.5 * et, et + 0.1), (er, et)

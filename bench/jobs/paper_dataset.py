@@ -217,7 +217,9 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
     # Localization error of the first single-marker fold's final localizations, against
     # the true centre in each sweep's (true) reference frame.
     first = results[0]
-    errors, n_sweeps, n_rejected = localization_errors(acq, truth, first.alternation.localizations)
+    errors, n_sweeps, n_rejected = localization_errors(
+        acq, truth, first.alternation.retained_localizations()
+    )
     truth_doc = {
         "kinematic_error_mm": {
             "refined_rms": gauge.rms_mm,

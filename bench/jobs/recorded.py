@@ -81,7 +81,7 @@ def calibrate_recorded(
     for kind, n_markers in (("single", 1), ("three", 3)):
         alt = getattr(cals, kind)
         if alt is not None:
-            final.update(alt.localizations)
+            final.update(alt.retained_localizations())
             calibration[kind] = calibration_entry(
                 alt, targets[:n_markers], targets[n_markers:], found.bounds[kind]
             )

@@ -179,9 +179,10 @@ def run(
     single, three = cals.single, cals.three
     assert single is not None  # markers 1 and 3: the single-marker calibration always runs
     # Localization error of the final single-marker localizations vs the true centres.
-    final = {targets[0]: single.localizations[targets[0]]}
+    # As the calibrations used them: a centre a calibration dropped is not localized.
+    final = {targets[0]: single.retained_localizations()[targets[0]]}
     if three is not None:
-        final.update(three.localizations)
+        final.update(three.retained_localizations())
     errors, n_sweeps, n_rejected = localization_errors(acq, truth, final)
     errors = errors if len(errors) else np.array([np.nan])
     # The bounds' declared terms: the phantom's print specification and the medium; no

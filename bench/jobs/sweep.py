@@ -267,6 +267,8 @@ def run_point(
         }
         if "calibrate" in stages:
             row["calibration_image_mm"] = float("nan")
+            row["calibration_false_acceptances"] = None
+            row["calibration_dropped"] = None
             try:
                 alt = alternate(
                     {targets[0]: acq.dataset.of(targets[0])},
@@ -280,6 +282,17 @@ def run_point(
                 )
                 row["calibration_image_mm"] = image_error_mm(
                     scenario, alt.result.T_ee_us, truth.T_ee_us
+                )
+                # The localizer again, with the estimated mount (the consensus the
+                # alternation builds): the centres the calibration kept that are > 1 mm
+                # off, and those the localizer accepted but the calibration dropped.
+                kept = alt.retained_localizations()
+                e_kept, _, _ = localization_errors(acq, truth, kept)
+                row["calibration_false_acceptances"] = int((e_kept > 1.0).sum())
+                row["calibration_dropped"] = sum(
+                    a.accepted and not b.accepted
+                    for t in kept
+                    for a, b in zip(alt.localizations[t], kept[t], strict=True)
                 )
             except UscalError as exc:  # e.g. too few accepted sweeps to calibrate
                 row["calibration_error"] = str(exc)
@@ -316,6 +329,10 @@ class SweepRow:
     sweeps: int | None = None
     calibration_image_mm: float | None = None  # the calibrate stage only
     calibration_error: str | None = None  # the calibrate stage, when it failed
+    # The calibrate stage: centres the calibration kept > 1 mm off; localizer-accepted
+    # centres it dropped as outliers.
+    calibration_false_acceptances: int | None = None
+    calibration_dropped: int | None = None
 
     @classmethod
     def from_document(cls, row: dict[str, Any]) -> SweepRow:
@@ -336,6 +353,8 @@ class SweepRow:
             number("sweeps", int),
             number("calibration_image_mm", float),
             row.get("calibration_error"),
+            number("calibration_false_acceptances", int),
+            number("calibration_dropped", int),
         )
 
     def figure(self, name: str) -> float | int | None:

@@ -25,7 +25,15 @@ _METRICS = {
     "false_acceptances": "accepted centres > 1 mm from the truth (count)",
     "localization_max_error_mm": "localization error, worst accepted sweep (mm)",
     "calibration_image_mm": "calibration: true image error (mm)",
+    "calibration_false_acceptances": "calibration: centres kept > 1 mm from the truth (count)",
+    "calibration_dropped": "calibration: localizer-accepted centres it dropped (count)",
 }
+#: The calibrate stage's figures, in the order ``results.csv`` lists them.
+_CALIBRATION_METRICS = (
+    "calibration_image_mm",
+    "calibration_false_acceptances",
+    "calibration_dropped",
+)
 
 
 def _points(points: Sequence[dict[str, Any] | SweepPoint]) -> list[SweepPoint]:
@@ -116,6 +124,21 @@ def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -
         + ".",
         "",
     ]
+    if "calibrate" in spec.stages:
+        kept = {
+            m: sum(
+                r.calibration_false_acceptances or 0
+                for p in points
+                for r in p.rows
+                if r.method == m
+            )
+            for m in spec.methods
+        }
+        lines += [
+            "Centres the calibrations kept (the localizer with the estimated mount) more "
+            "than 1 mm from the truth: " + ", ".join(f"{m} **{n}**" for m, n in kept.items()) + ".",
+            "",
+        ]
     if failed:
         lines += [f"**{len(failed)} point(s) failed**:", ""]
         # The overrides as the point's document lists them: [[key, value], ...].
@@ -147,7 +170,7 @@ def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any] | SweepPoint]) 
     keys = spec.override_keys()
     metrics = list(LOCALIZATION_METRICS)
     if "calibrate" in spec.stages:
-        metrics.append("calibration_image_mm")
+        metrics += _CALIBRATION_METRICS
     lines = [",".join([*keys, "seed", "method", *metrics, "error"])]
     for point in _points(points):
         values = [json.dumps(v) if not isinstance(v, str) else v for _, v in point.overrides]

@@ -133,7 +133,7 @@ def log_acquisition(
                 for s in sweeps
             }
             centres = {k: se3.apply(se3.invert(T), landmarks[target]) for k, T in T_true.items()}
-        locs = alt.localizations[target]
+        locs = alt.retained_localizations()[target]
         logged += log_sweeps(
             rec,
             session,
@@ -159,7 +159,7 @@ def log_acquisition(
         rec.alternation(session, method, alt)
         centres_base = [
             se3.apply(s.T_base_ee[s.reference_index] @ T_est, loc.centre)
-            for t, locs in alt.localizations.items()
+            for t, locs in alt.retained_localizations().items()
             for s, loc in zip(dataset.of(t), locs, strict=True)
             if loc.accepted
         ]
