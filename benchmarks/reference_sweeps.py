@@ -466,13 +466,22 @@ class Transmit:
     das: Any
 
 
-def transmit(s: Scanner, angle_deg: float, p_us: Array, x_px: Array, z_px: Array) -> Transmit:
-    """The plane wave at ``angle_deg`` for echoes of the points ``p_us`` (all a sweep's
-    frames hold, their elevations up to the slab's reach), beamformed at pixels
-    (``x_px``, ``z_px``: pymust's x, displayed depth)."""
+def transmit(
+    s: Scanner,
+    angle_deg: float,
+    p_us: Array,
+    x_px: Array,
+    z_px: Array,
+    delays: Array | None = None,
+) -> Transmit:
+    """The plane wave at ``angle_deg`` (or the transmit of ``delays`` (1, elements), NaN
+    for an element off) for echoes of the points ``p_us`` (all a sweep's frames hold,
+    their elevations up to the slab's reach), beamformed at pixels (``x_px``, ``z_px``:
+    pymust's x, displayed depth)."""
     import pymust  # optional: only the reference needs pymust
 
-    delays = np.asarray(pymust.txdelay(s.scan, np.radians(angle_deg)), float).reshape(1, -1)
+    if delays is None:
+        delays = np.asarray(pymust.txdelay(s.scan, np.radians(angle_deg)), float).reshape(1, -1)
     x, _, z = _pymust_xyz(p_us, s)
     dx2 = (x[:, None] - _elements_x(s)) ** 2
     r_lo = np.sqrt(dx2 + z[:, None] ** 2)
@@ -480,8 +489,8 @@ def transmit(s: Scanner, angle_deg: float, p_us: Array, x_px: Array, z_px: Array
     c = WATER_C
     # Transmit: the plane wave reaches a point between its elements' earliest and latest
     # wavelets; receive: its nearest and farthest element; the pulse either side.
-    t_lo = float(np.min(np.min(delays + r_lo / c, axis=1) + r_lo.min(axis=1) / c)) - s.pulse_s
-    t_hi = float(np.max(np.max(delays + r_hi / c, axis=1) + r_hi.max(axis=1) / c)) + s.pulse_s
+    t_lo = float(np.min(np.nanmin(delays + r_lo / c, axis=1) + r_lo.min(axis=1) / c)) - s.pulse_s
+    t_hi = float(np.max(np.nanmax(delays + r_hi / c, axis=1) + r_hi.max(axis=1) / c)) + s.pulse_s
     span = t_hi - t_lo
     fc = s.medium.fc
     k = max(int(np.ceil(2.2 * span * fc)), MIN_PERIOD_CYCLES)
@@ -527,7 +536,7 @@ def beamformed(s: Scanner, tx: Transmit, p_us: Array, rc: Array) -> NDArray[np.c
     p.RXdelay = np.full((1, s.array.active_elements), -tx.t0)
     max_d = np.sqrt(np.max((x[:, None] - _elements_x(s)) ** 2 + z[:, None] ** 2))
     max_d += s.pulse_s * WATER_C
-    step = 0.5 / (2 * max_d / WATER_C + max(float(np.max(tx.delays)), float(np.max(p.RXdelay))))
+    step = 0.5 / (2 * max_d / WATER_C + max(float(np.nanmax(tx.delays)), float(np.max(p.RXdelay))))
     opt = utils.Options()
     opt.WaitBar = False
     opt.FrequencyStep = fc / (tx.k - 0.5) / step
@@ -953,6 +962,81 @@ def render_reference(
     return frames, infos
 
 
+def focused_frame(surface: str, sweep: int, frame: int) -> NDArray[np.float64]:
+    """One frame of a stored sweep's scene imaged as a focused scanner does it, with
+    pymust: a transmit per scanline 0.2 mm apart (focused on the line at the cap's depth,
+    the elements within depth / 2F# of it), dynamic receive as the plane-wave frames
+    (``dasmtx``, Hann over the directivity F#), the scatterers within ± 2 mm of the
+    line; the columns between lines interpolated. The envelope (H, W), not displayed."""
+    import pymust  # optional: only the reference needs pymust
+    from threadpoolctl import threadpool_limits
+
+    a = PR.paper_probe().array
+    probe = probe_config()
+    spec = SWEEPS[sweep]
+    T = sweep_poses(spec)
+    centre = true_centre(T)
+    info = load_stored(surface)["meta"]["per_sweep"][sweep]
+    points, normals = sphere_surface(a)
+    p_mid, w_cap = cap_in_frame(points, normals, T[FRAMES // 2])
+    rc = w_cap * PLA_REFLECTION * _surface_weights(len(points), wavelength_m(a))
+    if surface == "diffuse":
+        p_d, amp_d = facing_in_frame(diffuse_scatterers(a), T[FRAMES // 2])
+        p_mid = np.concatenate([p_mid, p_d])
+        rc = np.concatenate([rc * np.sqrt(1.0 - DIFFUSE_SHARE**2), amp_d * info["diffuse_scale"]])
+    p, w = elevation_slab(p_mid - [0.0, 0.0, (frame - FRAMES // 2) * FRAME_STEP_M], rc)
+    crop = crop_of(probe, centre)
+    H, W = probe.image_shape
+    x, y = pixel_axes(crop.rows, crop.cols, W, probe.spacing_m)
+    shown = 1.0 / axial_scale(probe)
+    focus = centre[1] - RADIUS_M  # the cap's depth (true)
+    out = np.zeros((H, W))
+    lines = np.arange(0, len(crop.cols), 2)
+    with threadpool_limits(1):
+        for j in lines:
+            xl = float(x[j])
+            s = scanner(a, xl)
+            near = np.abs(p[:, 0] - xl) <= 2e-3
+            if not near.any():
+                continue
+            apod = PR.aperture(a, focus, s.fnumber)
+            delays = np.asarray(
+                pymust.txdelay(xl - s.x_aperture, focus * shown, s.scan), float
+            ).reshape(1, -1)
+            delays[0, apod == 0] = np.nan  # off: no transmit
+            delays[0] -= np.nanmin(delays)
+            X = np.full(len(crop.rows), xl - s.x_aperture)
+            tx = transmit(s, 0.0, p[near], X, y, delays)
+            env = np.abs(np.asarray(beamformed(s, tx, p[near], w[near]))).ravel()
+            out[crop.rows, crop.cols[j]] = env
+    cols = crop.cols[lines]
+    for r in crop.rows:
+        out[r, crop.cols] = np.interp(crop.cols, cols, out[r, cols])
+    return out
+
+
+def print_focused(surface: str, sweep: int, frame: int) -> None:
+    """The lit pixels of one frame, plane waves (stored), focused (pymust, now) and
+    sim_us: within 20, 30 and 40 dB of each frame's own peak, and above the display."""
+    data = load_stored(surface)
+    t0 = time.perf_counter()
+    env = focused_frame(surface, sweep, frame)
+    seconds = time.perf_counter() - t0
+    plane = data["frames"][sweep, frame].astype(float)
+    twin = twin_frames(data["T_base_ee"][sweep : sweep + 1], surface)[0, frame].astype(float)
+    dr = probe_config().dynamic_range_db
+    db = 20.0 * np.log10(np.maximum(env / env.max(), 1e-30))
+    focused = np.clip(plane.max() + db * 255.0 / dr, 0.0, 255.0)  # its peak at the stored
+    print(
+        f"\n{surface} sphere, sweep {sweep} frame {frame}: pixels within 20 / 30 / 40 dB of "
+        f"the frame's peak, and lit (focused: {seconds:.0f} s)"
+    )
+    for name, g in (("plane waves", plane), ("focused", focused), ("sim_us", twin)):
+        within = [int((g >= g.max() - v * 255.0 / dr).sum()) for v in (20, 30, 40)]
+        lit = int((g > 0).sum())
+        print(f"  {name:>11}: {within[0]:5d} {within[1]:5d} {within[2]:5d}  {lit:5d}")
+
+
 def check(surface: str) -> tuple[float, int]:
     """The localizer on a surface's stored frames and on sim_us's: the table, and (the
     worst error ratio, the wrong centres)."""
@@ -992,7 +1076,20 @@ def main() -> None:
         choices=SURFACES,
         help="render a surface's sweeps with pymust (default: smooth) and store them",
     )
+    parser.add_argument(
+        "--focused-frame",
+        nargs=3,
+        metavar=("SURFACE", "SWEEP", "FRAME"),
+        help="image one stored frame as a focused scanner does (pymust, ≈ 5 min) and "
+        "compare its lit pixels with the plane waves' and sim_us's",
+    )
     args = parser.parse_args()
+    if args.focused_frame:
+        surface, sweep, frame = args.focused_frame
+        if surface not in SURFACES:
+            parser.error(f"--focused-frame: SURFACE must be one of {', '.join(SURFACES)}")
+        print_focused(surface, int(sweep), int(frame))
+        return
     if args.write:
         frames, infos = render_reference(args.write)
         write_stored(frames, infos, args.write)

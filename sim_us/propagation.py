@@ -52,6 +52,10 @@ _FACE_REFLECTION = 0.5
 _STEP_M = 1e-6
 _MAX_PASSES = 24
 _NP_PER_DB = np.log(10.0) / 20.0
+# A surface's diffuse return grows with the area a ray's tube meets, 1 / |cos θ|, up to
+# this incidence (75°: 3.9 ×): nearer grazing the tube's footprint outgrows the resolution
+# cell the echo is drawn in, and the depth span it spreads over is the slab's.
+_GRAZING_COS = float(np.cos(np.radians(75.0)))
 
 
 def _medium_loss_db(fc_db: Array, band: BandLoss | None) -> Array:
@@ -76,26 +80,30 @@ def coherent_factor(k_sigma_cos: Array) -> Array:
 
 
 def rough_surface_shape(
-    mirror: Array, widened: Array, diffuse: Array, k_sigma_cos: Array
+    mirror: Array, widened: Array, diffuse: Array, k_sigma_cos: Array, area: Array = 1.0
 ) -> tuple[Array, Array]:
     """Echo shape factor (rms amplitude re a mirror facing the probe) of a surface, and its
     coherent part.
 
     ``mirror`` is the echo S of a smooth mirror tilted as the surface is, ``widened`` the
     lobe S_s of facets tilted about it by the texture's slopes, ``diffuse`` the material's
-    diffuse share d, ``k_sigma_cos`` the texture's k σ cos θ (0: smooth). The energy
+    diffuse share d, ``k_sigma_cos`` the texture's k σ cos θ (0: smooth), ``area`` the
+    surface a ray's tube meets per its cross-section, 1 / |cos θ| (θ the incidence). The
+    energy
 
-        shape² = (1 − d²) (χ² S² + (1 − χ²) S_s²) + d²
+        shape² = (1 − d²) (χ² S² + (1 − χ²) S_s²) + d² · area
 
     splits into the coherent χ S √(1 − d²) and the incoherent rest (the facets' and the
     diffuse return, random in phase: speckle). A surface facing the probe returns all of a
     mirror's energy when smooth, less when rough only as far as the facets' tilts send it
-    past the aperture. Returns (shape, coherent).
+    past the aperture. The diffuse return is the surface's own scatterers', the same per
+    unit of its area at every angle: a surface met obliquely puts more of them in a ray's
+    tube (d is defined facing the probe). Returns (shape, coherent).
     """
     chi = np.exp(-2.0 * k_sigma_cos**2)  # coherent_factor (inlined: compiled below)
     keep = 1.0 - diffuse**2
     coherent = np.sqrt(keep) * chi * mirror
-    energy = keep * (chi**2 * mirror**2 + (1.0 - chi**2) * widened**2) + diffuse**2
+    energy = keep * (chi**2 * mirror**2 + (1.0 - chi**2) * widened**2) + diffuse**2 * area
     return np.sqrt(energy), coherent
 
 
@@ -202,7 +210,9 @@ def _surface_echoes(
                 )
                 treads2 = fill * (lat * el) ** 2
             widened = np.sqrt((1.0 - share) * widened**2 + share * treads2)
-        shape[q], coherent[q] = _rough_shape(spec, widened, diffuse[q], k_sigma_cos[q])
+        # The surface a ray's tube meets: 1 / |cos θ|, up to the grazing limit.
+        area = 1.0 / max(facing, _GRAZING_COS)
+        shape[q], coherent[q] = _rough_shape(spec, widened, diffuse[q], k_sigma_cos[q], area)
         chi = np.exp(-2.0 * k_sigma_cos[q] ** 2)  # coherent_factor
         bounce[q] = chi * spec
         coherent_lateral[q] = np.sqrt(1.0 - diffuse[q] ** 2) * chi * lat0

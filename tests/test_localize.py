@@ -219,6 +219,13 @@ def deep_weak_scan():
     return _quick_scan([*STATED_PROBE, "imaging.gain_db=-20", "imaging.depth_mm=60"], 1)
 
 
+@pytest.fixture(scope="module")
+def deeper_weak_scan():
+    """Gain −25 dB and a 60 mm image: the cap fainter still, the flanks at the display's
+    floor; an uncalibrated first pass takes the plate in a few sweeps."""
+    return _quick_scan([*STATED_PROBE, "imaging.gain_db=-25", "imaging.depth_mm=60"], 1)
+
+
 def test_plate_is_not_accepted_for_a_small_sphere(small_sphere_scan):
     """The wrong-candidate case, reproduced small: the paper's score takes the plate
     (≈ 20 mm off) in several sweeps; the refined localizer looks finely at the grid's
@@ -260,14 +267,17 @@ def test_faint_deep_cap_is_found_not_the_plate(deep_weak_scan):
             ]
         )
 
-    # The failure, reproduced (2 of the 45 sweeps since a surface's echo is the mirror
-    # lobe of the apertures: the cap is smaller, the plate as bright).
-    assert (errors_mm("paper") > 5).sum() >= 2
+    # The paper's score lost the cap to the plate here in 2–10 of the 45 sweeps while the
+    # printed sphere's flanks returned less than their area gives (a ray's tube meets
+    # 1 / cos θ of an oblique surface); with them it finds the cap too. The refined
+    # localizer must do at least as well.
+    paper = errors_mm("paper")
     refined = errors_mm("refined")
     assert refined.max() < 1.0 and len(refined) >= 0.9 * len(sweeps)
+    assert len(refined) >= (paper <= 1.0).sum()
 
 
-def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deep_weak_scan):
+def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deeper_weak_scan):
     """Without a calibration the first localization takes the plate in some sweeps; the
     alternation searches those again about the other sweeps' consensus instead of over
     their whole grid, so they come back instead of being dropped."""
@@ -275,7 +285,7 @@ def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deep_weak_
     from bench.truth import image_error_mm
     from calib.alternation import AlternationSettings, alternate
 
-    sweeps, _, T_true, scale, T_coarse = deep_weak_scan
+    sweeps, _, T_true, scale, T_coarse = deeper_weak_scan
     settings = AlternationSettings(LocalizerConfig(), axial_scale=scale)
     alt = alternate({"sphere_1": sweeps}, 5 * MM, settings, T_coarse=T_coarse)
     # The premise: the first calibration, on the uncalibrated pass, kept few sweeps.
@@ -284,7 +294,7 @@ def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deep_weak_
     assert sum(r.accepted for r in final) >= 0.9 * len(sweeps)
     assert alt.result.retained.sum() >= 0.9 * len(sweeps)
     s = load_scenario(
-        "scenarios/quick.yaml", [*STATED_PROBE, "imaging.gain_db=-20", "imaging.depth_mm=60"]
+        "scenarios/quick.yaml", [*STATED_PROBE, "imaging.gain_db=-25", "imaging.depth_mm=60"]
     )
     assert image_error_mm(s, alt.result.T_ee_us, T_true) < 0.3
 

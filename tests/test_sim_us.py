@@ -166,7 +166,8 @@ def test_shadow_below_pla_sphere():
 @pytest.mark.parametrize("tilt_deg", [0.0, 5.0, 10.0, 20.0, 30.0, 45.0])
 def test_echo_amplitude_follows_the_apertures_mirror_lobe(tilt_deg):
     """A plate tilted in the image plane echoes as a mirror seen through the aperture
-    (its lobe, from the transducer) plus the material's diffuse share at every angle."""
+    (its lobe, from the transducer) plus the material's diffuse share at every angle, the
+    same per unit of the plate's area (a ray's tube meets 1 / cos θ of it)."""
     caster = RayCaster(AcousticScene((slab(15.0, tilt_deg=tilt_deg),)))
     medium = water(20.0)
     pla = MATERIALS["pla"]
@@ -181,7 +182,8 @@ def test_echo_amplitude_follows_the_apertures_mirror_lobe(tilt_deg):
     )
     spec = float(lobe[0][0] * lobe[1][0])
     d = pla.diffuse
-    shape = np.sqrt((1 - d**2) * spec**2 + d**2)
+    area = 1.0 / np.cos(np.radians(tilt_deg))
+    shape = np.sqrt((1 - d**2) * spec**2 + d**2 * area)
     # The plate turns about the point where it crosses the ray: the path is 15 mm.
     assert echoes.depth[first] == pytest.approx(depth)
     water_loss = 10 ** (-2 * 100 * medium.attenuation_db_cm_mhz * 13.0**2 * 15.0 * MM / 20)
@@ -193,7 +195,9 @@ def test_echo_amplitude_follows_the_apertures_mirror_lobe(tilt_deg):
         assert 20 * np.log10(spec) == pytest.approx(expected_db[tilt_deg], abs=1.5)
     else:
         assert spec < 10 ** (-40 / 20)
-        assert echoes.amplitude[first] == pytest.approx(r * d * water_loss, rel=0.01)
+        assert echoes.amplitude[first] == pytest.approx(
+            r * d * np.sqrt(area) * water_loss, rel=0.01
+        )
 
 
 # 6 ------------------------------------------------------------------ gain

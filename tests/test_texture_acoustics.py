@@ -87,7 +87,8 @@ def test_coherent_factor_of_a_textured_plate(tilt_deg):
     """Echo of a plate with a texture of rms σ (facets of rms slope σ / ℓ): the
     reverberation (second, coherent-only bounce) over the first echo gives the coherent
     factor exp(−2 (k σ cos θ)²), the first echo the energy (1 − d²)(χ² S² + (1 − χ²) S_s²)
-    + d² (S the mirror's lobe, S_s the lobe widened by the facets)."""
+    + d² / cos θ (S the mirror's lobe, S_s the lobe widened by the facets; the diffuse
+    share per unit of the plate's area)."""
     plate = slab(15.0, tilt_deg=tilt_deg)
     origin, direction = np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]])
     pla, medium = MATERIALS["pla"], water(20.0)
@@ -110,8 +111,9 @@ def test_coherent_factor_of_a_textured_plate(tilt_deg):
         slope = np.array([sigma_um * UM / part.texture_length_m])
         lat, el, lat_w, el_w = mirror_of(SMALL_PROBE).lobes(depth, [theta], [0.0], slope)
         spec, wide = float(lat[0] * el[0]), float(lat_w[0] * el_w[0])
-        energy = (1 - d**2) * (chi**2 * spec**2 + (1 - chi**2) * wide**2) + d**2
-        smooth = (1 - d**2) * spec**2 + d**2
+        area = 1.0 / np.cos(theta)
+        energy = (1 - d**2) * (chi**2 * spec**2 + (1 - chi**2) * wide**2) + d**2 * area
+        smooth = (1 - d**2) * spec**2 + d**2 * area
         assert first / first0 == pytest.approx(np.sqrt(energy / smooth), rel=1e-6)
         chis.append(chi)
     # Monotone in σ; at 40 µm (≈ λ/3) the coherent echo is gone.
