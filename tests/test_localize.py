@@ -453,11 +453,10 @@ def test_a_saturated_deep_cap_is_found_at_its_top():
     saturates and the rest of the cap within the 3.7 mm slice saturates below it. Its
     depth as the mean over the saturated run lay 0.5-0.8 mm deep (19 centres accepted
     more than 1 mm off on robustness_wide.yaml); at the echo's leading edge the centres
-    stay within 0.4 mm, unbiased to 0.1 mm. Since a printed surface's diffuse return
-    grows with the area a ray meets (its flanks saturate too at this gain), 10 of the 45
-    sweeps are rejected with their reasons (the saturated outline runs on past the CAD
-    radius, or the candidate disagrees with its siblings by 1.6–4.7 mm): at least three
-    quarters must be found, none wrongly."""
+    stay within 0.4 mm, unbiased to 0.1 mm. A printed surface's diffuse return grows
+    with the area a ray meets, so the flanks saturate too at this gain: 4 of the 45
+    sweeps are rejected as their saturated outline runs on past the CAD radius (each with
+    its reason); at least 90 % must be found, none wrongly."""
     sweeps, truths, T_ee_us, scale, _ = _quick_scan(
         [
             "imaging.gain_db=20",
@@ -470,10 +469,34 @@ def test_a_saturated_deep_cap_is_found_at_its_top():
     cfg = LocalizerConfig(expected_depth_mm=45.0)
     locs = localize_sphere(sweeps, T_ee_us, 5 * MM, cfg, axial_scale=scale)
     err = np.array([(r.centre - p) / MM for r, p in zip(locs, truths, strict=True) if r.accepted])
-    assert len(err) >= 0.75 * len(sweeps)
+    assert len(err) >= 0.9 * len(sweeps)
     assert all(r.reason for r in locs if not r.accepted)
     assert np.linalg.norm(err, axis=1).max() < 0.4
     assert abs(err[:, 1].mean()) < 0.1
+
+
+def test_a_bright_small_cap_is_refined_from_its_top():
+    """+20 dB, a 3 mm sphere 20 mm deep (quick.yaml, seed 5, a held-out draw): the
+    printed flanks return as brightly as the top, and in one sweep the grid's candidate
+    lay 1 mm below the centre. Its elevation profile, read that deep, had two peaks (the
+    interior dark between the flanks); the sub-voxel fit drifted off and the grid point
+    was handed back, 1.12 mm off. Reading the top's depth first, every sweep is found
+    within 0.4 mm."""
+    sweeps, truths, T_ee_us, scale, _ = _quick_scan(
+        [
+            "seed=5",
+            "imaging.gain_db=20",
+            "protocol.target_depth_mm=20",
+            "imaging.depth_mm=35",
+            "phantom.sphere_radius_mm=3",
+        ],
+        1,
+    )
+    cfg = LocalizerConfig(expected_depth_mm=20.0)
+    locs = localize_sphere(sweeps, T_ee_us, 3 * MM, cfg, axial_scale=scale, consensus=False)
+    err = np.array([(r.centre - p) / MM for r, p in zip(locs, truths, strict=True) if r.accepted])
+    assert len(err) >= 0.95 * len(sweeps)
+    assert np.linalg.norm(err, axis=1).max() < 0.4
 
 
 def test_profile_bands_are_a_shell_outside_an_interior():

@@ -33,6 +33,7 @@ Array = NDArray[np.float64]
 
 _REFINE_ROUNDS = 4
 _REFINE_TOL = 5e-6  # metres: a twentieth of a pixel
+_MAX_DRIFT_VOXELS = 3.0  # voxels of at least 1 mm: the sub-voxel fit's reach from the grid
 
 
 def radial_profile(
@@ -129,9 +130,11 @@ def _radial_band_passes(
     return results
 
 
-def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Array, float]:
+def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Array, float] | None:
     """Sub-voxel centre from the moments of the cap's echo, and the standard error of its
-    elevation (0 where not estimated; see :func:`_elevation_vertex`).
+    elevation (0 where not estimated; see :func:`_elevation_vertex`); None when the fit
+    drifts more than :data:`_MAX_DRIFT_VOXELS` voxels (at least 1 mm each) from
+    ``centre``, the grid's candidate (:func:`_did_not_settle` says why).
 
     The probe-facing cap is mirror-symmetric about the centre's lateral and elevational
     coordinates, so the echo-weighted mean of x over the cap gives it, and z is the
@@ -188,10 +191,6 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         x_new += float(vol.residual_shift(ks, w.sum(axis=(1, 2)))[0])
         z_mean = float(w.sum(axis=(1, 2)) @ zs / total)
         near_x = np.abs(xs - x_new) <= 0.5 * _M_PER_MM
-        near_y = np.abs(ys - (y_c - radius)) <= 0.75 * _M_PER_MM
-        # Elevation from the top of the cap only (where the echo stands far above noise),
-        # over every slice: beyond the elevation focus the beam is wider than a small
-        # sphere and its echo of the top follows the beam profile well past ± R.
         # One brightness level for every slice: the vertex of the profile must not move
         # with the level. Each frame's level follows its own rows, and where the sphere's
         # echoes raise the depth's noise floor about the cap, the frames' in-plane drift
@@ -200,14 +199,36 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         # the vertex by up to 0.15 mm at 45 mm.
         ks_all = np.arange(K)
         frame_of = vol._nearest[ks_all]
+        near_seed = np.abs(ys - (y_c - radius)) <= 0.75 * _M_PER_MM
         rows = np.clip(
-            rs[near_y][None, :] - vol._frame_rows[frame_of][:, None], 0, vol._frames.shape[1] - 1
+            rs[near_seed][None, :] - vol._frame_rows[frame_of][:, None],
+            0,
+            vol._frames.shape[1] - 1,
         )
         level = 0.0
         if rows.size:
             level = float(
                 np.median(np.take_along_axis(vol._levels[frame_of], rows, axis=1).max(axis=1))
             )
+        # Top of the cap first: the column under (x, z) in the slices nearest the current
+        # elevation. The elevation profile is then read at the depth of that top: read one
+        # millimetre too deep (a grid seed below the top, where a saturated or diffuse cap
+        # scores as well), the slices through the centre show the dark interior and those
+        # 2 mm to either side the cap's flanks, the profile has two peaks, and the vertex
+        # went off to one of them (a 3 mm sphere, +20 dB, 20 mm deep).
+        col = np.abs(xs - x_new) <= max(dx, 0.25 * _M_PER_MM)
+        frames = np.abs(zs - z_c) <= 0.75 * dz
+        wt = w[frames][:, :, col].sum(axis=(0, 2))
+        if wt.sum() <= 0:
+            break
+        y_top = _axial_peak(
+            vol.intensity(ks[frames], rs, cs[col], level=level), 255.0 - level, ys, wt
+        )
+        y_top += float(vol.residual_shift(ks[frames], w[frames][:, :, col].sum(axis=(1, 2)))[1])
+        near_y = np.abs(ys - y_top) <= 0.75 * _M_PER_MM
+        # Elevation from the top of the cap only (where the echo stands far above noise),
+        # over every slice: beyond the elevation focus the beam is wider than a small
+        # sphere and its echo of the top follows the beam profile well past ± R.
         top = np.maximum(vol.intensity(ks_all, rs[near_y], cs[near_x], level=level), 0.0)
         # A slice's top at a grey level of 255 is saturated.
         clip = np.full(K, 255.0 - level)
@@ -233,25 +254,27 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
                 w_v, w_g = 1.0 / z_sigma**2, 1.0 / s_geo**2
                 z_new = (w_v * z_new + w_g * z_geo) / (w_v + w_g)
                 z_sigma = float(np.sqrt(1.0 / (w_v + w_g)))
-        # Top of the cap: the column under (x, z) in the nearest frames.
-        col = np.abs(xs - x_new) <= max(dx, 0.25 * _M_PER_MM)
-        frames = np.abs(zs - z_new) <= 0.75 * dz
-        wt = w[frames][:, :, col].sum(axis=(0, 2))
-        if wt.sum() <= 0:
-            break
-        y_top = _axial_peak(
-            vol.intensity(ks[frames], rs, cs[col], level=level), 255.0 - level, ys, wt
-        )
-        y_top += float(vol.residual_shift(ks[frames], w[frames][:, :, col].sum(axis=(1, 2)))[1])
         new = np.array([x_new, y_top + radius, z_new])
         moved = np.linalg.norm(new - current)
         current = new
         if moved < _REFINE_TOL:
             break
-    # A refinement that wanders far from the grid seed is not trusted.
-    if np.linalg.norm(current - seed) > 3.0 * max(dx, dy, dz, _M_PER_MM):
-        return seed, 0.0
+    # A refinement that wanders far from the grid's candidate is not trusted, and neither
+    # is the candidate: a grid point is right only to the grid's step, and where the fit
+    # cannot settle near it the cap is not what the fit reads (the grid point handed back
+    # instead lay 1.1 mm off, a 3 mm sphere at +20 dB).
+    if np.linalg.norm(current - seed) > _MAX_DRIFT_VOXELS * max(dx, dy, dz, _M_PER_MM):
+        return None
     return current, z_sigma
+
+
+def _did_not_settle() -> str:
+    """Why a candidate whose sub-voxel fit drifted away from it is not accepted."""
+    return (
+        "the cap's echo did not settle on a centre: its sub-voxel fit drifted more than "
+        f"{_MAX_DRIFT_VOXELS:g} voxels (at least {_MAX_DRIFT_VOXELS:g} mm) from the grid's "
+        "candidate"
+    )
 
 
 def _elevation_from_depths(

@@ -23,6 +23,7 @@ from .consensus import (
     _reject_if_rarely_seen,
 )
 from .refine import (
+    _did_not_settle,
     _radial_band_passes,
     _refine_centre,
     profile_bands,
@@ -207,14 +208,22 @@ def _conclude(
         if h.f_shell - h.f_outer < cfg.min_score:
             accepted, reason = False, _not_a_sphere(h.f_shell, h.f_outer)
         else:
-            centre, z_sigma = _refine_centre(vol, centre, radius)
+            fit = _refine_centre(vol, centre, radius)
+            if fit is None:
+                accepted, reason = False, _did_not_settle()
+            else:
+                centre, z_sigma = fit
     elif cfg.method == "refined" and note is None:
         # Nothing with a sphere's whole cap: perhaps only its specular arc echoes.
         arc = _arc_search(vol, radius, grid, cfg)
         if arc is not None and arc.score >= cfg.min_score:
-            accepted, reason = True, ""
             score, fs, fi, fo = arc.score, arc.f_shell, arc.f_interior, arc.f_outer
-            centre, z_sigma = _refine_centre(vol, vol.position(*arc.voxel.astype(float)), radius)
+            fit = _refine_centre(vol, vol.position(*arc.voxel.astype(float)), radius)
+            if fit is None:
+                reason = _did_not_settle()
+            else:
+                accepted, reason = True, ""
+                centre, z_sigma = fit
     if accepted and cfg.method == "refined":  # the paper's method as published
         edge = _cut_by_lateral_edge(sweep, centre, radius)
         if edge:
