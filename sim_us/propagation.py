@@ -110,6 +110,22 @@ def rough_surface_shape(
 _rough_shape = numba.njit(cache=True, nogil=True)(rough_surface_shape)
 
 
+@numba.njit(cache=True, nogil=True, boundscheck=False, inline="always")
+def _mirror_lobe(
+    lateral_table, elevation_table, nodes, q, tilt_lat, tilt_el, per_tilt, spread
+):  # pragma: no cover - compiled
+    """The mirror's lateral and elevation lobes (each two-way, of its own aperture) at hit
+    ``q``'s depth nodes, for a reflector tilted ``tilt_lat`` / ``tilt_el`` (rad) from
+    facing the probe and widened by facets of rms slope ``spread`` (rad; 0 for a plain
+    mirror)."""
+    i0, i1, wd = nodes
+    j0, j1, wj = slope_index(spread)
+    return (
+        table_at(lateral_table, i0[q], i1[q], wd[q], abs(tilt_lat) * per_tilt, j0, j1, wj),
+        table_at(elevation_table, i0[q], i1[q], wd[q], abs(tilt_el) * per_tilt, j0, j1, wj),
+    )
+
+
 @numba.njit(cache=True, nogil=True, boundscheck=False)
 def _surface_echoes(
     dirs,
@@ -148,7 +164,6 @@ def _surface_echoes(
     Compiled: on numpy this was three dozen (hits,) temporaries per pass, a third of the
     time of a frame of printed parts."""
     n = len(ray)
-    i0, i1, wd = nodes
     tilt_el = np.empty(n)
     shape = np.empty(n)
     coherent = np.empty(n)
@@ -163,12 +178,12 @@ def _surface_echoes(
         t_lat = np.arctan((lat_ax[0] * nrm[0] + lat_ax[1] * nrm[1] + lat_ax[2] * nrm[2]) / facing)
         t_el = np.arctan((el_ax[0] * nrm[0] + el_ax[1] * nrm[1] + el_ax[2] * nrm[2]) / facing)
         tilt_el[q] = t_el
-        a_lat, a_el = abs(t_lat) * per_tilt, abs(t_el) * per_tilt
-        lat0 = table_at(lateral_table, i0[q], i1[q], wd[q], a_lat, 0, 0, 0.0)
-        el0 = table_at(elevation_table, i0[q], i1[q], wd[q], a_el, 0, 0, 0.0)
-        j0, j1, wj = slope_index(facets[q])
-        lat_w = table_at(lateral_table, i0[q], i1[q], wd[q], a_lat, j0, j1, wj)
-        el_w = table_at(elevation_table, i0[q], i1[q], wd[q], a_el, j0, j1, wj)
+        lat0, el0 = _mirror_lobe(
+            lateral_table, elevation_table, nodes, q, t_lat, t_el, per_tilt, 0.0
+        )
+        lat_w, el_w = _mirror_lobe(
+            lateral_table, elevation_table, nodes, q, t_lat, t_el, per_tilt, facets[q]
+        )
         spec, widened = lat0 * el0, lat_w * el_w
         share, h = layer_share[q], layer_m[q]
         if share > 0 and h > 0:
@@ -187,26 +202,15 @@ def _surface_echoes(
             spread = min(wavelength / (2.0 * width), top) if width > 0 else top
             treads2 = 0.0
             if not d_b > 0:  # treads facing away from the probe return nothing
-                s0, s1, ws = slope_index(spread)
-                lat = table_at(
+                lat, el = _mirror_lobe(
                     lateral_table,
-                    i0[q],
-                    i1[q],
-                    wd[q],
-                    abs(np.arctan(lat_b / facing_b)) * per_tilt,
-                    s0,
-                    s1,
-                    ws,
-                )
-                el = table_at(
                     elevation_table,
-                    i0[q],
-                    i1[q],
-                    wd[q],
-                    abs(np.arctan(el_b / facing_b)) * per_tilt,
-                    s0,
-                    s1,
-                    ws,
+                    nodes,
+                    q,
+                    np.arctan(lat_b / facing_b),
+                    np.arctan(el_b / facing_b),
+                    per_tilt,
+                    spread,
                 )
                 treads2 = fill * (lat * el) ** 2
             widened = np.sqrt((1.0 - share) * widened**2 + share * treads2)
@@ -324,6 +328,9 @@ def trace(
     out_ray, out_depth, out_amp, out_slope, out_coh, out_point = [], [], [], [], [], []
     out_tilt, out_first, out_coh_lat = [], [], []
     first_pass = True
+    # The broadband loss of each ray's path in the medium so far (state column 10 is its
+    # loss at fc), kept beside the state rather than looked up again at every use.
+    medium_loss = _medium_loss_db(state[:, 10], band)
 
     for _ in range(_MAX_PASSES):
         if len(state) == 0:
@@ -332,7 +339,6 @@ def trace(
         c = speed[cur]
         in_medium = cur == 0
         a2 = 2.0 * att_np[cur]  # two-way attenuation, nepers per metre
-        medium_loss = _medium_loss_db(state[:, 10], band)
         budget = state[:, 7] - medium_loss * _NP_PER_DB - log_floor  # nepers left
         max_geo = (max_depth - state[:, 6]) * c / assumed_speed
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -344,7 +350,7 @@ def trace(
         a2 = np.where(in_medium, 0.0, a2) if band is not None else a2
         hits = caster.first_hits(state[:, 0:3], state[:, 3:6], np.minimum(max_geo, max_att))
         hit = hits.part >= 0
-        state, cur, c, a2 = state[hit], cur[hit], c[hit], a2[hit]
+        state, cur, c, a2, medium_loss = state[hit], cur[hit], c[hit], a2[hit], medium_loss[hit]
         t, part, nrm = hits.t[hit], hits.part[hit], hits.normal[hit]
         dirs = state[:, 3:6]
         ray = state[:, 9].astype(np.int64)
@@ -352,7 +358,8 @@ def trace(
         log_gain = state[:, 7] - a2 * t
         if band is not None:
             state[:, 10] += np.where(cur == 0, medium_db_per_m * t, 0.0)
-        path_gain = log_gain - _medium_loss_db(state[:, 10], band) * _NP_PER_DB
+            medium_loss = _medium_loss_db(state[:, 10], band)
+        path_gain = log_gain - medium_loss * _NP_PER_DB
         cos_in = np.einsum("ij,ij->i", dirs, nrm)
         entering = cos_in < 0
         new = np.where(entering, part + 1, 0)
@@ -430,8 +437,9 @@ def trace(
         state[:, 6] = y_app
         state[:, 7] = log_gain + np.log1p(-(r**2))
         state[:, 8] = new
-        alive = state[:, 7] - _medium_loss_db(state[:, 10], band) * _NP_PER_DB > log_floor
-        state = state[alive & (y_app < max_depth)]
+        alive = state[:, 7] - medium_loss * _NP_PER_DB > log_floor
+        going = alive & (y_app < max_depth)
+        state, medium_loss = state[going], medium_loss[going]
         first_pass = False
 
     if not out_ray:
