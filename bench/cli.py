@@ -61,10 +61,41 @@ from .outputs.sweep_report import write_sweep
 from .progress import reporting
 from .sequential import StopRule
 from .summaries import RecordedSummary, RunSummary
+from .summaries.calibration import Calibrations
 
 __all__ = ["main"]
 
 EXIT_USER_ERROR = 2
+EXIT_NOT_ACCEPTED = 3  # a requirement was given and the calibration is not accepted within it
+
+
+def _with_requirements(args: argparse.Namespace) -> list[str]:
+    """The scenario overrides with ``--require-image-mm`` / ``--require-rotation-deg``
+    added as the keys they stand for."""
+    extra = []
+    if args.require_image_mm is not None:
+        extra.append(f"calibration.require_image_mm={args.require_image_mm}")
+    if args.require_rotation_deg is not None:
+        extra.append(f"calibration.require_rotation_deg={args.require_rotation_deg}")
+    return [*args.overrides, *extra]
+
+
+def _gate(scenario, calibrations: Calibrations, console: Console) -> int:
+    """Exit code 3 when the scenario states requirements and the calibration to use is
+    not accepted within them (the verdict says why); 0 otherwise."""
+    cal = scenario.calibration
+    if cal.require_image_mm is None and cal.require_rotation_deg is None:
+        return 0
+    chosen = next(iter(c for c in (calibrations.three, calibrations.single) if c), None)
+    if chosen is not None and chosen.verdict is not None and chosen.verdict.status == "accepted":
+        return 0
+    what = "no calibration" if chosen is None else f"the {chosen.method}-marker calibration"
+    status = "not judged" if chosen is None or chosen.verdict is None else chosen.verdict.status
+    console.print(
+        f"{what} is {status}, not accepted within the requirements: exit code {EXIT_NOT_ACCEPTED}",
+        highlight=False,
+    )
+    return EXIT_NOT_ACCEPTED
 
 
 def _cmd_check(args: argparse.Namespace, console: Console) -> int:
@@ -125,7 +156,7 @@ def _cmd_image(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_run(args: argparse.Namespace, console: Console) -> int:
-    scenario = load_scenario(args.scenario, args.overrides)
+    scenario = load_scenario(args.scenario, _with_requirements(args))
     out = Path(args.out or scenario.output.dir)
     if args.save_dataset:
         check_new_directory(args.save_dataset, "--save-dataset")
@@ -146,7 +177,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
         console.print(f"wrote {what} {args.save_dataset} (uscal calibrate reads them)")
     if args.spawn and directory.recording_path is not None:
         spawn_viewer(directory.recording_path, console)
-    return 0
+    return _gate(scenario, summary.calibrations, console)
 
 
 def _until(args: argparse.Namespace) -> StopRule | None:
@@ -209,7 +240,7 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
-    settings = load_scenario(args.settings, args.overrides)
+    settings = load_scenario(args.settings, _with_requirements(args))
     dataset = Path(args.dataset)
     out = Path(args.out) if args.out else dataset.with_name(dataset.name + "-calibration")
     markers = (int(args.markers),) if args.markers else (1, 3)
@@ -219,9 +250,10 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
         if directory.recording is not None:
             record_recorded(directory.recording, settings, result)
         directory.write(settings, recorded_run_result(result, settings))
-    print_recorded(RecordedSummary.from_metrics(result.metrics), console)
+    recorded = RecordedSummary.from_metrics(result.metrics)
+    print_recorded(recorded, console)
     print_written(out, directory.written, console)
-    return 0
+    return _gate(settings, recorded.calibrations, console)
 
 
 def _cmd_import_plus(args: argparse.Namespace, console: Console) -> int:

@@ -58,6 +58,25 @@ def _add_until(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+def _add_requirements(p: argparse.ArgumentParser) -> None:
+    req = p.add_argument_group(
+        "requirements: exit with code 3 unless the calibration used (three-marker when it "
+        "ran, else single-marker) is accepted with its 95 % bounds within them"
+    )
+    req.add_argument(
+        "--require-image-mm",
+        type=_positive_mm,
+        metavar="MM",
+        help="the 95 %% bound over the image at most this (calibration.require_image_mm)",
+    )
+    req.add_argument(
+        "--require-rotation-deg",
+        type=_positive_mm,
+        metavar="DEG",
+        help="the 95 %% rotation bound at most this (calibration.require_rotation_deg)",
+    )
+
+
 def _add_executor(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (tcp://host:8786)"
@@ -142,6 +161,7 @@ def parser() -> argparse.ArgumentParser:
         "--spawn", action="store_true", help="open the recording in the rerun viewer at the end"
     )
     _add_until(run)
+    _add_requirements(run)
     run.add_argument(
         "--save-dataset",
         metavar="DATASET",
@@ -210,6 +230,7 @@ def parser() -> argparse.ArgumentParser:
         help="scenario whose localization and calibration settings to use (default: built-in)",
     )
     _add_set(calibrate, "settings", "localization.min_score=0.2")
+    _add_requirements(calibrate)
     _add_recording(
         calibrate, "B-mode frames recorded at most, as whole sweeps spread over the dataset"
     )

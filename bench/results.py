@@ -23,6 +23,7 @@ from calib.kinematics import DHRefinement, TouchReference
 from calib.localize import SweepLocalization
 from calib.records import Dataset, Sweep
 from calib.uncertainty import Bound95, UncertaintyInputs
+from calib.verdict import BoundFigures, Requirements, judge
 
 from .files import with_frames
 
@@ -213,12 +214,19 @@ def calibration_entry(
     train: Sequence[str],
     test: Sequence[str],
     bound: tuple[Bound95, UncertaintyInputs] | None = None,
+    requirements: Requirements | None = None,
+    *,
+    bound_figures: BoundFigures | None = None,
 ) -> dict[str, Any]:
     """What ``metrics.json`` keeps of one calibration, truth aside (``bound``: its 95 %
-    error bounds and the declared terms they include). Its precision is the mean over
-    the training spheres of the spread of their reconstructed centres."""
+    error bounds and the declared terms they include), with its verdict
+    (:func:`calib.verdict.judge`, against ``requirements``; ``bound_figures``: the bound
+    when it was made elsewhere, e.g. by the paper's dataset tasks). Its precision is the
+    mean over the training spheres of the spread of their reconstructed centres."""
     precision = training_precision(alt)
+    verdict = judge(alt, bound[0] if bound is not None else bound_figures, requirements)
     return {
+        "verdict": verdict.as_dict(),
         "precision_mm": float(np.mean([precision[t] for t in train])),
         "n_retained": int(alt.result.retained.sum()),
         "iterations": len(alt.history),

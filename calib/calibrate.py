@@ -86,6 +86,25 @@ class CalibrationConfig:
             "(the paper's loss)."
         },
     )
+    require_image_mm: float | None = field(
+        default=None,
+        metadata={
+            "doc": "The calibration is accepted only if its 95 % bound over the image is at "
+            "most this (mm); otherwise its verdict is 'rejected' and uscal run / calibrate "
+            "exit with code 3 (also --require-image-mm). null = no requirement.",
+            "gt": 0,
+            "le": 1000,
+        },
+    )
+    require_rotation_deg: float | None = field(
+        default=None,
+        metadata={
+            "doc": "The calibration is accepted only if its 95 % rotation bound is at most "
+            "this (degrees); as require_image_mm (also --require-rotation-deg).",
+            "gt": 0,
+            "le": 180,
+        },
+    )
 
 
 @dataclass(frozen=True)

@@ -96,17 +96,17 @@ def _one_line_error(r: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
-def _calibrates_to_the_truth(dataset: Path, out: Path, max_deg: float = 0.6) -> dict:
-    """`uscal calibrate` of a loopback dataset: the served twin's true mount (same
-    scenario and seed), within the tolerance of `uscal run` on it (tests/test_run.py).
-    Returns the metrics."""
+def _calibrates_to_the_truth(dataset: Path, out: Path, max_deg: float = 0.6, *flags: str) -> dict:
+    """`uscal calibrate` of a loopback dataset (with ``flags``): the served twin's true
+    mount (same scenario and seed), within the tolerance of `uscal run` on it
+    (tests/test_run.py). Returns the metrics."""
     from bench.acquire_sim import make_twin
     from bench.config.scenario import load_scenario
     from bench.truth import image_error_mm
 
     r = uscal(
         "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
-        "--out", str(out), "--no-rrd",
+        "--out", str(out), "--no-rrd", *flags,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     m = json.loads((out / "metrics.json").read_text())
@@ -129,7 +129,19 @@ def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(control
     assert info.source == "hardware"
     # The reported poses are the controller's: RTDE's actual_TCP_pose, the nominal model.
     assert all(np.isfinite(s.T_base_ee).all() for s in ds.sweeps)
-    _calibrates_to_the_truth(dataset, out)
+    # Accepted within a requirement it meets: exit 0.
+    m = _calibrates_to_the_truth(dataset, out, 0.6, "--require-image-mm", "1")
+    assert m["calibration"]["single"]["verdict"]["status"] == "accepted"
+    # Not within one it cannot meet: the verdict says why, and the exit code is 3.
+    strict = tmp_path / "strict"
+    r = uscal(
+        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
+        "--out", str(strict), "--no-rrd", "--require-image-mm", "0.01",
+    )  # fmt: skip
+    assert r.returncode == 3, (r.returncode, r.stderr)
+    verdict = json.loads((strict / "metrics.json").read_text())["calibration"]["single"]
+    assert verdict["verdict"]["status"] == "rejected"
+    assert "required 0.01 mm" in " ".join(r.stdout.split())
 
 
 # The gain raised 40 dB, as an operator does in clear water: the receiver noise shows,

@@ -44,6 +44,8 @@ def test_quick_end_to_end_meets_the_regression_limits(quick_metrics):
     assert single["n_retained"] >= 40
     three = m["calibration"]["three"]
     assert three["true_error"]["image_mm"] <= 0.5
+    # Both calibrations are sound and say so (calib/verdict.py).
+    assert single["verdict"]["status"] == three["verdict"]["status"] == "accepted"
     # The coarse estimate really was coarse: calibration did the work.
     assert m["calibration"]["coarse_error"]["rotation_deg"] > 2.0
 
@@ -56,7 +58,7 @@ def test_metrics_have_the_documented_keys(quick_metrics):
     for method in ("single", "three"):
         c = m["calibration"][method]
         assert {"rotation_deg", "translation_mm", "image_mm"} <= set(c["true_error"])
-        assert {"precision_mm", "accuracy_mm", "n_retained", "iterations"} <= set(c)
+        assert {"precision_mm", "accuracy_mm", "n_retained", "iterations", "verdict"} <= set(c)
     assert {"simulate", "localize", "calibrate", "total"} <= set(m["timing_s"])
 
 

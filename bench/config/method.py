@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from calib.pipeline import MethodInputs, MethodSettings, declared_uncertainty
 from calib.sound import speed_ratio
 from calib.uncertainty import UncertaintyInputs, image_grid
+from calib.verdict import Requirements
 from sim_us.beam import axial_fwhm_m
 
 from .scenario import Scenario, layout_sigma_mm
@@ -20,6 +21,7 @@ __all__ = [
     "image_points",
     "method_inputs",
     "method_settings",
+    "requirements",
     "scenario_uncertainty",
 ]
 
@@ -71,6 +73,14 @@ def method_inputs(
         cad_centres,
         T_coarse,
         method_settings(scenario).alternation(axial_scale=axial_scale(scenario)),
+    )
+
+
+def requirements(scenario: Scenario) -> Requirements:
+    """What the scenario asks of its calibrations' 95 % bounds (the verdict's last
+    question; :mod:`calib.verdict`)."""
+    return Requirements(
+        scenario.calibration.require_image_mm, scenario.calibration.require_rotation_deg
     )
 
 

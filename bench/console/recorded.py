@@ -8,6 +8,7 @@ from rich.console import Console
 from calib.plus_import import ImportSummary
 
 from ..summaries import RecordedSummary
+from .run import print_verdicts
 from .tables import print_table
 
 __all__ = ["print_import", "print_recorded"]
@@ -20,6 +21,7 @@ def print_recorded(rec: RecordedSummary, console: Console) -> None:
         f"{', '.join(d.targets)}; {loc.n_sweeps} localized, {loc.n_rejected} rejected"
     )
     print_table(rec.calibration_table(), console)
+    print_verdicts(rec.calibrations, console)
     both = rec.single_vs_three
     if both is not None:
         console.print(

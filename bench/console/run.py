@@ -4,15 +4,31 @@ calibration wrote."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from rich.console import Console
 
 from ..summaries import RunSummary
+from ..summaries.calibration import CalibrationSummary
 from .tables import print_table
 
-__all__ = ["print_run", "print_written"]
+__all__ = ["print_run", "print_verdicts", "print_written"]
+
+_STYLE = {"accepted": "green", "suspect": "yellow", "rejected": "bold red"}
+
+
+def print_verdicts(calibrations: Iterable[CalibrationSummary], console: Console) -> None:
+    """Each calibration's verdict, one line with its reasons (:mod:`calib.verdict`)."""
+    for c in calibrations:
+        if c.verdict is not None:
+            v = c.verdict
+            reasons = ": " + "; ".join(v.reasons) if v.reasons else ""
+            console.print(
+                f"{c.method}-marker verdict: [{_STYLE.get(v.status, 'bold')}]{v.status}"
+                f"[/]{reasons}",
+                highlight=False,
+            )
 
 
 def print_run(run: RunSummary, console: Console) -> None:
@@ -26,6 +42,7 @@ def print_run(run: RunSummary, console: Console) -> None:
         f"localization ({loc.method}): {loc.n_sweeps} sweeps, {loc.n_rejected} rejected{against}"
     )
     print_table(run.calibration_table(), console)
+    print_verdicts(run.calibrations, console)
     for c in run.calibrations:
         b, e_true = c.bound95, c.truth_for_bound
         if b is None or e_true is None:

@@ -18,8 +18,10 @@ from calib.kinematics import (
     TouchReference,
     identifiability,
 )
+from calib.verdict import BoundFigures
 
 from ..acquire_sim import coarse_estimate
+from ..config.method import requirements
 from ..config.scenario import Scenario
 from ..results import DatasetOutcome
 from ..results import calibration_entry as pipeline_entry
@@ -66,7 +68,15 @@ def evaluation_metrics(
         """A fold's calibration (:func:`bench.results.calibration_entry`, its bounds
         from the dataset task) with its errors against the truth."""
         t = fold_truth[r.fold.name]
-        entry = pipeline_entry(r.alternation, r.fold.train, r.fold.test)
+        bounds = fold_bounds.get(r.fold.name, {})
+        figures = bounds.get("bound95")
+        entry = pipeline_entry(
+            r.alternation,
+            r.fold.train,
+            r.fold.test,
+            requirements=requirements(scenario),
+            bound_figures=None if figures is None else BoundFigures.from_dict(figures),
+        )
         true_error = {k: t[k] for k in ("rotation_deg", "translation_mm", "image_mm")}
         return {
             "fold": r.fold.name,
@@ -74,7 +84,7 @@ def evaluation_metrics(
             "accuracy_mm": r.accuracy,
             "accuracy_true_mm": t["accuracy_true_mm"],
             **entry,
-            **fold_bounds.get(r.fold.name, {}),
+            **bounds,
         }
 
     folds_doc = []

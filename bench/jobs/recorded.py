@@ -21,7 +21,7 @@ from calib.dataset_files import read_dataset
 from calib.pipeline import FoldRun, calibrate_dataset, fold_summary, residual_rms_mm
 
 from ..acquire_sim import make_twin
-from ..config.method import method_settings
+from ..config.method import method_settings, requirements
 from ..config.scenario import Scenario
 from ..recording.logs import log_acquisition, merge_parts
 from ..recording.options import RecordingOptions
@@ -83,7 +83,11 @@ def calibrate_recorded(
         if alt is not None:
             final.update(alt.retained_localizations())
             calibration[kind] = calibration_entry(
-                alt, targets[:n_markers], targets[n_markers:], found.bounds[kind]
+                alt,
+                targets[:n_markers],
+                targets[n_markers:],
+                found.bounds[kind],
+                requirements(settings),
             )
     n_sweeps = sum(len(v) for v in final.values())
     n_rejected = sum(not loc.accepted for v in final.values() for loc in v)

@@ -23,7 +23,13 @@ from twin.imager import acoustic_scene
 
 from ..acquire_sim import SimulatedAcquisition, make_imager, make_twin, simulate_acquisition
 from ..acquire_sim import save_dataset as save_dataset_files
-from ..config.method import axial_scale, image_points, method_inputs, scenario_uncertainty
+from ..config.method import (
+    axial_scale,
+    image_points,
+    method_inputs,
+    requirements,
+    scenario_uncertainty,
+)
 from ..config.scenario import Scenario
 from ..recording.logs import log_acquisition, merge_parts
 from ..recording.options import RecordingOptions
@@ -90,7 +96,7 @@ def _calibration_metrics(
             alternation_bound(alt, image_points(scenario), cad_centres=multi, inputs=inputs),
             inputs,
         )
-    entry = calibration_entry(alt, list(train), list(test), bound)
+    entry = calibration_entry(alt, list(train), list(test), bound, requirements(scenario))
     out: dict[str, Any] = {"true_error": _true_errors(scenario, T_est, truth.T_ee_us)}
     if X_equiv is not None:
         # Against the mount that is right through the controller's (off) model.

@@ -138,6 +138,11 @@ def calibration_document(scenario: Scenario, result: RunResult) -> dict[str, Any
         ),
         "method": METHOD_TITLES[cal.method],
         "from": origin,
+        **(
+            {"verdict": {"status": cal.verdict.status, "reasons": list(cal.verdict.reasons)}}
+            if cal.verdict is not None
+            else {}
+        ),
         "T_ee_us": _pose_doc(T),
         "uncertainty_1sigma": {
             "rotation_deg": np.round(np.degrees(std[:3]), 5).tolist(),

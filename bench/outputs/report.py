@@ -186,9 +186,17 @@ def _calibration_md(calibrations: Calibrations) -> str:
                 f"{e.image_mm:.3f} mm; precision {c.precision_mm:.3f} mm, accuracy "
                 f"{c.accuracy_mm:.3f} mm."
             )
+        verdict = (
+            f"**Verdict: {c.verdict.status}**"
+            + (" — " + "; ".join(c.verdict.reasons) if c.verdict.reasons else "")
+            + ".\n\n"
+            if c.verdict is not None
+            else ""
+        )
         parts.append(
             f"### {METHOD_TITLES[c.method]}{fold}\n\n"
-            f"`T_ee_us` (translation in mm):\n\n{_matrix_md(T_mm)}\n\n"
+            + verdict
+            + f"`T_ee_us` (translation in mm):\n\n{_matrix_md(T_mm)}\n\n"
             f"1 σ (first order, from the residuals): rotation "
             f"{', '.join(f'{v:.3f}' for v in np.degrees(std[:3]))} °, translation "
             f"{', '.join(f'{v:.3f}' for v in std[3:] * _MM)} mm. "

@@ -20,6 +20,7 @@ __all__ = [
     "LocalizationSummary",
     "Spread",
     "Uncertainty",
+    "VerdictSummary",
 ]
 
 Array = NDArray[np.float64]
@@ -97,6 +98,24 @@ class Uncertainty:
         )
 
 
+@dataclass(frozen=True)
+class VerdictSummary:
+    """A calibration's verdict (:mod:`calib.verdict`): ``accepted``, ``suspect`` or
+    ``rejected``, and why."""
+
+    status: str
+    reasons: tuple[str, ...] = ()
+
+    @classmethod
+    def from_metrics(cls, d: Mapping[str, Any]) -> VerdictSummary:
+        """A calibration's ``verdict`` (:meth:`calib.verdict.Verdict.as_dict`)."""
+        return cls(str(d["status"]), tuple(str(r) for r in d.get("reasons", ())))
+
+    def line(self) -> str:
+        """One line: the status and its reasons."""
+        return self.status + (": " + "; ".join(self.reasons) if self.reasons else "")
+
+
 @dataclass(frozen=True, eq=False)
 class CalibrationSummary:
     """One calibration as ``metrics.json`` keeps it: ``T_ee_us`` and its covariance,
@@ -116,13 +135,15 @@ class CalibrationSummary:
     true_error_equivalent: ErrorFigures | None = None
     bound95: ErrorFigures | None = None
     uncertainty: Uncertainty = Uncertainty()
+    verdict: VerdictSummary | None = None
 
     @classmethod
     def from_metrics(cls, method: str, c: Mapping[str, Any]) -> CalibrationSummary:
         """``metrics.json``'s ``calibration.<method>``. Optional: ``fold`` (the paper's
         experiment), ``accuracy_mm`` and ``true_error`` (the twin: recorded data has no
         truth), ``true_error_equivalent`` (a single run on the twin), ``bound95`` and
-        ``uncertainty`` (when the bounds were computed)."""
+        ``uncertainty`` (when the bounds were computed), ``verdict`` (metrics written
+        before verdicts have none)."""
 
         def errors(key: str) -> ErrorFigures | None:
             return ErrorFigures.from_metrics(c[key]) if key in c else None
@@ -141,6 +162,7 @@ class CalibrationSummary:
             errors("true_error_equivalent"),
             errors("bound95"),
             Uncertainty.from_metrics(c.get("uncertainty", {})),
+            VerdictSummary.from_metrics(c["verdict"]) if "verdict" in c else None,
         )
 
     @property

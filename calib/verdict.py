@@ -1,0 +1,321 @@
+"""A verdict with every calibration: ``accepted``, ``suspect`` or ``rejected``, each with
+its reasons in one line a user can act on.
+
+The pipeline already holds the evidence; a calibration is judged on four questions:
+
+- **Did the alternation settle?** (paper §III-F: localize, calibrate, re-stack, until the
+  estimate stops changing.) Its last update is compared with the estimate's own 95 %
+  bound: an update of a tenth of the bound or more means the answer depends on where the
+  iteration stopped.
+- **Do the sweeps agree as localization noise predicts?** The retained centres of one
+  sphere, mapped to the base through the arm and ``T_ee_us`` (paper Eq. 1), scatter by
+  the localizer's noise within a view (the sweeps taken at one flange orientation) and,
+  if the arm's kinematic model or the pose is off, by a pose-dependent error between
+  views. A one-way random-effects analysis of variance per axis (views as groups)
+  separates the two: the between-view component ``σ_b`` against the within-view scatter
+  ``σ_w``. Where ``σ_b`` is significant (F test, 0.1 % level over every sphere and axis)
+  and larger than ``σ_w`` (rss over the axes), the poses, not the images, dominate the
+  error, and the fit cannot show how far off its answer is: the bound, made from the same
+  centres, shrinks with their number while a kinematic error does not.
+- **Were enough centres kept?** A fit that drops more than a tenth of the localizer's
+  centres as outliers saw errors that are not the noise it assumes (false detections,
+  or poses that disagree).
+- **Is it as good as the user asked?** ``require_image_mm`` / ``require_rotation_deg``
+  against the 95 % bound: a bound above either (or none computed) rejects it.
+
+No threshold here is tuned to a benchmark: a tenth of the bound (an iteration's leftover
+motion well inside the estimate's own uncertainty), equal noise and pose components, a
+0.1 % significance level and a tenth of the centres are stated once, below.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from .alternation import AlternationResult, AlternationSettings
+from .calibrate import centres_in_base
+from .uncertainty import Bound95, orientation_groups
+
+__all__ = [
+    "BoundFigures",
+    "PoseAgreement",
+    "Requirements",
+    "Verdict",
+    "judge",
+    "pose_agreement",
+]
+
+Array = NDArray[np.float64]
+Status = Literal["accepted", "suspect", "rejected"]
+_MM = 1e3
+
+
+@dataclass(frozen=True)
+class BoundFigures:
+    """A 95 % bound's three figures, as ``metrics.json``'s ``bound95`` keeps them (where
+    the :class:`calib.uncertainty.Bound95` itself was made elsewhere)."""
+
+    rotation_deg: float
+    translation_mm: float
+    image_mm: float
+
+    @classmethod
+    def from_dict(cls, d: dict[str, float]) -> BoundFigures:
+        return cls(float(d["rotation_deg"]), float(d["translation_mm"]), float(d["image_mm"]))
+
+
+#: The alternation has settled when its last update is below this share of the bound.
+SETTLED_SHARE_OF_BOUND = 0.1
+#: Significance level of the between-view scatter (over every sphere and axis together).
+POSE_SIGNIFICANCE = 1e-3
+#: A fit dropping more than this share of the localizer's centres is suspect.
+MAX_DROPPED_SHARE = 0.1
+
+
+@dataclass(frozen=True)
+class Requirements:
+    """What the user asked of the calibration (None: not asked): its 95 % bound over the
+    image (mm) and in rotation (degrees) at most this."""
+
+    image_mm: float | None = None
+    rotation_deg: float | None = None
+
+    def __post_init__(self) -> None:
+        for name, value in (("image_mm", self.image_mm), ("rotation_deg", self.rotation_deg)):
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise ValueError(f"required {name} must be a positive number, got {value!r}")
+
+    @property
+    def any(self) -> bool:
+        return self.image_mm is not None or self.rotation_deg is not None
+
+
+@dataclass(frozen=True)
+class PoseAgreement:
+    """How the retained centres of each sphere scatter in the base frame: within views
+    (``within_mm``, per axis, pooled over the spheres) and between them (``between_mm``,
+    the random-effects component, per axis), the smallest F-test p-value over spheres and
+    axes (Bonferroni-corrected) and the views the analysis had."""
+
+    within_mm: Array
+    between_mm: Array
+    p_value: float
+    views: int
+
+    @property
+    def within_rss_mm(self) -> float:
+        return float(np.sqrt(np.sum(self.within_mm**2)))
+
+    @property
+    def between_rss_mm(self) -> float:
+        return float(np.sqrt(np.sum(self.between_mm**2)))
+
+    @property
+    def disagree(self) -> bool:
+        """The pose-dependent scatter is significant and larger than the localizer's."""
+        return self.p_value < POSE_SIGNIFICANCE and self.between_rss_mm > self.within_rss_mm
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "within_view_mm": [round(float(v), 4) for v in self.within_mm],
+            "between_view_mm": [round(float(v), 4) for v in self.between_mm],
+            "p_value": self.p_value,
+            "views": self.views,
+        }
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """``status`` and its ``reasons`` (one line each, what to do about it), with the
+    evidence: whether the alternation ``settled`` (its last update, mm and degrees), the
+    centres the fit kept of those the localizer gave, the pose agreement, and the bound
+    against the requirements."""
+
+    status: Status
+    reasons: tuple[str, ...]
+    settled: bool
+    last_update: tuple[float, float]
+    kept: tuple[int, int]
+    agreement: PoseAgreement | None
+    requirements: Requirements = Requirements()
+
+    def line(self) -> str:
+        """One line: the status and its reasons."""
+        return self.status + (": " + "; ".join(self.reasons) if self.reasons else "")
+
+    @property
+    def accepted(self) -> bool:
+        """Accepted (within the requirements it was judged against)."""
+        return self.status == "accepted"
+
+    def as_dict(self) -> dict[str, Any]:
+        """``metrics.json``'s ``verdict`` of a calibration."""
+        out: dict[str, Any] = {
+            "status": self.status,
+            "reasons": list(self.reasons),
+            "settled": self.settled,
+            "last_update_mm": self.last_update[0],
+            "last_update_deg": self.last_update[1],
+            "kept": self.kept[0],
+            "localized": self.kept[1],
+        }
+        if self.agreement is not None:
+            out["pose_agreement"] = self.agreement.as_dict()
+        if self.requirements.any:
+            out["required"] = {
+                "image_mm": self.requirements.image_mm,
+                "rotation_deg": self.requirements.rotation_deg,
+            }
+        return out
+
+
+def pose_agreement(alt: AlternationResult) -> PoseAgreement | None:
+    """:class:`PoseAgreement` of a calibration's retained centres; None with fewer than
+    two views of any sphere that holds two centres in one view (nothing to compare)."""
+    obs, keep = alt.observations, alt.result.retained
+    if not keep.any():
+        return None
+    P = centres_in_base(obs, alt.result.T_ee_us) * _MM
+    views = orientation_groups(obs)
+    targets = np.array([o.target for o in obs])
+    ss_within = np.zeros(3)
+    df_within = 0
+    between: list[Array] = []
+    weights: list[int] = []
+    p_values: list[float] = []
+    n_views = 0
+    for t in dict.fromkeys(targets):
+        m = keep & (targets == t)
+        g = views[m]
+        labels, counts = np.unique(g, return_counts=True)
+        if len(labels) < 2 or len(g) <= len(labels):
+            continue
+        X = P[m]
+        means = np.array([X[g == u].mean(axis=0) for u in labels])
+        resid = X - means[np.searchsorted(labels, g)]
+        ssw = np.sum(resid**2, axis=0)
+        dfw = len(g) - len(labels)
+        ssb = np.sum(counts[:, None] * (means - X.mean(axis=0)) ** 2, axis=0)
+        dfb = len(labels) - 1
+        msw, msb = ssw / dfw, ssb / dfb
+        # Random-effects variance component: (MSB − MSW) / n0, n0 the effective group size.
+        n0 = (len(g) - np.sum(counts**2) / len(g)) / dfb
+        between.append(np.maximum(msb - msw, 0.0) / n0)
+        weights.append(dfb)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            F = np.where(msw > 0, msb / msw, np.inf)
+        p_values.extend(float(stats.f.sf(f, dfb, dfw)) if np.isfinite(f) else 0.0 for f in F)
+        ss_within += ssw
+        df_within += dfw
+        n_views = max(n_views, len(labels))
+    if not p_values:
+        return None
+    within = np.sqrt(ss_within / df_within)
+    between_sd = np.sqrt(np.average(np.array(between), axis=0, weights=weights))
+    p = min(1.0, min(p_values) * len(p_values))  # Bonferroni over spheres and axes
+    return PoseAgreement(within, between_sd, p, n_views)
+
+
+def _bound_scale(
+    alt: AlternationResult, bound: Bound95 | BoundFigures | None
+) -> tuple[float, float]:
+    """The estimate's own uncertainty (mm, degrees) the last update is compared with:
+    its 95 % bound, else twice the first-order 1 σ (rss over the axes)."""
+    if bound is not None:
+        return bound.translation_mm, bound.rotation_deg
+    sd = np.sqrt(np.clip(np.diag(alt.result.covariance), 0.0, None))
+    return 2.0 * float(np.linalg.norm(sd[3:])) * _MM, 2.0 * float(
+        np.degrees(np.linalg.norm(sd[:3]))
+    )
+
+
+def judge(
+    alt: AlternationResult,
+    bound: Bound95 | BoundFigures | None = None,
+    requirements: Requirements | None = None,
+    *,
+    tol_mm: float = AlternationSettings.tol_mm,
+    tol_deg: float = AlternationSettings.tol_deg,
+) -> Verdict:
+    """The verdict on one calibration (see the module's four questions). ``tol_mm`` /
+    ``tol_deg``: the alternation's own tolerances (an update below both has converged
+    whatever the bound)."""
+    requirements = requirements or Requirements()
+    suspect: list[str] = []
+    rejected: list[str] = []
+    last = alt.history[-1] if alt.history else {}
+    d_mm = float(last.get("change_mm", 0.0))
+    d_deg = float(last.get("change_deg", 0.0))
+    if len(alt.history) <= 1:
+        d_mm = d_deg = 0.0  # one fit, no update (e.g. localizations handed in as final)
+    scale_mm, scale_deg = _bound_scale(alt, bound)
+    settled = (d_mm <= tol_mm and d_deg <= tol_deg) or (
+        d_mm <= SETTLED_SHARE_OF_BOUND * scale_mm and d_deg <= SETTLED_SHARE_OF_BOUND * scale_deg
+    )
+    if not settled:
+        suspect.append(
+            f"did not converge: its last update moved T_ee_us by {d_mm:.2f} mm / "
+            f"{d_deg:.2f}° (more than a tenth of its bound, {scale_mm:.2f} mm / "
+            f"{scale_deg:.2f}°); the answer depends on where the alternation stopped — "
+            "check the localizations (rejections, the sphere profile) or use the refined "
+            "localizer"
+        )
+    agreement = pose_agreement(alt)
+    if agreement is not None and agreement.disagree:
+        suspect.append(
+            f"the sweeps disagree by {agreement.between_rss_mm:.2f} mm between views "
+            f"where localization explains {agreement.within_rss_mm:.2f} mm within them: "
+            "the arm's kinematic model (or the poses it reports) is likely off; refine it "
+            "from touches, or check the robot's calibration"
+        )
+    n_kept = int(alt.result.retained.sum())
+    n_given = len(alt.observations)
+    if n_given and (n_given - n_kept) > MAX_DROPPED_SHARE * n_given:
+        suspect.append(
+            f"the fit dropped {n_given - n_kept} of the {n_given} localized centres as "
+            "outliers (more than a tenth): false detections or disagreeing poses; look at "
+            "the rejected sweeps' reasons"
+        )
+    if requirements.any:
+        if bound is None:
+            rejected.append("no 95 % bound was computed to check the requirements against")
+        else:
+            if requirements.image_mm is not None and bound.image_mm > requirements.image_mm:
+                rejected.append(
+                    f"its 95 % bound over the image, {bound.image_mm:.2f} mm, is above the "
+                    f"required {requirements.image_mm:g} mm: acquire more sweeps or views "
+                    "(uscal plan --optimize)"
+                )
+            if (
+                requirements.rotation_deg is not None
+                and bound.rotation_deg > requirements.rotation_deg
+            ):
+                rejected.append(
+                    f"its 95 % rotation bound, {bound.rotation_deg:.2f}°, is above the "
+                    f"required {requirements.rotation_deg:g}°: acquire more sweeps or views"
+                )
+        if suspect:
+            # A requirement is met only by an answer that can be trusted.
+            rejected.append("not accepted, so not within the requirements")
+    status: Status = "rejected" if rejected else "suspect" if suspect else "accepted"
+    return Verdict(
+        status,
+        tuple(suspect + rejected),
+        settled,
+        (d_mm, d_deg),
+        (n_kept, n_given),
+        agreement,
+        requirements,
+    )
+
+
+def worst(verdicts: Sequence[Verdict]) -> Status:
+    """The worst status of several verdicts (``accepted`` for none)."""
+    order = ("accepted", "suspect", "rejected")
+    return max((v.status for v in verdicts), key=order.index, default="accepted")

@@ -1,0 +1,164 @@
+"""The verdict on a calibration (calib/verdict.py): accepted, suspect or rejected, with
+reasons, from the alternation's convergence, the centres' agreement across views, the
+centres the fit kept and the user's requirements; on synthetic observations with known
+error sources, then on the twin (a wrong arm model) and through `uscal run`'s exit code."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calib import se3
+from calib.alternation import AlternationResult
+from calib.calibrate import CalibrationResult, Observation
+from calib.verdict import BoundFigures, Requirements, judge, pose_agreement
+
+from .test_cli import uscal
+from .test_run import QUICK
+
+MM = 1e-3
+P_BASE = np.array([0.30, 0.05, 0.10])  # the sphere's centre in the base frame
+
+
+def _views() -> list[np.ndarray]:
+    """The protocol's shape: 9 flange orientations (tilts up to 15°) × 5 positions, the
+    image plane's origin 60 mm above the sphere."""
+    poses = []
+    rng = np.random.default_rng(0)
+    for k in range(9):
+        phi = 2 * np.pi * k / 8  # tilt directions 45° apart: views ≥ 11° apart
+        axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+        R = se3.matrix_from_rotvec(axis * np.radians(15.0 * (k > 0)))
+        for _ in range(5):
+            shift = rng.uniform(-3, 3, 3) * MM
+            poses.append(se3.make(R, P_BASE + shift + R @ np.array([0, -0.06, 0])))
+    return poses
+
+
+def _alternation(
+    pose_error_mm: float = 0.0, noise_mm: float = 0.1, history: list[dict] | None = None
+) -> AlternationResult:
+    """A single-marker calibration at the true mount (identity: the image frame is the
+    flange's): centres with localization noise, and a pose-dependent error of
+    ``pose_error_mm`` per axis shared by every sweep of a view (what a wrong kinematic
+    model gives)."""
+    rng = np.random.default_rng(1)
+    T = np.eye(4)
+    poses = _views()
+    view_error = rng.normal(0.0, pose_error_mm * MM, (9, 3))
+    obs = []
+    for i, T_base_ee in enumerate(poses):
+        p_us = se3.apply(se3.invert(T_base_ee @ T), P_BASE)
+        p_us = p_us + view_error[i // 5] + rng.normal(0.0, noise_mm * MM, 3)
+        obs.append(Observation("sphere_1", i, p_us, T_base_ee))
+    result = CalibrationResult(
+        T, None, np.ones(len(obs), bool), np.zeros(len(obs)), np.eye(6) * 1e-8, 0.0
+    )
+    history = history or [
+        {"iteration": 0, "change_mm": float("inf"), "change_deg": float("inf")},
+        {"iteration": 1, "change_mm": 0.001, "change_deg": 0.001},
+    ]
+    return AlternationResult(result, obs, {"sphere_1": []}, history)
+
+
+BOUND = BoundFigures(rotation_deg=0.5, translation_mm=0.3, image_mm=0.25)
+
+
+def test_noise_alone_is_accepted():
+    v = judge(_alternation(), BOUND)
+    assert v.status == "accepted" and v.reasons == () and v.settled
+    a = v.agreement
+    assert a is not None and a.views == 9
+    # Within views: the localization noise (0.1 mm per axis); between: nothing.
+    assert np.allclose(a.within_mm, 0.1, atol=0.03)
+    assert a.between_rss_mm < a.within_rss_mm
+
+
+def test_views_that_disagree_are_suspect_with_what_to_do():
+    v = judge(_alternation(pose_error_mm=0.8), BOUND)
+    assert v.status == "suspect"
+    (reason,) = v.reasons
+    assert "disagree" in reason and "kinematic model" in reason and "touches" in reason
+    a = pose_agreement(_alternation(pose_error_mm=0.8))
+    assert a is not None and a.p_value < 1e-6
+    assert 0.4 < a.between_rss_mm / np.sqrt(3) < 1.2  # ≈ 0.8 mm per axis, 9 views
+
+
+def test_an_alternation_that_did_not_settle_is_suspect():
+    moving = [
+        {"iteration": 0, "change_mm": float("inf"), "change_deg": float("inf")},
+        {"iteration": 1, "change_mm": 1.5, "change_deg": 4.7},
+        {"iteration": 2, "change_mm": 1.23, "change_deg": 1.9},
+    ]
+    v = judge(_alternation(history=moving), BOUND)
+    assert v.status == "suspect" and not v.settled
+    assert "did not converge" in v.reasons[0] and "1.23 mm" in v.reasons[0]
+    # A last update far inside the bound has settled, even above the alternation's
+    # own tolerance.
+    small = [*moving[:2], {"iteration": 2, "change_mm": 0.02, "change_deg": 0.04}]
+    assert judge(_alternation(history=small), BOUND).settled
+
+
+def test_many_dropped_centres_are_suspect():
+    alt = _alternation()
+    kept = alt.result.retained.copy()
+    kept[:6] = False  # 6 of 45 dropped as outliers
+    dropped = AlternationResult(
+        CalibrationResult(
+            alt.result.T_ee_us, None, kept, alt.result.residuals_mm, alt.result.covariance, 0.0
+        ),
+        alt.observations,
+        alt.localizations,
+        alt.history,
+    )
+    v = judge(dropped, BOUND)
+    assert v.status == "suspect" and "dropped 6 of the 45" in v.line()
+    assert v.kept == (39, 45)
+
+
+def test_requirements_reject_a_bound_above_them_and_need_a_bound():
+    alt = _alternation()
+    assert judge(alt, BOUND, Requirements(image_mm=0.3, rotation_deg=1.0)).status == "accepted"
+    v = judge(alt, BOUND, Requirements(image_mm=0.1))
+    assert v.status == "rejected" and "0.25 mm, is above the required 0.1 mm" in v.line()
+    v = judge(alt, BOUND, Requirements(rotation_deg=0.2))
+    assert v.status == "rejected" and "rotation bound" in v.line()
+    assert judge(alt, None, Requirements(image_mm=1.0)).status == "rejected"
+    # A suspect calibration does not meet a requirement, however small its bound.
+    v = judge(_alternation(pose_error_mm=0.8), BOUND, Requirements(image_mm=1.0))
+    assert v.status == "rejected" and "disagree" in v.line()
+    with pytest.raises(ValueError, match="positive"):
+        Requirements(image_mm=-1.0)
+
+
+@pytest.mark.slow
+def test_a_wrong_arm_model_is_suspect_on_the_twin():
+    """quick.yaml with the arm's DH table off (half the paper rig's error) and no touches:
+    the calibration lands mm from the true mount; its verdict says the views disagree."""
+    from bench.config.scenario import load_scenario
+    from bench.jobs.single import run
+
+    m = run(load_scenario(QUICK, ["robot.dh_error_scale=0.5", "protocol.spheres=[1]"])).metrics[
+        "calibration"
+    ]["single"]
+    assert m["true_error"]["image_mm"] > 1.0
+    v = m["verdict"]
+    assert v["status"] == "suspect"
+    assert any("kinematic model" in r for r in v["reasons"])
+
+
+@pytest.mark.slow
+def test_run_exits_3_when_the_calibration_is_not_accepted_within_the_requirement(tmp_path):
+    out = tmp_path / "run"
+    r = uscal(
+        "run", str(QUICK), "--set", "protocol.spheres=[1]", "--out", str(out), "--no-rrd",
+        "--require-image-mm", "0.01",
+    )  # fmt: skip
+    assert r.returncode == 3, (r.returncode, r.stderr)
+    assert "not accepted within the requirements: exit code 3" in " ".join(r.stdout.split())
+    verdict = json.loads((out / "metrics.json").read_text())["calibration"]["single"]["verdict"]
+    assert verdict["status"] == "rejected" and verdict["required"]["image_mm"] == 0.01
+    assert "verdict:" in (out / "calibration.yaml").read_text()
+    assert "**Verdict: rejected**" in (out / "report.md").read_text()
