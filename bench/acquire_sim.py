@@ -30,6 +30,7 @@ from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
+from .config.method import stated_radius
 from .config.plan_file import sphere_poses, sweeps_about
 from .config.scenario import Scenario
 from .files import frames_to_file
@@ -229,7 +230,7 @@ def dataset_meta(scenario: Scenario) -> dict[str, float]:
     return {
         "temperature_c": scenario.medium.temperature_c,
         "assumed_speed_m_s": scenario.imaging.assumed_speed_m_s,
-        "sphere_radius_mm": scenario.phantom.sphere_radius_mm,
+        "sphere_radius_mm": stated_radius(scenario) * 1e3,
     }
 
 
@@ -239,7 +240,7 @@ def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> Acquisi
     return AcquisitionInfo(
         T_ee_us_coarse=np.asarray(T_ee_us_coarse, dtype=float),
         landmarks={k: np.asarray(v, dtype=float) for k, v in twin.phantom_cad.landmarks.items()},
-        sphere_radius_mm=scenario.phantom.sphere_radius_mm,
+        sphere_radius_mm=stated_radius(scenario) * 1e3,
         temperature_c=scenario.medium.temperature_c,
         assumed_speed_m_s=scenario.imaging.assumed_speed_m_s,
         sound_speed_correction=scenario.imaging.sound_speed_correction,

@@ -34,7 +34,7 @@ from twin.world import Twin
 
 from .acquire_sim import SimulatedAcquisition, coarse_estimate, dataset_meta
 from .candidates import candidate_sweeps, clear, observations, taught_sphere
-from .config.method import axial_scale, image_points
+from .config.method import axial_scale, image_points, stated_radius
 from .config.scenario import Scenario
 from .progress import report
 from .sessions import stage_rngs
@@ -154,7 +154,7 @@ def acquire_until(
     rngs = stage_rngs(scenario)
     proto = scenario.protocol
     coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
-    radius = scenario.phantom.sphere_radius_mm * 1e-3
+    radius = stated_radius(scenario)
     scale = axial_scale(scenario)
     M = image_metric(coarse, image_points(scenario))
     bias = bias_covariance(coarse, scenario.planning.localization_bias_mm)

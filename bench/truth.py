@@ -17,7 +17,7 @@ from calib.localize import SweepLocalization
 from calib.records import Sweep
 
 from .acquire_sim import SimulatedAcquisition
-from .config.method import axial_scale, image_points
+from .config.method import axial_scale, image_points, stated_radius
 from .config.scenario import Scenario
 from .snapshot import LocalizationSnapshot, dataset_snapshot
 
@@ -76,7 +76,7 @@ def snapshot_of(
     return dataset_snapshot(
         acq.dataset,
         alt,
-        scenario.phantom.sphere_radius_mm * 1e-3,
+        stated_radius(scenario),
         scenario.localization,
         axial_scale(scenario),
         true_centres,

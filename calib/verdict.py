@@ -30,7 +30,6 @@ motion well inside the estimate's own uncertainty), equal noise and pose compone
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -313,9 +312,3 @@ def judge(
         agreement,
         requirements,
     )
-
-
-def worst(verdicts: Sequence[Verdict]) -> Status:
-    """The worst status of several verdicts (``accepted`` for none)."""
-    order = ("accepted", "suspect", "rejected")
-    return max((v.status for v in verdicts), key=order.index, default="accepted")

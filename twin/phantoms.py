@@ -76,6 +76,15 @@ class PhantomConfig:
     sphere_radius_mm: float = field(
         default=5.0, metadata={"doc": "CAD sphere radius.", "gt": 0.5, "le": 50}
     )
+    stated_radius_error_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": "Simulation of a user's mistake: the pipeline is told a sphere radius this "
+            "far from the CAD radius the phantom is printed to (0 = told right).",
+            "ge": -5,
+            "le": 5,
+        },
+    )
     sphere_spacing_mm: float = field(
         default=50.0, metadata={"doc": "Side of the square of sphere centres.", "gt": 5, "le": 200}
     )

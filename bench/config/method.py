@@ -23,9 +23,17 @@ __all__ = [
     "method_settings",
     "requirements",
     "scenario_uncertainty",
+    "stated_radius",
 ]
 
 Array = NDArray[np.float64]
+
+
+def stated_radius(scenario: Scenario) -> float:
+    """The sphere radius (m) the pipeline is given: the CAD's, off by
+    ``phantom.stated_radius_error_mm`` when a user's mistake is simulated."""
+    p = scenario.phantom
+    return (p.sphere_radius_mm + p.stated_radius_error_mm) * 1e-3
 
 
 def axial_scale(scenario: Scenario) -> float:
@@ -69,7 +77,7 @@ def method_inputs(
     radius and axial scale (:func:`axial_scale`), the CAD centres and coarse mount
     given."""
     return MethodInputs(
-        scenario.phantom.sphere_radius_mm * 1e-3,
+        stated_radius(scenario),
         cad_centres,
         T_coarse,
         method_settings(scenario).alternation(axial_scale=axial_scale(scenario)),

@@ -35,7 +35,13 @@ from ..acquire_sim import (
     save_dataset,
     simulate_acquisition,
 )
-from ..config.method import axial_scale, image_points, method_inputs, scenario_uncertainty
+from ..config.method import (
+    axial_scale,
+    image_points,
+    method_inputs,
+    scenario_uncertainty,
+    stated_radius,
+)
 from ..config.scenario import Scenario
 from ..files import drop_frame_pages, with_frames, without_frames
 from ..parallel import release_memory
@@ -281,7 +287,7 @@ def record_dataset(task, scenario, acq, truth, scene_view, results) -> Path:
             scene_view[1],
             acq.dataset,
             first,
-            scenario.phantom.sphere_radius_mm * 1e-3,
+            stated_radius(scenario),
             scenario.localization,
             axial_scale(scenario),
             truth=(acq.T_base_ee_true, truth.T_ee_us, truth.landmarks_base),

@@ -21,7 +21,7 @@ from calib.kinematics import kinematic_gauge, with_kinematics
 from calib.localize import localize_sphere
 
 from ..acquire_sim import make_imager, make_twin, simulate_acquisition
-from ..config.method import axial_scale, image_points
+from ..config.method import axial_scale, image_points, stated_radius
 from ..config.scenario import Scenario, layout_sigma_mm
 from ..files import frames_to_file, without_frames
 from ..parallel import release_memory
@@ -86,7 +86,7 @@ def run_remount_scan(scenario: Scenario, index: int, scratch: Path) -> RemountSc
     first = localize_sphere(
         sweeps,
         None,
-        sc.phantom.sphere_radius_mm * 1e-3,
+        stated_radius(sc),
         sc.localization,
         axial_scale=axial_scale(sc),
     )
@@ -152,7 +152,7 @@ def run_recalibration(
         )
         alt = alternate(
             {t: with_kinematics(frames[t], table) for t in spheres},
-            sc.phantom.sphere_radius_mm * 1e-3,
+            stated_radius(sc),
             settings,
             cad_centres=cad,
             T_coarse=truth.T_ee_us_coarse,

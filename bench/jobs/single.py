@@ -29,6 +29,7 @@ from ..config.method import (
     method_inputs,
     requirements,
     scenario_uncertainty,
+    stated_radius,
 )
 from ..config.scenario import Scenario
 from ..recording.logs import log_acquisition, merge_parts
@@ -126,7 +127,7 @@ def _record_run(
         twin.scene.model,
         acq.dataset,
         alternations,
-        scenario.phantom.sphere_radius_mm * 1e-3,
+        stated_radius(scenario),
         scenario.localization,
         axial_scale(scenario),
         truth=(acq.T_base_ee_true, twin.truth.T_ee_us, twin.truth.landmarks_base),
@@ -174,7 +175,7 @@ def run(
         acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
     t_sim = time.perf_counter() - t_start
     truth = twin.truth
-    radius = scenario.phantom.sphere_radius_mm * 1e-3  # the CAD radius: the only prior
+    radius = stated_radius(scenario)  # the CAD radius: the only prior
     scale = axial_scale(scenario)
     loc_cfg = scenario.localization
     targets = acq.dataset.targets()

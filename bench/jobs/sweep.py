@@ -39,7 +39,7 @@ from calib.localize import localize_sphere
 
 from .. import progress as progress_report
 from ..acquire_sim import make_imager, make_twin, simulate_acquisition
-from ..config.method import axial_scale
+from ..config.method import axial_scale, stated_radius
 from ..config.scenario import acquisition_pixels, load_scenario, validate_overrides
 from ..config.schema import read_yaml
 from ..grid import GridPoint, cache_key, run_grid
@@ -240,7 +240,7 @@ def run_point(
     truth = twin.truth
     del imager
     release_memory()
-    radius = scenario.phantom.sphere_radius_mm * 1e-3
+    radius = stated_radius(scenario)
     scale = axial_scale(scenario)
     targets = acq.dataset.targets()
     rows = []

@@ -1,0 +1,209 @@
+"""Does the verdict (calib/verdict.py) let a wrong calibration through? Runs of
+``scenarios/quick.yaml`` on conditions drawn at random (a fresh draw for each
+``--seed``): gain, target depth, sphere radius, water temperature with and without the
+speed-of-sound correction, coarse-mount error, print tolerance, a small kinematic error,
+localizer method; and in about half of the runs one fault the pipeline is not told of —
+the arm's kinematic model off (no touches to refine it), a mount far outside its coarse
+estimate, the sphere radius given 0.5–1.5 mm off the printed one, the pixel
+spacing off, one frame in five stale. Each run calibrates single- and three-marker
+(:func:`bench.jobs.single.run`, a local pool of processes).
+
+Per calibration: its verdict, its true mean error over the image (against the mount that
+is right through the controller's kinematic model, as ``benchmarks/uncertainty.py``) and
+its 95 % bound. Targets: no ``accepted`` calibration is more than 1 mm off over the image
+(``false_accepts``), and the accepted ones' bounds cover their true image error at least
+95 % of the time (``coverage_accepted``). Last line:
+``false_accepts=<n> coverage_accepted=<fraction>``.
+
+Run: python benchmarks/verdict.py [--runs 30] [--seed 0] [--workers 2] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# benchmarks/sim_us.py shares its name with the package: keep this folder off the path.
+_HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
+
+import argparse  # noqa: E402
+import concurrent.futures as cf  # noqa: E402
+import json  # noqa: E402
+import multiprocessing  # noqa: E402
+import time  # noqa: E402
+import traceback  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+BASE = Path(__file__).resolve().parents[1] / "scenarios" / "quick.yaml"
+#: An accepted calibration further off than this over the image is a false accept.
+FALSE_ACCEPT_MM = 1.0
+
+#: The faults, each as the overrides that make it (drawn with their sizes).
+FAULTS = {
+    "kinematic model off, no touches": lambda rng: {
+        "robot.dh_error_scale": round(float(rng.uniform(0.3, 1.0)), 2)
+    },
+    "mount far outside its coarse estimate": lambda rng: {
+        "calibration.initial_error_mm": round(float(rng.uniform(15, 25)), 1),
+        "calibration.initial_error_deg": round(float(rng.uniform(30, 45)), 1),
+    },
+    "sphere radius given wrong": lambda rng: {
+        "phantom.stated_radius_error_mm": round(
+            float(rng.choice([-1, 1]) * rng.uniform(0.5, 1.5)), 2
+        )
+    },
+    "pixel spacing off": lambda rng: {
+        "imaging.pixel_scale_error_pct": [round(float(rng.uniform(2, 5)), 2)] * 2
+    },
+    "one frame in five stale": lambda rng: {"robot.stale_frame_probability": 0.2},
+}
+
+
+def draw(n: int, seed: int) -> list[tuple[str, dict[str, Any], int]]:
+    """``n`` runs: (label, overrides, run seed), conditions drawn at random."""
+    rng = np.random.default_rng([seed, 0xE7D1C7])
+    out = []
+    for i in range(n):
+        depth = float(rng.uniform(15, 35))
+        ov: dict[str, Any] = {
+            "imaging.gain_db": round(float(rng.uniform(-15, 15)), 1),
+            "protocol.target_depth_mm": round(depth, 1),
+            "imaging.depth_mm": round(depth + 15, 1),
+            "phantom.sphere_radius_mm": round(float(rng.uniform(3.5, 7.5)), 1),
+            "medium.temperature_c": round(float(rng.uniform(12, 32)), 1),
+            "imaging.sound_speed_correction": bool(rng.random() < 0.7),
+            "calibration.initial_error_mm": round(float(rng.uniform(1, 8)), 1),
+            "calibration.initial_error_deg": round(float(rng.uniform(3, 20)), 1),
+            "phantom.tolerance_position_mm": round(float(rng.uniform(0, 0.3)), 2),
+            "robot.dh_error_scale": round(float(rng.choice([0.0, 0.02, 0.05])), 2),
+            "localization.method": str(rng.choice(["refined", "paper"], p=[0.75, 0.25])),
+        }
+        label = "clean"
+        if rng.random() < 0.5:
+            label = str(rng.choice(list(FAULTS)))
+            ov |= FAULTS[label](rng)
+        out.append((label, ov, int(rng.integers(1000, 1_000_000)) + i))
+    return out
+
+
+def point(label: str, overrides: dict[str, Any], seed: int) -> dict[str, Any]:
+    """One run through ``bench.jobs.single.run``: per method, its verdict, true error and
+    bound."""
+    from bench import progress
+    from bench.config.scenario import load_scenario
+    from bench.jobs.single import run
+
+    sets = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
+    scenario = load_scenario(BASE, [*sets, f"seed={seed}", "evaluation.datasets=[]"])
+    t0 = time.perf_counter()
+    with progress.reporting(None):
+        result = run(scenario)
+    out: dict[str, Any] = {
+        "label": label,
+        "seed": seed,
+        "overrides": overrides,
+        "seconds": time.perf_counter() - t0,
+    }
+    for method in ("single", "three"):
+        c = result.metrics["calibration"].get(method)
+        if c is None:
+            continue
+        out[method] = {
+            "status": c["verdict"]["status"],
+            "reasons": c["verdict"]["reasons"],
+            "true_image_mm": c.get("true_error_equivalent", c["true_error"])["image_mm"],
+            "bound_image_mm": (c.get("bound95") or {}).get("image_mm"),
+        }
+    return out
+
+
+def _safe(*args) -> dict[str, Any]:
+    try:
+        return point(*args)
+    except Exception as exc:  # a run that fails is reported, the others go on
+        return {"label": args[0], "seed": args[2], "error": f"{exc}", "tb": traceback.format_exc()}
+
+
+def summarize(results: list[dict[str, Any]]) -> tuple[int, float]:
+    """Print the verdicts against the truth; returns (false accepts, coverage of the
+    accepted)."""
+    cals = [
+        (r["label"], m, r[m]) for r in results if "error" not in r for m in ("single", "three")
+        if m in r
+    ]  # fmt: skip
+    print(f"\n{len(cals)} calibrations")
+    print(f"{'':44s} {'n':>3s} {'accepted':>8s} {'suspect':>8s} {'rejected':>8s}  {'> 1 mm':>6s}")
+    for label in ["clean", *FAULTS]:
+        rows = [c for lab, _, c in cals if lab == label]
+        if not rows:
+            continue
+        counts = [sum(c["status"] == s for c in rows) for s in ("accepted", "suspect", "rejected")]
+        off = sum(c["true_image_mm"] > FALSE_ACCEPT_MM for c in rows)
+        print(f"{label:44s} {len(rows):3d} " + " ".join(f"{n:8d}" for n in counts) + f"  {off:6d}")
+    accepted = [c for _, _, c in cals if c["status"] == "accepted"]
+    false_accepts = sum(c["true_image_mm"] > FALSE_ACCEPT_MM for c in accepted)
+    covered = [
+        c["bound_image_mm"] is not None and c["true_image_mm"] <= c["bound_image_mm"]
+        for c in accepted
+    ]
+    coverage = float(np.mean(covered)) if covered else float("nan")
+    off = [c for _, _, c in cals if c["true_image_mm"] > FALSE_ACCEPT_MM]
+    flagged = sum(c["status"] != "accepted" for c in off)
+    print(
+        f"\naccepted: {len(accepted)}, their bounds cover the true image error in "
+        f"{sum(covered)} ({coverage:.3f}); more than {FALSE_ACCEPT_MM:g} mm off: {len(off)}, "
+        f"{flagged} of them suspect or rejected"
+    )
+    ratios = [c["bound_image_mm"] / c["true_image_mm"] for c in accepted if c["bound_image_mm"]]
+    if ratios:
+        print(f"accepted: median bound / true image error {np.median(ratios):.2f}")
+    return false_accepts, coverage
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=30, help="runs (two calibrations each)")
+    parser.add_argument("--seed", type=int, default=0, help="the draw of conditions")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--json", help="write every run's figures here")
+    args = parser.parse_args()
+    todo = draw(args.runs, args.seed)
+    t0 = time.perf_counter()
+    results = []
+    ctx = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
+        futures = [pool.submit(_safe, label, ov, seed) for label, ov, seed in todo]
+        for f in cf.as_completed(futures):
+            r = f.result()
+            results.append(r)
+            if "error" in r:
+                print(f"{r['label']} (seed {r['seed']}): FAILED {r['error']}", flush=True)
+                continue
+            cells = [
+                f"{m} {r[m]['status']} {r[m]['true_image_mm']:.2f}/"
+                + (f"{r[m]['bound_image_mm']:.2f}" if r[m]["bound_image_mm"] else "-")
+                for m in ("single", "three")
+                if m in r
+            ]
+            print(
+                f"{r['label']:44s} seed {r['seed']:7d} {r['seconds']:5.1f} s  " + "  ".join(cells),
+                flush=True,
+            )
+    results.sort(key=lambda r: r["seed"])
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1, default=str))
+    failed = sum("error" in r for r in results)
+    print(
+        f"\n{len(results)} runs ({failed} failed) in {time.perf_counter() - t0:.0f} s on "
+        f"{args.workers} workers (draw --seed {args.seed}); true / bound95 image mm above"
+    )
+    false_accepts, coverage = summarize(results)
+    print(f"false_accepts={false_accepts} coverage_accepted={coverage:.3f}")
+
+
+if __name__ == "__main__":
+    main()
