@@ -96,27 +96,38 @@ def point(label: str, overrides: dict[str, Any], seed: int) -> dict[str, Any]:
     from bench import progress
     from bench.config.scenario import load_scenario
     from bench.jobs.single import run
+    from calib.errors import UscalError
 
     sets = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
     scenario = load_scenario(BASE, [*sets, f"seed={seed}", "evaluation.datasets=[]"])
     t0 = time.perf_counter()
-    with progress.reporting(None):
-        result = run(scenario)
-    out: dict[str, Any] = {
-        "label": label,
-        "seed": seed,
-        "overrides": overrides,
-        "seconds": time.perf_counter() - t0,
-    }
+    out: dict[str, Any] = {"label": label, "seed": seed, "overrides": overrides}
+    try:
+        with progress.reporting(None):
+            result = run(scenario)
+    except UscalError as exc:
+        # No calibration handed back: the pipeline refused (e.g. too few spheres found).
+        out["seconds"] = time.perf_counter() - t0
+        for method in ("single", "three"):
+            out[method] = {"status": "failed", "reasons": [str(exc)]}
+        return out
+    out["seconds"] = time.perf_counter() - t0
     for method in ("single", "three"):
         c = result.metrics["calibration"].get(method)
         if c is None:
             continue
+        bound = c.get("bound95") or {}
         out[method] = {
             "status": c["verdict"]["status"],
             "reasons": c["verdict"]["reasons"],
             "true_image_mm": c.get("true_error_equivalent", c["true_error"])["image_mm"],
-            "bound_image_mm": (c.get("bound95") or {}).get("image_mm"),
+            "bound_image_mm": bound.get("image_mm"),
+            "bound_mm_deg": [bound.get("translation_mm"), bound.get("rotation_deg")],
+            "last_update_mm_deg": [
+                c["verdict"]["last_update_mm"],
+                c["verdict"]["last_update_deg"],
+            ],
+            "pose_agreement": c["verdict"].get("pose_agreement"),
         }
     return out
 
@@ -136,13 +147,14 @@ def summarize(results: list[dict[str, Any]]) -> tuple[int, float]:
         if m in r
     ]  # fmt: skip
     print(f"\n{len(cals)} calibrations")
-    print(f"{'':44s} {'n':>3s} {'accepted':>8s} {'suspect':>8s} {'rejected':>8s}  {'> 1 mm':>6s}")
+    statuses = ("accepted", "suspect", "rejected", "failed")
+    print(f"{'':44s} {'n':>3s} " + " ".join(f"{s:>8s}" for s in statuses) + f"  {'> 1 mm':>6s}")
     for label in ["clean", *FAULTS]:
         rows = [c for lab, _, c in cals if lab == label]
         if not rows:
             continue
-        counts = [sum(c["status"] == s for c in rows) for s in ("accepted", "suspect", "rejected")]
-        off = sum(c["true_image_mm"] > FALSE_ACCEPT_MM for c in rows)
+        counts = [sum(c["status"] == s for c in rows) for s in statuses]
+        off = sum(c.get("true_image_mm", 0.0) > FALSE_ACCEPT_MM for c in rows)
         print(f"{label:44s} {len(rows):3d} " + " ".join(f"{n:8d}" for n in counts) + f"  {off:6d}")
     accepted = [c for _, _, c in cals if c["status"] == "accepted"]
     false_accepts = sum(c["true_image_mm"] > FALSE_ACCEPT_MM for c in accepted)
@@ -151,7 +163,7 @@ def summarize(results: list[dict[str, Any]]) -> tuple[int, float]:
         for c in accepted
     ]
     coverage = float(np.mean(covered)) if covered else float("nan")
-    off = [c for _, _, c in cals if c["true_image_mm"] > FALSE_ACCEPT_MM]
+    off = [c for _, _, c in cals if c.get("true_image_mm", 0.0) > FALSE_ACCEPT_MM]
     flagged = sum(c["status"] != "accepted" for c in off)
     print(
         f"\naccepted: {len(accepted)}, their bounds cover the true image error in "
@@ -184,8 +196,13 @@ def main() -> None:
                 print(f"{r['label']} (seed {r['seed']}): FAILED {r['error']}", flush=True)
                 continue
             cells = [
-                f"{m} {r[m]['status']} {r[m]['true_image_mm']:.2f}/"
-                + (f"{r[m]['bound_image_mm']:.2f}" if r[m]["bound_image_mm"] else "-")
+                f"{m} {r[m]['status']} "
+                + (
+                    f"{r[m]['true_image_mm']:.2f}/"
+                    + (f"{r[m]['bound_image_mm']:.2f}" if r[m]["bound_image_mm"] else "-")
+                    if "true_image_mm" in r[m]
+                    else r[m]["reasons"][0][:60]
+                )
                 for m in ("single", "three")
                 if m in r
             ]

@@ -86,6 +86,24 @@ def test_views_that_disagree_are_suspect_with_what_to_do():
     assert 0.4 < a.between_rss_mm / np.sqrt(3) < 1.2  # ≈ 0.8 mm per axis, 9 views
 
 
+def test_a_small_pose_error_is_noise_a_large_one_is_not():
+    """A kinematic error that scatters the views by a tenth of a millimetre is part of
+    what the bound carries; one of a millimetre is what the verdict must name."""
+    small = _alternation(pose_error_mm=0.15)
+    a = pose_agreement(small)
+    assert a is not None and a.p_value < 1e-3  # detected ...
+    assert judge(small, BOUND).status == "accepted"  # ... but below half a millimetre
+    assert judge(_alternation(pose_error_mm=0.8), BOUND).status == "suspect"
+
+
+def test_a_bound_wider_than_a_millimetre_is_not_accepted_by_default():
+    wide = BoundFigures(rotation_deg=2.0, translation_mm=2.5, image_mm=2.3)
+    v = judge(_alternation(), wide)
+    assert v.status == "suspect" and "2.30 mm, is above 1 mm" in v.line()
+    # A user who asked for less is answered on their own terms.
+    assert judge(_alternation(), wide, Requirements(image_mm=3.0)).status == "accepted"
+
+
 def test_an_alternation_that_did_not_settle_is_suspect():
     moving = [
         {"iteration": 0, "change_mm": float("inf"), "change_deg": float("inf")},
