@@ -23,7 +23,12 @@ from .calibrate import (
     consensus_initialisation,
 )
 from .errors import CalibrationError
-from .localize import LocalizerConfig, SweepLocalization, localize_sphere
+from .localize import (
+    LocalizerConfig,
+    SweepLocalization,
+    apparent_sphere_radius,
+    localize_sphere,
+)
 from .records import Sweep
 
 __all__ = ["AlternationResult", "AlternationSettings", "alternate"]
@@ -36,13 +41,17 @@ class AlternationResult:
     """Calibration after alternating localization and calibration.
 
     ``history`` holds one entry per iteration: the estimate, its change from the previous
-    one (mm, degrees) and the loss; ``localizations`` the final per-sweep results.
+    one (mm, degrees) and the loss; ``localizations`` the final per-sweep results;
+    ``sphere_size`` the radius the localizer was given and the one the first sphere's
+    images draw (metres, :func:`calib.localize.apparent_sphere_radius`) with the sweeps
+    it rests on, when measured.
     """
 
     result: CalibrationResult
     observations: list[Observation]
     localizations: dict[str, list[SweepLocalization]]
     history: list[dict[str, float]]
+    sphere_size: tuple[float, float, int] | None = None
 
     def retained_localizations(self) -> dict[str, list[SweepLocalization]]:
         """The final localizations as the calibration used them: a centre the localizer
@@ -305,4 +314,16 @@ def alternate(
         )
         locs, t_localize = localize_all(T_prev, seeds, expected)
     assert result is not None
-    return AlternationResult(result, obs, used, history)
+    # What the images say of the radius the localizer was told (the first sphere; a
+    # check for the verdict, not an input).
+    first = next(iter(sweeps))
+    size = apparent_sphere_radius(
+        sweeps[first],
+        used[first],
+        result.T_ee_us,
+        radius,
+        localizer,
+        axial_scale=settings.axial_scale,
+    )
+    sphere_size = None if size is None else (radius, size[0], size[1])
+    return AlternationResult(result, obs, used, history, sphere_size)

@@ -1,7 +1,7 @@
 """A verdict with every calibration: ``accepted``, ``suspect`` or ``rejected``, each with
 its reasons in one line a user can act on.
 
-The pipeline already holds the evidence; a calibration is judged on four questions:
+The pipeline already holds the evidence; a calibration is judged on five questions:
 
 - **Did the alternation settle?** (paper §III-F: localize, calibrate, re-stack, until the
   estimate stops changing.) Its last update is compared with the estimate's own 95 %
@@ -18,6 +18,10 @@ The pipeline already holds the evidence; a calibration is judged on four questio
   images, dominate the error, and the fit cannot show how far off its answer is: the
   bound, made from the same centres, shrinks with their number while a kinematic error
   does not.
+- **Is the sphere the size it was said to be?** The cap's section in the frame through
+  each centre gives the radius the images draw (:func:`calib.localize.
+  apparent_sphere_radius`); a radius given wrong puts every centre off along its beam by
+  the difference, an error the residuals cannot show.
 - **Were enough centres kept?** A fit that drops more than a tenth of the localizer's
   centres as outliers saw errors that are not the noise it assumes (false detections,
   or poses that disagree).
@@ -28,8 +32,8 @@ The pipeline already holds the evidence; a calibration is judged on four questio
 
 The thresholds are stated once, below, each with its reason: a quarter of the bound (an
 iteration's leftover motion well inside the estimate's own uncertainty), pose scatter
-above the localizer's and above half a millimetre at a 0.1 % significance level, a tenth
-of the centres, a millimetre of bound.
+above the localizer's and above half a millimetre at a 0.1 % significance level, a radius
+0.4 mm off, a tenth of the centres, a millimetre of bound.
 """
 
 from __future__ import annotations
@@ -83,6 +87,10 @@ POSE_SIGNIFICANCE = 1e-3
 #: for (the paper's sub-millimetre claim); below it a small kinematic error is part of
 #: the noise its bound already carries through the jackknife over views.
 POSE_SCATTER_MM = 0.5
+#: The sphere's radius as the images draw it may differ from the one given by this (mm):
+#: the estimate reads 0.07–0.37 mm large on the twin (the PSF, saturation), so a radius
+#: given 0.5 mm or more off shows, a scale error of a few per cent does not.
+RADIUS_MISMATCH_MM = 0.4
 #: A fit dropping more than this share of the localizer's centres is suspect.
 MAX_DROPPED_SHARE = 0.1
 #: Without a requirement of the user's, ``accepted`` means known to this (95 % bound over
@@ -161,6 +169,7 @@ class Verdict:
     kept: tuple[int, int]
     agreement: PoseAgreement | None
     requirements: Requirements = Requirements()
+    radius_mm: tuple[float, float] | None = None  # given, as the images draw it
 
     def line(self) -> str:
         """One line: the status and its reasons."""
@@ -184,6 +193,8 @@ class Verdict:
         }
         if self.agreement is not None:
             out["pose_agreement"] = self.agreement.as_dict()
+        if self.radius_mm is not None:
+            out["radius_given_mm"], out["radius_seen_mm"] = self.radius_mm
         if self.requirements.any:
             out["required"] = {
                 "image_mm": self.requirements.image_mm,
@@ -260,7 +271,7 @@ def judge(
     tol_mm: float = AlternationSettings.tol_mm,
     tol_deg: float = AlternationSettings.tol_deg,
 ) -> Verdict:
-    """The verdict on one calibration (see the module's four questions). ``tol_mm`` /
+    """The verdict on one calibration (see the module's five questions). ``tol_mm`` /
     ``tol_deg``: the alternation's own tolerances (an update below both has converged
     whatever the bound)."""
     requirements = requirements or Requirements()
@@ -291,6 +302,15 @@ def judge(
             "the arm's kinematic model (or the poses it reports) is likely off; refine it "
             "from touches, or check the robot's calibration"
         )
+    if alt.sphere_size is not None:
+        given, seen, n_seen = alt.sphere_size
+        if abs(seen - given) * _MM > RADIUS_MISMATCH_MM:
+            suspect.append(
+                f"the images draw the sphere {seen * _MM:.2f} mm in radius where "
+                f"{given * _MM:g} mm was given (over {n_seen} sweeps): check the radius "
+                "(phantom.sphere_radius_mm or the dataset's), the pixel spacing and the speed "
+                "of sound — every centre lies off along its beam by the difference"
+            )
     n_kept = int(alt.result.retained.sum())
     n_given = len(alt.observations)
     if n_given and (n_given - n_kept) > MAX_DROPPED_SHARE * n_given:
@@ -335,4 +355,7 @@ def judge(
         (n_kept, n_given),
         agreement,
         requirements,
+        None
+        if alt.sphere_size is None
+        else (round(alt.sphere_size[0] * _MM, 4), round(alt.sphere_size[1] * _MM, 4)),
     )

@@ -168,6 +168,22 @@ def test_a_wrong_arm_model_is_suspect_on_the_twin():
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("error_mm", [1.0, -0.7])
+def test_a_radius_given_wrong_is_suspect_on_the_twin(error_mm):
+    """The pipeline told a radius off the printed one: every centre lies off along its
+    beam, which the residuals cannot show; the images draw the true size."""
+    from bench.config.scenario import load_scenario
+    from bench.jobs.single import run
+
+    sets = [f"phantom.stated_radius_error_mm={error_mm}", "protocol.spheres=[1]"]
+    v = run(load_scenario(QUICK, sets)).metrics["calibration"]["single"]["verdict"]
+    assert v["status"] == "suspect"
+    assert any("draw the sphere" in r for r in v["reasons"])
+    assert abs(v["radius_seen_mm"] - 5.0) < 0.4  # quick.yaml's spheres: 5 mm
+    assert v["radius_given_mm"] == pytest.approx(5.0 + error_mm)
+
+
+@pytest.mark.slow
 def test_run_exits_3_when_the_calibration_is_not_accepted_within_the_requirement(tmp_path):
     out = tmp_path / "run"
     r = uscal(

@@ -84,7 +84,7 @@ from .baseline import localize_sphere_fixed_threshold
 from .refine import profile_bands, profile_crossings, radial_profile
 from .search import fibonacci_hemisphere, half_ball_samples, score_candidates, score_grid
 from .settings import LocalizerConfig, SweepLocalization, frame_offsets
-from .sphere import SphereProfile, localize_sphere, sphere_profile
+from .sphere import SphereProfile, apparent_sphere_radius, localize_sphere, sphere_profile
 from .volume import SweepVolume, candidate_step, frame_levels, stack_sweep
 
 __all__ = [
@@ -92,6 +92,7 @@ __all__ = [
     "SphereProfile",
     "SweepLocalization",
     "SweepVolume",
+    "apparent_sphere_radius",
     "candidate_step",
     "fibonacci_hemisphere",
     "frame_levels",

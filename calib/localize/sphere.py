@@ -26,6 +26,7 @@ from .refine import (
     _did_not_settle,
     _radial_band_passes,
     _refine_centre,
+    apparent_radius,
     profile_bands,
     profile_crossings,
     radial_profile,
@@ -42,7 +43,7 @@ from .search import (
 from .settings import LocalizerConfig, SweepLocalization
 from .volume import SweepVolume, candidate_step, stack_sweep
 
-__all__ = ["SphereProfile", "localize_sphere", "sphere_profile"]
+__all__ = ["SphereProfile", "apparent_sphere_radius", "localize_sphere", "sphere_profile"]
 
 Array = NDArray[np.float64]
 # A sweep's best candidate: (centre voxel, score, f_shell, f_interior).
@@ -292,3 +293,32 @@ def sphere_profile(
     inner, rise, fall = profile_bands(radii, profile, radius)
     crossed = tuple(c is not None for c in profile_crossings(radii, profile))
     return SphereProfile(radii, profile, inner, (rise, fall), len(vols), crossed)
+
+
+def apparent_sphere_radius(
+    sweeps: Sequence[Sweep],
+    localizations: Sequence[SweepLocalization],
+    T_ee_us: Array | None,
+    radius: float,
+    cfg: LocalizerConfig,
+    *,
+    axial_scale: float = 1.0,
+    at_most: int = 15,
+) -> tuple[float, int] | None:
+    """The median over (at most ``at_most``, evenly chosen) accepted sweeps of the
+    sphere's radius as their images draw it (:func:`calib.localize.refine.
+    apparent_radius`), and how many sweeps gave one; None without any."""
+    accepted = [i for i, loc in enumerate(localizations) if loc.accepted]
+    if not accepted:
+        return None
+    n = min(at_most, len(accepted))
+    pick = [accepted[int(j)] for j in np.linspace(0, len(accepted) - 1, n)]
+    found = []
+    for i in dict.fromkeys(pick):
+        vol = _stack(sweeps[i], T_ee_us, axial_scale, cfg)
+        r = apparent_radius(vol, localizations[i].centre, radius)
+        if r is not None:
+            found.append(r)
+    if not found:
+        return None
+    return float(np.median(found)), len(found)
