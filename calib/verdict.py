@@ -1,7 +1,7 @@
 """A verdict with every calibration: ``accepted``, ``suspect`` or ``rejected``, each with
 its reasons in one line a user can act on.
 
-The pipeline already holds the evidence; a calibration is judged on five questions:
+The pipeline already holds the evidence; a calibration is judged on these questions:
 
 - **Did the alternation settle?** (paper §III-F: localize, calibrate, re-stack, until the
   estimate stops changing.) Its last update is compared with the estimate's own 95 %
@@ -22,6 +22,10 @@ The pipeline already holds the evidence; a calibration is judged on five questio
   each centre gives the radius the images draw (:func:`calib.localize.
   apparent_sphere_radius`); a radius given wrong puts every centre off along its beam by
   the difference, an error the residuals cannot show.
+- **Is the image's scale the one assumed?** ``T_ee_us`` refitted with the lateral and
+  axial scale free (:func:`image_scale`): a pixel spacing the scanner reports wrong, or
+  a speed of sound not corrected, shows as a scale off by more than 1 % and three
+  standard errors.
 - **Were enough centres kept?** A fit that drops more than a tenth of the localizer's
   centres as outliers saw errors that are not the noise it assumes (false detections,
   or poses that disagree).
@@ -33,7 +37,8 @@ The pipeline already holds the evidence; a calibration is judged on five questio
 The thresholds are stated once, below, each with its reason: a quarter of the bound (an
 iteration's leftover motion well inside the estimate's own uncertainty), pose scatter
 above the localizer's and above half a millimetre at a 0.1 % significance level, a radius
-0.4 mm off, a tenth of the centres, a millimetre of bound.
+0.4 mm off, a scale 1 % and three standard errors off, a tenth of the centres, a
+millimetre of bound.
 """
 
 from __future__ import annotations
@@ -44,16 +49,20 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
+from scipy.optimize import least_squares
 
+from . import se3
 from .alternation import AlternationResult, AlternationSettings
 from .calibrate import centres_in_base
 from .uncertainty import Bound95, orientation_groups
 
 __all__ = [
     "BoundFigures",
+    "ImageScale",
     "PoseAgreement",
     "Requirements",
     "Verdict",
+    "image_scale",
     "judge",
     "pose_agreement",
 ]
@@ -91,6 +100,10 @@ POSE_SCATTER_MM = 0.5
 #: the estimate reads 0.07–0.37 mm large on the twin (the PSF, saturation), so a radius
 #: given 0.5 mm or more off shows, a scale error of a few per cent does not.
 RADIUS_MISMATCH_MM = 0.4
+#: The images' scale (lateral, axial) may differ from the one assumed by this share, and
+#: by three of its standard errors: at the 25–40 mm the spheres are imaged, 1 % moves a
+#: centre 0.25–0.4 mm along the beam, the size of the localizer's noise.
+SCALE_MISMATCH = 0.01
 #: A fit dropping more than this share of the localizer's centres is suspect.
 MAX_DROPPED_SHARE = 0.1
 #: Without a requirement of the user's, ``accepted`` means known to this (95 % bound over
@@ -156,6 +169,76 @@ class PoseAgreement:
 
 
 @dataclass(frozen=True)
+class ImageScale:
+    """The scale of the images (lateral, axial) against the one the pipeline assumed
+    (1 = as assumed), fitted with ``T_ee_us`` and the spheres' centres, and its
+    standard errors."""
+
+    lateral: float
+    axial: float
+    lateral_se: float
+    axial_se: float
+
+    def off(self) -> list[tuple[str, float, float]]:
+        """The axes whose scale is off by more than :data:`SCALE_MISMATCH` and three
+        standard errors: (name, per cent, its standard error in per cent)."""
+        out = []
+        for name, s, se in (
+            ("laterally", self.lateral, self.lateral_se),
+            ("in depth", self.axial, self.axial_se),
+        ):
+            if abs(s - 1.0) > max(SCALE_MISMATCH, 3.0 * se):
+                out.append((name, 100.0 * (s - 1.0), 100.0 * se))
+        return out
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "lateral": round(self.lateral, 5),
+            "axial": round(self.axial, 5),
+            "lateral_se": round(self.lateral_se, 5),
+            "axial_se": round(self.axial_se, 5),
+        }
+
+
+def image_scale(alt: AlternationResult) -> ImageScale | None:
+    """:class:`ImageScale` of a calibration's retained centres: ``T_ee_us`` refitted with
+    the image's lateral and axial scale free (``P_base = T_base_ee T_ee_us diag(s_x, s_y,
+    1) p_us``, each sphere's centre free: the similarity PLUS's ImageToProbe allows), the
+    scales' standard errors from the fit's Jacobian and residuals. The protocol's
+    in-plane offsets and tilts make the scale observable: on the twin's quick.yaml to
+    ± 0.2–0.4 %. None with too few centres."""
+    keep = alt.result.retained
+    obs = [o for o, k in zip(alt.observations, keep, strict=True) if k]
+    targets = list(dict.fromkeys(o.target for o in obs))
+    n_params = 8 + 3 * len(targets)
+    if 3 * len(obs) <= n_params + 3:
+        return None
+    sphere = np.array([targets.index(o.target) for o in obs])
+    T0 = alt.result.T_ee_us
+    T_base_ee = np.array([o.T_base_ee for o in obs])
+    p_us = np.array([o.p_us for o in obs])
+
+    def centres(x: Array) -> Array:
+        T = T_base_ee @ (T0 @ se3.exp(x[:6]))
+        P = p_us * np.array([x[6], x[7], 1.0])
+        return np.einsum("nij,nj->ni", T[:, :3, :3], P) + T[:, :3, 3]
+
+    start = centres(np.r_[np.zeros(6), 1.0, 1.0])
+    c0 = np.array([start[sphere == k].mean(axis=0) for k in range(len(targets))])
+
+    def residuals(x: Array) -> Array:  # mm
+        return ((centres(x) - x[8:].reshape(-1, 3)[sphere]) * _MM).ravel()
+
+    x0 = np.r_[np.zeros(6), 1.0, 1.0, c0.ravel()]
+    scale = np.r_[np.full(6, 1e-3), 0.01, 0.01, np.full(c0.size, 1e-3)]
+    fit = least_squares(residuals, x0, x_scale=scale)
+    dof = len(fit.fun) - len(x0)
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * float(fit.fun @ fit.fun) / dof
+    se = np.sqrt(np.clip(np.diag(cov)[6:8], 0.0, None))
+    return ImageScale(float(fit.x[6]), float(fit.x[7]), float(se[0]), float(se[1]))
+
+
+@dataclass(frozen=True)
 class Verdict:
     """``status`` and its ``reasons`` (one line each, what to do about it), with the
     evidence: whether the alternation ``settled`` (its last update, mm and degrees), the
@@ -170,6 +253,7 @@ class Verdict:
     agreement: PoseAgreement | None
     requirements: Requirements = Requirements()
     radius_mm: tuple[float, float] | None = None  # given, as the images draw it
+    scale: ImageScale | None = None
 
     def line(self) -> str:
         """One line: the status and its reasons."""
@@ -195,6 +279,8 @@ class Verdict:
             out["pose_agreement"] = self.agreement.as_dict()
         if self.radius_mm is not None:
             out["radius_given_mm"], out["radius_seen_mm"] = self.radius_mm
+        if self.scale is not None:
+            out["image_scale"] = self.scale.as_dict()
         if self.requirements.any:
             out["required"] = {
                 "image_mm": self.requirements.image_mm,
@@ -271,7 +357,7 @@ def judge(
     tol_mm: float = AlternationSettings.tol_mm,
     tol_deg: float = AlternationSettings.tol_deg,
 ) -> Verdict:
-    """The verdict on one calibration (see the module's five questions). ``tol_mm`` /
+    """The verdict on one calibration (see the module's questions). ``tol_mm`` /
     ``tol_deg``: the alternation's own tolerances (an update below both has converged
     whatever the bound)."""
     requirements = requirements or Requirements()
@@ -311,6 +397,14 @@ def judge(
                 "(phantom.sphere_radius_mm or the dataset's), the pixel spacing and the speed "
                 "of sound — every centre lies off along its beam by the difference"
             )
+    scale = image_scale(alt)
+    if scale is not None and scale.off():
+        parts = " and ".join(f"{p:+.1f} % {name} (± {se:.1f} %)" for name, p, se in scale.off())
+        suspect.append(
+            f"the images' scale looks off: {parts} against the pixel spacing and speed of "
+            "sound assumed; check the spacing the scanner reports and the speed-of-sound "
+            "correction (imaging.sound_speed_correction, the medium's temperature)"
+        )
     n_kept = int(alt.result.retained.sum())
     n_given = len(alt.observations)
     if n_given and (n_given - n_kept) > MAX_DROPPED_SHARE * n_given:
@@ -358,4 +452,5 @@ def judge(
         None
         if alt.sphere_size is None
         else (round(alt.sphere_size[0] * _MM, 4), round(alt.sphere_size[1] * _MM, 4)),
+        scale,
     )

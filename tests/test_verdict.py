@@ -38,12 +38,16 @@ def _views() -> list[np.ndarray]:
 
 
 def _alternation(
-    pose_error_mm: float = 0.0, noise_mm: float = 0.1, history: list[dict] | None = None
+    pose_error_mm: float = 0.0,
+    noise_mm: float = 0.1,
+    history: list[dict] | None = None,
+    spacing_error: float = 0.0,
 ) -> AlternationResult:
     """A single-marker calibration at the true mount (identity: the image frame is the
     flange's): centres with localization noise, and a pose-dependent error of
     ``pose_error_mm`` per axis shared by every sweep of a view (what a wrong kinematic
-    model gives)."""
+    model gives); the scanner's reported pixel spacing ``spacing_error`` (a share) too
+    long in both directions."""
     rng = np.random.default_rng(1)
     T = np.eye(4)
     poses = _views()
@@ -52,6 +56,7 @@ def _alternation(
     for i, T_base_ee in enumerate(poses):
         p_us = se3.apply(se3.invert(T_base_ee @ T), P_BASE)
         p_us = p_us + view_error[i // 5] + rng.normal(0.0, noise_mm * MM, 3)
+        p_us[:2] *= 1.0 + spacing_error  # what the image reports
         obs.append(Observation("sphere_1", i, p_us, T_base_ee))
     result = CalibrationResult(
         T, None, np.ones(len(obs), bool), np.zeros(len(obs)), np.eye(6) * 1e-8, 0.0
@@ -117,6 +122,20 @@ def test_an_alternation_that_did_not_settle_is_suspect():
     # own tolerance.
     small = [*moving[:2], {"iteration": 2, "change_mm": 0.02, "change_deg": 0.04}]
     assert judge(_alternation(history=small), BOUND).settled
+
+
+def test_an_image_scale_off_is_found_and_named():
+    """A pixel spacing 3 % off moves every centre along its beam alike: the residuals
+    barely show it, the scale fitted with the mount does."""
+    v = judge(_alternation(spacing_error=0.03), BOUND)
+    assert v.status == "suspect" and "scale looks off" in v.line()
+    assert v.scale is not None
+    # Within 2.5 of its standard errors (≈ 0.8 % on these views).
+    assert v.scale.axial == pytest.approx(1 / 1.03, abs=2.5 * v.scale.axial_se)
+    assert v.scale.lateral == pytest.approx(1 / 1.03, abs=2.5 * v.scale.lateral_se)
+    clean = judge(_alternation(), BOUND).scale
+    assert clean is not None and clean.off() == []
+    assert abs(clean.axial - 1.0) < 3 * clean.axial_se + 0.002
 
 
 def test_many_dropped_centres_are_suspect():
