@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from calib.errors import CollisionError, UnreachablePoseError
+
 from . import progress as progress_report
 from .files import make_directory, write_text_atomic
 from .parallel import as_completed, executor
@@ -69,20 +71,27 @@ class GridPoint:
 @dataclass(frozen=True)
 class GridOutcome:
     """Every point's document, in the points' order (``overrides``, ``seed``, then the
-    task's result, or ``error`` and ``traceback``), and how the distinct runs went:
-    computed now, read from the cache, failed; the wall time."""
+    task's result, ``error`` and ``traceback``, or ``refused``), and how the distinct runs
+    went: computed now, read from the cache, failed, refused (the plan collides or is out
+    of reach: refused before anything moved); the wall time."""
 
     documents: list[dict[str, Any]]
     computed: int
     cached: int
     failed: int
     seconds: float
+    refused: int = 0
 
 
 def _guarded(task: Task, overrides: tuple[tuple[str, Any], ...], seed: int) -> dict[str, Any]:
-    """The task of a point, its failure recorded instead of raised (the grid goes on)."""
+    """The task of a point, its failure recorded instead of raised (the grid goes on). A
+    plan refused before anything moved (a pose that would collide or is out of reach: the
+    condition cannot be run on this rig, nothing went wrong) is a ``refused`` point, not
+    a failed one."""
     try:
         return task(overrides, seed)
+    except (CollisionError, UnreachablePoseError) as exc:
+        return {"refused": f"{type(exc).__name__}: {exc}"}
     except Exception as exc:
         return {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
 
@@ -130,10 +139,12 @@ def run_grid(
         finally:
             close()
     failed = sum("error" in doc for doc in done.values())
+    refused = sum("refused" in doc for doc in done.values())
     return GridOutcome(
         [done[p.key] for p in points],
         len(runs) - n_cached,
         n_cached,
         failed,
         time.perf_counter() - t0,
+        refused,
     )

@@ -255,6 +255,26 @@ def test_a_failing_point_records_its_error_and_the_sweep_goes_on(tmp_path):
     assert "2 point(s) failed" in (tmp_path / "out" / "sweep.html").read_text()
 
 
+def test_a_refused_plan_is_not_a_failure(tmp_path):
+    """An 8 mm sphere at a 10 mm target: the probe would touch it, and the plan is
+    refused before anything moves. The condition cannot be run on this rig; nothing went
+    wrong: the point is listed as refused, not failed, and the sweep exits 0."""
+    path = _write(
+        tmp_path / "sweep.yaml",
+        f"base: {QUICK}\ngrid:\n  protocol.target_depth_mm, imaging.depth_mm: [[10, 25]]\n"
+        "  phantom.sphere_radius_mm: [8]\nseeds: [0]\nstages: [localize]\n"
+        "methods: [refined]\n",
+    )
+    out = tmp_path / "out"
+    r = uscal("sweep", str(path), "--out", str(out), "--workers", "1")
+    assert r.returncode == 0, (r.returncode, r.stdout, r.stderr)
+    assert "0 failed, 1 refused before anything moved" in " ".join(r.stdout.split())
+    (row,) = _rows(out)
+    assert row["error"].startswith("refused: CollisionError")
+    page = (out / "sweep.html").read_text()
+    assert "1 point(s) refused before anything moved" in page and "failed" not in page
+
+
 def test_linked_keys_are_set_together_and_reported(tmp_path):
     """A grid entry of several keys (the image depth following the target depth) sets
     them together: one point per value, each key in the point's overrides and its own

@@ -24,8 +24,16 @@ def print_workload(count: int, seeds: int, hours: float, workers: int, cluster: 
 
 def print_cached_run(what: str, n: int, result, files: Sequence[Path], console) -> None:
     """How a sweep's or budget's points went, and its files."""
+    refused = getattr(result, "refused", 0)
     console.print(
         f"{n} {what}: {result.computed} computed, {result.cached} from the cache, "
-        f"{result.failed} failed, in {result.seconds:.0f} s"
+        f"{result.failed} failed"
+        + (
+            f", {refused} refused before anything moved (the plan collides or is out of "
+            "reach at that condition)"
+            if refused
+            else ""
+        )
+        + f", in {result.seconds:.0f} s"
     )
     console.print(f"wrote {', '.join(str(f) for f in files[:-1])} and {files[-1]}")

@@ -236,9 +236,10 @@ class BudgetOutcome:
         """``{overrides, seed, figures, seconds}`` (:func:`run_budget_point`), or
         ``{overrides, seed, error, traceback}`` for a run that failed (no figures)."""
         figures = doc.get("figures")
+        refused = doc.get("refused")
         return cls(
             None if figures is None else {k: float(v) for k, v in figures.items()},
-            doc.get("error"),
+            doc.get("error") or (None if refused is None else f"refused: {refused}"),
         )
 
     def figure(self, name: str) -> float:
@@ -259,6 +260,7 @@ class BudgetResult:
     cached: int
     failed: int
     seconds: float
+    refused: int = 0
 
 
 def run_budget(
@@ -285,4 +287,5 @@ def run_budget(
         grid.cached,
         grid.failed,
         grid.seconds,
+        grid.refused,
     )

@@ -365,22 +365,25 @@ class SweepRow:
 @dataclass(frozen=True)
 class SweepPoint:
     """A point's document as the grid records it (:func:`bench.grid.run_grid`): its
-    overrides and seed, and its rows or the error it failed with."""
+    overrides and seed, and its rows, the error it failed with, or why its plan was
+    refused before anything moved (a pose that collides or is out of reach)."""
 
     overrides: tuple[tuple[str, Any], ...]
     seed: int
     rows: tuple[SweepRow, ...] = ()
     error: str | None = None
+    refused: str | None = None
 
     @classmethod
     def from_document(cls, doc: dict[str, Any]) -> SweepPoint:
-        """``{overrides, seed, rows}``, or ``{overrides, seed, error, traceback}`` for a
-        point that failed (no rows)."""
+        """``{overrides, seed, rows}``, ``{overrides, seed, error, traceback}`` for a
+        point that failed, or ``{overrides, seed, refused}`` (no rows)."""
         return cls(
             tuple((k, v) for k, v in doc["overrides"]),
             int(doc["seed"]),
             tuple(SweepRow.from_document(r) for r in doc.get("rows", [])),
             doc.get("error"),
+            doc.get("refused"),
         )
 
     def override(self, key: str) -> Any:
@@ -393,7 +396,8 @@ class SweepPoint:
 
 @dataclass(frozen=True)
 class SweepResult:
-    """Every point's rows (or error), in grid order, and what was computed anew."""
+    """Every point's rows (or error, or refusal), in grid order, and what was computed
+    anew."""
 
     spec: SweepSpec
     points: list[dict[str, Any]]
@@ -401,6 +405,7 @@ class SweepResult:
     cached: int
     failed: int
     seconds: float
+    refused: int = 0
 
 
 def run_sweep(
@@ -411,9 +416,18 @@ def run_sweep(
 ) -> SweepResult:
     """Run every point not yet cached in ``out/points``, on a local process pool
     (``workers``, default one per core) or the Dask cluster at ``scheduler``
-    (:func:`bench.grid.run_grid`). A failed point records its error and the sweep goes
-    on; :func:`bench.outputs.sweep_report.write_sweep` writes the tables."""
+    (:func:`bench.grid.run_grid`). A failed point records its error, a refused one why
+    its plan was refused (collision, reach), and the sweep goes on;
+    :func:`bench.outputs.sweep_report.write_sweep` writes the tables."""
     task = functools.partial(_sweep_point, str(spec.base), spec.stages, spec.methods)
     points = [GridPoint(o, s, point_key(spec, o, s)) for o, s in spec.points()]
     grid = run_grid(task, points, out, scheduler, workers, "sweep points")
-    return SweepResult(spec, grid.documents, grid.computed, grid.cached, grid.failed, grid.seconds)
+    return SweepResult(
+        spec,
+        grid.documents,
+        grid.computed,
+        grid.cached,
+        grid.failed,
+        grid.seconds,
+        grid.refused,
+    )

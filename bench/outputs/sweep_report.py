@@ -106,6 +106,7 @@ def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -
         metrics.append("calibration_image_mm")
     points = _points(points)
     failed = [p for p in points if p.error is not None]
+    refused = [p for p in points if p.refused is not None]
     false_total = {
         m: sum(r.false_acceptances or 0 for p in points for r in p.rows if r.method == m)
         for m in spec.methods
@@ -139,6 +140,16 @@ def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -
             "than 1 mm from the truth: " + ", ".join(f"{m} **{n}**" for m, n in kept.items()) + ".",
             "",
         ]
+    if refused:
+        lines += [
+            f"{len(refused)} point(s) refused before anything moved (the plan collides or "
+            "is out of reach at that condition):",
+            "",
+        ]
+        lines += [
+            f"- {[list(o) for o in p.overrides]}, seed {p.seed}: {p.refused}" for p in refused
+        ]
+        lines.append("")
     if failed:
         lines += [f"**{len(failed)} point(s) failed**:", ""]
         # The overrides as the point's document lists them: [[key, value], ...].
@@ -179,7 +190,12 @@ def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any] | SweepPoint]) 
         for method, row in rows:
             cells = [*values, str(point.seed), method]
             cells += [_fmt(row.figure(m) if row is not None else None) for m in metrics]
-            error = point.error or (row.calibration_error if row is not None else None) or ""
+            error = (
+                point.error
+                or (f"refused: {point.refused}" if point.refused else None)
+                or (row.calibration_error if row is not None else None)
+                or ""
+            )
             cells.append('"' + error.replace('"', "'") + '"' if error else "")
             lines.append(",".join(cells))
     return "\n".join(lines) + "\n"
