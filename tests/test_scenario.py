@@ -45,6 +45,26 @@ def test_the_localizer_searches_where_the_plan_puts_the_sphere():
     assert s.localization.expected_depth_mm == 25.0
 
 
+def test_the_search_window_follows_the_plan_unless_set():
+    """A wider plan widens the window the user never touched (shown as derived in
+    `uscal check`); a window the user set short is refused, naming what it needs."""
+    wide = ["protocol.rotation_deg=15", "protocol.translation_mm=8"]
+    s = load_scenario(ROOT / "scenarios" / "quick.yaml", wide, check_reach=False)
+    need = 8 + 3 * s.protocol.teaching_error_mm
+    assert s.localization.expected_window_mm == need
+    assert ("localization.expected_window_mm", need) in [(k, v) for k, v, _ in s.derived]
+    with pytest.raises(ScenarioError, match=rf"expected_window_mm = 10.*≥ .* = {need:g}"):
+        load_scenario(
+            ROOT / "scenarios" / "quick.yaml",
+            [*wide, "localization.expected_window_mm=10"],
+            check_reach=False,
+        )
+    # The default plan needs less than the default window: nothing derived.
+    s = load_scenario(ROOT / "scenarios" / "quick.yaml", check_reach=False)
+    assert s.localization.expected_window_mm == 10.0
+    assert "localization.expected_window_mm" not in [k for k, _, _ in s.derived]
+
+
 def write(tmp_path, text):
     path = tmp_path / "s.yaml"
     path.write_text(text)

@@ -109,6 +109,8 @@ class Scenario:
     planning: PlanningConfig = field(default_factory=PlanningConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     source: str = "<default>"
+    #: Settings the scenario did not set, derived from those it did (key, value, from).
+    derived: tuple[tuple[str, float, str], ...] = ()
 
     def rngs(self, n: int) -> list[np.random.Generator]:
         """``n`` independent generators from the seed, one per stage (DESIGN.md §3)."""
@@ -137,12 +139,29 @@ def scenario_from_mapping(data: Any, source: str = "<scenario>") -> Scenario:
     sections = {
         name: build_section(cls, data.get(name), name, source) for name, cls in SECTIONS.items()
     }
-    if sections["localization"].expected_depth_mm is None:
+    derived: list[tuple[str, float, str]] = []
+    loc, proto = sections["localization"], sections["protocol"]
+    if loc.expected_depth_mm is None:
         # The plan says where the sphere will be: the localizer searches there.
-        sections["localization"] = dataclasses.replace(
-            sections["localization"], expected_depth_mm=sections["protocol"].target_depth_mm
+        loc = dataclasses.replace(loc, expected_depth_mm=proto.target_depth_mm)
+        derived.append(
+            ("localization.expected_depth_mm", proto.target_depth_mm, "protocol.target_depth_mm")
         )
-    scenario = Scenario(seed=seed, source=source, **sections)
+    if "expected_window_mm" not in (data.get("localization") or {}):
+        # Not set: wide enough for the plan's offsets and the teaching error (a value the
+        # user set is checked against the same need, and refused if short).
+        need = proto.translation_mm + 3 * proto.teaching_error_mm
+        if need > loc.expected_window_mm:
+            loc = dataclasses.replace(loc, expected_window_mm=need)
+            derived.append(
+                (
+                    "localization.expected_window_mm",
+                    need,
+                    "protocol.translation_mm + 3 × protocol.teaching_error_mm",
+                )
+            )
+    sections["localization"] = loc
+    scenario = Scenario(seed=seed, source=source, derived=tuple(derived), **sections)
     _check_consistency(scenario)
     if scenario.protocol.plan is not None:
         _check_plan(scenario)

@@ -55,6 +55,11 @@ def print_scenario_summary(s: Scenario, console: Console) -> None:
             "frames",
         ),
         ("output", s.output.dir),
+        *(
+            [("derived", "; ".join(f"{k} = {v:g} (from {src})" for k, v, src in s.derived))]
+            if s.derived
+            else []
+        ),
     ]
     for name, text in rows:
         table.add_row(name, text)

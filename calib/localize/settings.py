@@ -119,7 +119,9 @@ class LocalizerConfig:
         metadata={
             "doc": "Half-width of that window, laterally and in depth: it must cover the "
             "plan's in-plane offsets (protocol.translation_mm) and how far the taught "
-            "pose may miss the target (3 × protocol.teaching_error_mm).",
+            "pose may miss the target (3 × protocol.teaching_error_mm). Unset in a "
+            "scenario: 10, or that need where the plan needs more (shown as derived by "
+            "`uscal check`); a value set short of it is refused.",
             "gt": 0,
             "le": 200,
         },
