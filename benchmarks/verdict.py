@@ -63,8 +63,10 @@ FAULTS = {
 }
 
 
-def draw(n: int, seed: int) -> list[tuple[str, dict[str, Any], int]]:
-    """``n`` runs: (label, overrides, run seed), conditions drawn at random."""
+def draw(n: int, seed: int, faults: bool = True) -> list[tuple[str, dict[str, Any], int]]:
+    """``n`` runs: (label, overrides, run seed), conditions drawn at random; with
+    ``faults``, about half with one of :data:`FAULTS` (``benchmarks/uncertainty.py``
+    draws the same conditions without)."""
     rng = np.random.default_rng([seed, 0xE7D1C7])
     out = []
     for i in range(n):
@@ -83,7 +85,7 @@ def draw(n: int, seed: int) -> list[tuple[str, dict[str, Any], int]]:
             "localization.method": str(rng.choice(["refined", "paper"], p=[0.75, 0.25])),
         }
         label = "clean"
-        if rng.random() < 0.5:
+        if rng.random() < 0.5 and faults:
             label = str(rng.choice(list(FAULTS)))
             ov |= FAULTS[label](rng)
         out.append((label, ov, int(rng.integers(1000, 1_000_000)) + i))

@@ -255,6 +255,7 @@ def test_a_failing_point_records_its_error_and_the_sweep_goes_on(tmp_path):
     assert "2 point(s) failed" in (tmp_path / "out" / "sweep.html").read_text()
 
 
+@pytest.mark.slow
 def test_a_refused_plan_is_not_a_failure(tmp_path):
     """An 8 mm sphere at a 10 mm target: the probe would touch it, and the plan is
     refused before anything moves. The condition cannot be run on this rig; nothing went
