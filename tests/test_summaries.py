@@ -260,6 +260,7 @@ def _paper_metrics(sets=("A", "B")) -> dict:
             "dataset": s,
             "kind": kind,
             "true": {"image_mm": 1.0 + i, "accuracy_true_mm": 0.5 + i},
+            "verdict": {"status": "accepted" if i == 0 else "suspect", "reasons": []},
         }
         for s in sets
         for kind in ("single", "three")
@@ -311,8 +312,8 @@ def test_the_paper_evaluation_gives_its_tables():
     assert [t.title[:9] for t in ev.tables] == ["Table I. ", "Table II."]
     # A: both kinds of folds (means of 1, 2 and of 0.5, 1.5); B: no three-marker folds.
     assert ev.truth_table().rows == (
-        ("A", "2.10", "0.200", "0.60", "1.50", "1.00", "1.50", "1.00"),
-        ("B", "2.10", "0.200", "0.60", "1.50", "1.00", "–", "–"),
+        ("A", "2.10", "0.200", "0.60", "1.50", "1.00", "1.50", "1.00", "1 / 2", "1 / 2"),
+        ("B", "2.10", "0.200", "0.60", "1.50", "1.00", "–", "–", "1 / 2", "–"),
     )
     text = _printed(print_evaluation, ev)
     assert "against ground truth (beyond the paper)" in text

@@ -194,6 +194,10 @@ def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path):
     rows = _rows(out)
     assert len(rows) == 3
     assert all(0 < float(r["calibration_image_mm"]) < 1.0 for r in rows)  # calibrate stage
+    assert all(r["calibration_verdict"] == "accepted" for r in rows)  # a sound rig
+    assert (
+        "The calibrations' verdicts (without a bound): refined:" in (out / "sweep.html").read_text()
+    )
 
 
 @pytest.mark.slow

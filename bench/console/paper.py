@@ -32,7 +32,8 @@ def print_evaluation(ev: PaperEvaluation, console: Console) -> None:
         "mm; kin. err: RMS error of the kinematic model at the image over the scanned "
         "configurations (after the base/flange frames touches cannot see); ref. err: touch "
         "reference centres vs true centres; image/acc: per-fold mean true image error of "
-        "T_ee_us and accuracy against the true centres (1: single-, 3: three-marker)."
+        "T_ee_us and accuracy against the true centres (1: single-, 3: three-marker); "
+        "accepted: folds the verdict accepted."
     )
     print_table(replace(ev.truth_table(), notes=(note,)), console)
     hidden = [k for k, v in ev.unobservable_share.items() if v >= 0.5]

@@ -18,7 +18,7 @@ from calib.kinematics import (
     TouchReference,
     identifiability,
 )
-from calib.verdict import BoundFigures
+from calib.verdict import BoundFigures, judge
 
 from ..acquire_sim import coarse_estimate
 from ..config.method import requirements
@@ -50,6 +50,18 @@ def summary_tables(
 
 def tables_json(table: dict[str, dict[str, Summary]]) -> dict[str, Any]:
     return {metric: {s: v.as_dict() for s, v in by_set.items()} for metric, by_set in table.items()}
+
+
+def _fold_verdict(r: FoldResult, fold_bounds: dict[str, Any], scenario) -> dict[str, Any]:
+    """A fold's verdict (:func:`calib.verdict.judge`) against its bound and the
+    scenario's requirements: status and reasons."""
+    figures = fold_bounds.get(r.fold.name, {}).get("bound95")
+    v = judge(
+        r.alternation,
+        None if figures is None else BoundFigures.from_dict(figures),
+        requirements(scenario),
+    )
+    return {"status": v.status, "reasons": list(v.reasons)}
 
 
 def evaluation_metrics(
@@ -106,6 +118,7 @@ def evaluation_metrics(
                     },
                     "n_retained": int(r.alternation.result.retained.sum()),
                     "iterations": len(r.alternation.history),
+                    "verdict": _fold_verdict(r, fold_bounds, scenario),
                     "true": {k: v for k, v in t.items() if k != "fold"},
                     **(
                         {"bound95": fold_bounds[r.fold.name]["bound95"]}

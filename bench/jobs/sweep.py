@@ -36,6 +36,7 @@ import numpy as np
 from calib.alternation import AlternationSettings, alternate
 from calib.errors import UscalError
 from calib.localize import localize_sphere
+from calib.verdict import judge
 
 from .. import progress as progress_report
 from ..acquire_sim import make_imager, make_twin, simulate_acquisition
@@ -283,6 +284,8 @@ def run_point(
                 row["calibration_image_mm"] = image_error_mm(
                     scenario, alt.result.T_ee_us, truth.T_ee_us
                 )
+                # What the pipeline itself says of it (no bound is computed here).
+                row["calibration_verdict"] = judge(alt).status
                 # The localizer again, with the estimated mount (the consensus the
                 # alternation builds): the centres the calibration kept that are > 1 mm
                 # off, and those the localizer accepted but the calibration dropped.
@@ -333,6 +336,8 @@ class SweepRow:
     # centres it dropped as outliers.
     calibration_false_acceptances: int | None = None
     calibration_dropped: int | None = None
+    # The calibrate stage: the calibration's verdict (calib.verdict, without a bound).
+    calibration_verdict: str | None = None
 
     @classmethod
     def from_document(cls, row: dict[str, Any]) -> SweepRow:
@@ -355,6 +360,7 @@ class SweepRow:
             row.get("calibration_error"),
             number("calibration_false_acceptances", int),
             number("calibration_dropped", int),
+            row.get("calibration_verdict"),
         )
 
     def figure(self, name: str) -> float | int | None:

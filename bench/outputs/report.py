@@ -249,7 +249,8 @@ def _truth_md(ev: PaperEvaluation, rec: Reconstruction | None) -> str:
         "mm. kin. err: RMS error of the kinematic model at the image over the scanned "
         "configurations; ref. err: touch reference centres vs true centres; image / acc: "
         "per-fold mean true image error of `T_ee_us` and accuracy against the true centres "
-        "(1: single-, 3: three-marker)."
+        '(1: single-, 3: three-marker); accepted: folds whose verdict (README, "The '
+        'verdict") is accepted.'
     ]
     worst = rec.worst_recalibration_image_mm if rec is not None else None
     if worst is not None:

@@ -5,6 +5,7 @@ figures in ``DIR/figures``."""
 from __future__ import annotations
 
 import json
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -27,12 +28,14 @@ _METRICS = {
     "calibration_image_mm": "calibration: true image error (mm)",
     "calibration_false_acceptances": "calibration: centres kept > 1 mm from the truth (count)",
     "calibration_dropped": "calibration: localizer-accepted centres it dropped (count)",
+    "calibration_verdict": "calibration: its verdict (accepted, suspect, rejected)",
 }
 #: The calibrate stage's figures, in the order ``results.csv`` lists them.
 _CALIBRATION_METRICS = (
     "calibration_image_mm",
     "calibration_false_acceptances",
     "calibration_dropped",
+    "calibration_verdict",
 )
 
 
@@ -140,6 +143,26 @@ def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -
             "than 1 mm from the truth: " + ", ".join(f"{m} **{n}**" for m, n in kept.items()) + ".",
             "",
         ]
+        verdicts = {
+            m: Counter(
+                r.calibration_verdict
+                for p in points
+                for r in p.rows
+                if r.method == m and r.calibration_verdict
+            )
+            for m in spec.methods
+        }
+        if any(verdicts.values()):
+            lines += [
+                "The calibrations' verdicts (without a bound): "
+                + "; ".join(
+                    f"{m}: " + ", ".join(f"{n} {v}" for v, n in sorted(c.items()))
+                    for m, c in verdicts.items()
+                    if c
+                )
+                + ".",
+                "",
+            ]
     if refused:
         lines += [
             f"{len(refused)} point(s) refused before anything moved (the plan collides or "

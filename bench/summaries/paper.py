@@ -36,13 +36,15 @@ __all__ = [
 @dataclass(frozen=True)
 class FoldTruth:
     """One fold of the paper's cross-validation against the twin's truth: the mean
-    error of its ``T_ee_us`` over the image and its accuracy against the true centres."""
+    error of its ``T_ee_us`` over the image and its accuracy against the true centres,
+    and the verdict the pipeline gave it (:mod:`calib.verdict`)."""
 
     fold: str
     dataset: str
     kind: str  # single | three
     image_mm: float
     accuracy_true_mm: float
+    verdict: str | None = None  # accepted | suspect | rejected (metrics before: none)
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,7 @@ class PaperEvaluation:
                 f["kind"],
                 float(f["true"]["image_mm"]),
                 float(f["true"]["accuracy_true_mm"]),
+                f["verdict"]["status"] if "verdict" in f else None,
             )
             for f in ev["folds"]
         )
@@ -133,6 +136,13 @@ class PaperEvaluation:
         v = [getattr(f, figure) for f in self.folds if f.dataset == dataset and f.kind == kind]
         return float(np.mean(v)) if v else None
 
+    def _accepted(self, dataset: str, kind: str) -> str:
+        """How many of a dataset's folds of one kind the verdict accepted, "k / n"."""
+        v = [f.verdict for f in self.folds if f.dataset == dataset and f.kind == kind]
+        if not v or any(s is None for s in v):
+            return "–"
+        return f"{sum(s == 'accepted' for s in v)} / {len(v)}"
+
     def truth_table(self) -> Table:
         """Per dataset, its kinematic model's and touch reference's errors against the
         truth and its folds' mean true errors (mm; beyond the paper). Without notes:
@@ -147,12 +157,14 @@ class PaperEvaluation:
                     f"{k.refined_rms_mm:.3f}",
                     f"{k.reference_error_mm:.2f}",
                     *(f"{v:.2f}" if v is not None else "–" for v in means),
+                    *(self._accepted(k.dataset, kind) for kind in ("single", "three")),
                 )
             )
         columns = (
             *left("set"),
             *right("kin. err nominal", "kin. err refined", "ref. err"),
             *right(*(name for name, _, _ in _TRUTH_FOLD_COLUMNS)),
+            *right("1: accepted", "3: accepted"),
         )
         return Table(columns, tuple(rows), "against ground truth (beyond the paper)")
 
