@@ -23,10 +23,8 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
 import argparse  # noqa: E402
-import concurrent.futures as cf  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
-import multiprocessing  # noqa: E402
 import pickle  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
@@ -39,13 +37,19 @@ BASE = Path(__file__).resolve().parents[1] / "scenarios" / "quick.yaml"
 MEASURES = ("rotation_deg", "translation_mm", "image_mm")
 
 
-def runs(n: int, seed: int) -> list[tuple[str, dict[str, Any], int]]:
-    """``n`` runs on conditions drawn at random (``benchmarks/verdict.py``'s draw, without
-    its faults): (label, overrides, run seed)."""
-    spec = importlib.util.spec_from_file_location("verdict_draw", Path(_HERE) / "verdict.py")
+def _verdict_benchmark():
+    """``benchmarks/verdict.py`` as a module: its draw of conditions and its pool."""
+    spec = importlib.util.spec_from_file_location("verdict_bench", Path(_HERE) / "verdict.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    return module
+
+
+def runs(n: int, seed: int) -> list[tuple[str, dict[str, Any], int]]:
+    """``n`` runs on conditions drawn at random (``benchmarks/verdict.py``'s draw, without
+    its faults): (label, overrides, run seed)."""
+    module = _verdict_benchmark()
     out = []
     for _, ov, run_seed in module.draw(n, seed, faults=False):
         label = (
@@ -157,6 +161,17 @@ def summarize(results: list[dict[str, Any]]) -> float:
     return overall
 
 
+def _cells(r: dict[str, Any]) -> list[str]:
+    """A run's line: per method, true / bound per measure."""
+    cells = []
+    for method in ("single", "three"):
+        e = r.get(method)
+        if e and e["bound95"]:
+            pairs = " ".join(f"{e['true'][m]:.3f}/{e['bound95'][m]:.3f}" for m in MEASURES)
+            cells.append(f"{method} {pairs}")
+    return cells
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=30, help="runs (two calibrations each)")
@@ -169,30 +184,8 @@ def main() -> None:
         Path(args.dump).mkdir(parents=True, exist_ok=True)
     todo = runs(args.runs, args.seed)
     t0 = time.perf_counter()
-    results = []
-    ctx = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
-        futures = [pool.submit(_safe, label, ov, seed, args.dump) for label, ov, seed in todo]
-        for f in cf.as_completed(futures):
-            r = f.result()
-            results.append(r)
-            if "error" in r:
-                print(f"{r['label']} (seed {r['seed']}): FAILED {r['error']}", flush=True)
-                continue
-            cells = []
-            for method in ("single", "three"):
-                e = r.get(method)
-                if not e or not e["bound95"]:
-                    continue
-                pairs = " ".join(f"{e['true'][m]:.3f}/{e['bound95'][m]:.3f}" for m in MEASURES)
-                cells.append(f"{method} {pairs}")
-            print(
-                f"{r['label']:44s} seed {r['seed']:7d} {r['seconds']:5.1f} s  " + "  ".join(cells),
-                flush=True,
-            )
-    results.sort(key=lambda r: r["seed"])
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1, default=str))
+    calls = [(label, ov, seed, args.dump) for label, ov, seed in todo]
+    results = _verdict_benchmark().run_on_pool(calls, _safe, args.workers, _cells, args.json)
     wall = time.perf_counter() - t0
     failed = sum("error" in r for r in results)
     bound_s = [

@@ -33,6 +33,7 @@ import json  # noqa: E402
 import multiprocessing  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -178,6 +179,54 @@ def summarize(results: list[dict[str, Any]]) -> tuple[int, float]:
     return false_accepts, coverage
 
 
+def _cells(r: dict[str, Any]) -> list[str]:
+    """A run's line: per method its verdict and true / bound image error (mm), or why
+    it was not calibrated."""
+    return [
+        f"{m} {r[m]['status']} "
+        + (
+            f"{r[m]['true_image_mm']:.2f}/"
+            + (f"{r[m]['bound_image_mm']:.2f}" if r[m]["bound_image_mm"] else "-")
+            if "true_image_mm" in r[m]
+            else r[m]["reasons"][0][:60]
+        )
+        for m in ("single", "three")
+        if m in r
+    ]
+
+
+def run_on_pool(
+    calls: list[tuple[Any, ...]],
+    safe: Callable[..., dict[str, Any]],
+    workers: int,
+    cells: Callable[[dict[str, Any]], list[str]],
+    json_path: str | None,
+) -> list[dict[str, Any]]:
+    """``safe(*call)`` for every call on a pool of ``workers`` spawned processes, a line
+    per finished run (its label, seed, time and ``cells``; a failure's error), the results
+    sorted by seed and written to ``json_path`` when given (``benchmarks/uncertainty.py``
+    runs its draw through this too)."""
+    results = []
+    ctx = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = [pool.submit(safe, *call) for call in calls]
+        for f in cf.as_completed(futures):
+            r = f.result()
+            results.append(r)
+            if "error" in r:
+                print(f"{r['label']} (seed {r['seed']}): FAILED {r['error']}", flush=True)
+                continue
+            print(
+                f"{r['label']:44s} seed {r['seed']:7d} {r['seconds']:5.1f} s  "
+                + "  ".join(cells(r)),
+                flush=True,
+            )
+    results.sort(key=lambda r: r["seed"])
+    if json_path:
+        Path(json_path).write_text(json.dumps(results, indent=1, default=str))
+    return results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=30, help="runs (two calibrations each)")
@@ -187,34 +236,7 @@ def main() -> None:
     args = parser.parse_args()
     todo = draw(args.runs, args.seed)
     t0 = time.perf_counter()
-    results = []
-    ctx = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
-        futures = [pool.submit(_safe, label, ov, seed) for label, ov, seed in todo]
-        for f in cf.as_completed(futures):
-            r = f.result()
-            results.append(r)
-            if "error" in r:
-                print(f"{r['label']} (seed {r['seed']}): FAILED {r['error']}", flush=True)
-                continue
-            cells = [
-                f"{m} {r[m]['status']} "
-                + (
-                    f"{r[m]['true_image_mm']:.2f}/"
-                    + (f"{r[m]['bound_image_mm']:.2f}" if r[m]["bound_image_mm"] else "-")
-                    if "true_image_mm" in r[m]
-                    else r[m]["reasons"][0][:60]
-                )
-                for m in ("single", "three")
-                if m in r
-            ]
-            print(
-                f"{r['label']:44s} seed {r['seed']:7d} {r['seconds']:5.1f} s  " + "  ".join(cells),
-                flush=True,
-            )
-    results.sort(key=lambda r: r["seed"])
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1, default=str))
+    results = run_on_pool(todo, _safe, args.workers, _cells, args.json)
     failed = sum("error" in r for r in results)
     print(
         f"\n{len(results)} runs ({failed} failed) in {time.perf_counter() - t0:.0f} s on "
