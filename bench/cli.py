@@ -28,6 +28,7 @@ from .acquire_rig import acquire_dataset, console_operator, dashboard_operator
 from .cli_parser import parser
 from .config.docs import scenarios_markdown
 from .config.hw import load_hw_config
+from .config.method import requirements
 from .config.plan_file import write_plan
 from .config.scenario import load_scenario
 from .console import (
@@ -83,14 +84,13 @@ def _with_requirements(args: argparse.Namespace) -> list[str]:
 def _gate(scenario, calibrations: Calibrations, console: Console) -> int:
     """Exit code 3 when the scenario states requirements and the calibration to use is
     not accepted within them (the verdict says why); 0 otherwise."""
-    cal = scenario.calibration
-    if cal.require_image_mm is None and cal.require_rotation_deg is None:
+    if not requirements(scenario).any:
         return 0
-    chosen = next(iter(c for c in (calibrations.three, calibrations.single) if c), None)
-    if chosen is not None and chosen.verdict is not None and chosen.verdict.status == "accepted":
+    chosen = calibrations.chosen if calibrations.single or calibrations.three else None
+    status = "not judged" if chosen is None or chosen.verdict is None else chosen.verdict.status
+    if status == "accepted":
         return 0
     what = "no calibration" if chosen is None else f"the {chosen.method}-marker calibration"
-    status = "not judged" if chosen is None or chosen.verdict is None else chosen.verdict.status
     console.print(
         f"{what} is {status}, not accepted within the requirements: exit code {EXIT_NOT_ACCEPTED}",
         highlight=False,

@@ -23,7 +23,7 @@ from calib.kinematics import DHRefinement, TouchReference
 from calib.localize import SweepLocalization
 from calib.records import Dataset, Sweep
 from calib.uncertainty import Bound95, UncertaintyInputs
-from calib.verdict import BoundFigures, Requirements, judge
+from calib.verdict import Requirements, Verdict, judge
 
 from .files import with_frames
 
@@ -216,15 +216,16 @@ def calibration_entry(
     bound: tuple[Bound95, UncertaintyInputs] | None = None,
     requirements: Requirements | None = None,
     *,
-    bound_figures: BoundFigures | None = None,
+    verdict: Verdict | None = None,
 ) -> dict[str, Any]:
     """What ``metrics.json`` keeps of one calibration, truth aside (``bound``: its 95 %
     error bounds and the declared terms they include), with its verdict
-    (:func:`calib.verdict.judge`, against ``requirements``; ``bound_figures``: the bound
-    when it was made elsewhere, e.g. by the paper's dataset tasks). Its precision is the
-    mean over the training spheres of the spread of their reconstructed centres."""
+    (:func:`calib.verdict.judge` against ``requirements``, or ``verdict`` when it was
+    made already, e.g. from a bound the paper's dataset tasks computed). Its precision is
+    the mean over the training spheres of the spread of their reconstructed centres."""
     precision = training_precision(alt)
-    verdict = judge(alt, bound[0] if bound is not None else bound_figures, requirements)
+    if verdict is None:
+        verdict = judge(alt, bound[0] if bound is not None else None, requirements)
     return {
         "verdict": verdict.as_dict(),
         "precision_mm": float(np.mean([precision[t] for t in train])),

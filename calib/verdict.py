@@ -259,11 +259,6 @@ class Verdict:
         """One line: the status and its reasons."""
         return self.status + (": " + "; ".join(self.reasons) if self.reasons else "")
 
-    @property
-    def accepted(self) -> bool:
-        """Accepted (within the requirements it was judged against)."""
-        return self.status == "accepted"
-
     def as_dict(self) -> dict[str, Any]:
         """``metrics.json``'s ``verdict`` of a calibration."""
         out: dict[str, Any] = {

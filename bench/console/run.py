@@ -23,10 +23,9 @@ def print_verdicts(calibrations: Iterable[CalibrationSummary], console: Console)
     for c in calibrations:
         if c.verdict is not None:
             v = c.verdict
-            reasons = ": " + "; ".join(v.reasons) if v.reasons else ""
             console.print(
                 f"{c.method}-marker verdict: [{_STYLE.get(v.status, 'bold')}]{v.status}"
-                f"[/]{reasons}",
+                f"[/]{v.line()[len(v.status) :]}",
                 highlight=False,
             )
 

@@ -52,18 +52,6 @@ def tables_json(table: dict[str, dict[str, Summary]]) -> dict[str, Any]:
     return {metric: {s: v.as_dict() for s, v in by_set.items()} for metric, by_set in table.items()}
 
 
-def _fold_verdict(r: FoldResult, fold_bounds: dict[str, Any], scenario) -> dict[str, Any]:
-    """A fold's verdict (:func:`calib.verdict.judge`) against its bound and the
-    scenario's requirements: status and reasons."""
-    figures = fold_bounds.get(r.fold.name, {}).get("bound95")
-    v = judge(
-        r.alternation,
-        None if figures is None else BoundFigures.from_dict(figures),
-        requirements(scenario),
-    )
-    return {"status": v.status, "reasons": list(v.reasons)}
-
-
 def evaluation_metrics(
     scenario, names, touches, refinements, references, outcomes, truth, cad_vertices
 ) -> dict[str, Any]:
@@ -75,19 +63,21 @@ def evaluation_metrics(
         errors = np.array([np.nan])
     fold_truth = {f["fold"]: f for o in outcomes for f in o.truth["folds"]}
     fold_bounds = {k: v for o in outcomes for k, v in o.uncertainty.items()}
+    # Every fold's verdict, once (the first folds' also go into ``calibration``).
+    verdicts = {}
+    for o in outcomes:
+        for r in o.folds:
+            figures = fold_bounds.get(r.fold.name, {}).get("bound95")
+            bound = None if figures is None else BoundFigures.from_dict(figures)
+            verdicts[r.fold.name] = judge(r.alternation, bound, requirements(scenario))
 
     def calibration_entry(r: FoldResult) -> dict[str, Any]:
         """A fold's calibration (:func:`bench.results.calibration_entry`, its bounds
         from the dataset task) with its errors against the truth."""
         t = fold_truth[r.fold.name]
         bounds = fold_bounds.get(r.fold.name, {})
-        figures = bounds.get("bound95")
         entry = pipeline_entry(
-            r.alternation,
-            r.fold.train,
-            r.fold.test,
-            requirements=requirements(scenario),
-            bound_figures=None if figures is None else BoundFigures.from_dict(figures),
+            r.alternation, r.fold.train, r.fold.test, verdict=verdicts[r.fold.name]
         )
         true_error = {k: t[k] for k in ("rotation_deg", "translation_mm", "image_mm")}
         return {
@@ -118,7 +108,10 @@ def evaluation_metrics(
                     },
                     "n_retained": int(r.alternation.result.retained.sum()),
                     "iterations": len(r.alternation.history),
-                    "verdict": _fold_verdict(r, fold_bounds, scenario),
+                    "verdict": {
+                        "status": verdicts[r.fold.name].status,
+                        "reasons": list(verdicts[r.fold.name].reasons),
+                    },
                     "true": {k: v for k, v in t.items() if k != "fold"},
                     **(
                         {"bound95": fold_bounds[r.fold.name]["bound95"]}

@@ -241,15 +241,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
             # The brightness vertex is uncertain where few frames see the top (a sharp
             # specular echo, frames far apart): the cap's depth in each frame measures
             # the elevation too, through the sphere's known radius.
-            geometric = _elevation_from_depths(
-                vol,
-                rs,
-                cs[np.abs(xs - x_new) <= max(dx, 0.25 * _M_PER_MM)],
-                level,
-                radius,
-                z_new,
-                ys,
-            )
+            geometric = _elevation_from_depths(vol, rs, cs[col], level, radius, z_new, ys)
             if geometric is not None:
                 z_geo, s_geo = geometric
                 w_v, w_g = 1.0 / z_sigma**2, 1.0 / s_geo**2
