@@ -24,7 +24,7 @@ def print_workload(count: int, seeds: int, hours: float, workers: int, cluster: 
 
 def print_cached_run(what: str, n: int, result, files: Sequence[Path], console) -> None:
     """How a sweep's or budget's points went, and its files."""
-    refused = getattr(result, "refused", 0)
+    refused = result.refused
     console.print(
         f"{n} {what}: {result.computed} computed, {result.cached} from the cache, "
         f"{result.failed} failed"
