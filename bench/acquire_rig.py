@@ -4,8 +4,9 @@ grabber), recorded sweep by sweep into a dataset (:mod:`calib.dataset_files`).
 The same protocol code as the twin's (:func:`calib.protocol.plan_sweeps`,
 :func:`calib.protocol.acquire`) drives :class:`hw.robot.URRobot` and
 :class:`hw.grabber.FrameGrabber`. Before anything moves the whole plan is checked
-(workspace box, step between consecutive poses), ``--dry-run`` stops there, and the
-operator confirms the first motion. Each finished sweep is on disk at once; when the
+(workspace box, step between consecutive poses; a sweep that does not pass is
+replaced by a spare of the plan file, one line saying which), ``--dry-run`` stops
+there, and the operator confirms the first motion. Each finished sweep is on disk at once; when the
 robot stops, the connection drops or the grabber goes quiet, the acquisition ends with
 one message and ``--resume`` continues with the sweeps still missing.
 """
@@ -34,11 +35,19 @@ from calib.errors import (
 from calib.localize import LocalizerConfig, localize_sphere
 from calib.pipeline import axial_scale as axial_scale_of
 from calib.planning import Candidates, bias_covariance, paper_poses
-from calib.protocol import PlannedSweep, acquire, plan_sweeps, touch_plan, transit
+from calib.protocol import (
+    PlannedSweep,
+    Replacement,
+    acquire,
+    clear_sweeps,
+    plan_sweeps,
+    touch_plan,
+    transit,
+)
 from calib.records import Touch
 
 from .config.hw import HwConfig
-from .config.plan_file import sphere_poses
+from .config.plan_file import spare_poses, sphere_poses
 from .progress import report
 from .sequential import Chooser, StopRule
 
@@ -63,29 +72,39 @@ class AcquisitionSummary:
     seconds: float
 
 
-def _plans(cfg: HwConfig, taught_T: dict[str, np.ndarray]) -> list[PlannedSweep]:
-    plan: list[PlannedSweep] = []
-    for target, T in taught_T.items():
-        poses = sphere_poses(cfg.protocol, target)
-        plan += plan_sweeps(target, T, cfg.rig.T_ee_us_coarse, cfg.protocol, poses=poses)
-    return plan
+def _plans(
+    robot, cfg: HwConfig, taught_T: dict[str, np.ndarray]
+) -> tuple[list[PlannedSweep], list[Replacement]]:
+    """The sweeps as they will be visited, every pose checked (workspace box, step from
+    the pose before it; each sphere's sweeps start from its taught pose, transits
+    included); a sweep that does not pass is replaced by a spare of the plan file
+    (:func:`calib.protocol.clear_sweeps`)."""
 
-
-def _check(robot, cfg: HwConfig, taught_T: dict[str, np.ndarray], plan) -> None:
-    """Workspace and step checks of every pose of the plan, in the order they are
-    visited (each sphere's sweeps start from its taught pose; transits between sweeps
-    included)."""
-    previous = None
-    for sweep in plan:
-        if previous is None or previous[0] != sweep.target:
-            previous = (sweep.target, taught_T[sweep.target])
+    def check(sweep: PlannedSweep, here: np.ndarray) -> None:
+        previous = here
         moves = [(f"transit {j}", T) for j, T in enumerate(sweep.approach)]
         moves += [(f"frame {j}", T) for j, T in enumerate(sweep.T_base_ee)]
         for what, T in moves:
             label = f"{sweep.target} sweep {sweep.pose_id} {what}"
             robot.check_pose(T, label)
-            robot.check_step(previous[1], T, label)
-            previous = (sweep.target, T)
+            robot.check_step(previous, T, label)
+            previous = T
+
+    plan: list[PlannedSweep] = []
+    replaced: list[Replacement] = []
+    for target, T in taught_T.items():
+        sweeps, changed = clear_sweeps(
+            target,
+            T,
+            cfg.rig.T_ee_us_coarse,
+            cfg.protocol,
+            check,
+            poses=sphere_poses(cfg.protocol, target),
+            spares=spare_poses(cfg.protocol, target),
+        )
+        plan += sweeps
+        replaced += changed
+    return plan, replaced
 
 
 class Operator:
@@ -222,8 +241,9 @@ def acquire_dataset(
     nominal = NOMINAL_TABLES[cfg.robot.model]
     taught_T = {t: forward_kinematics(nominal, q) for t, q in taught_q.items()}
     robot = URRobot(cfg.robot, dry_run=True)
-    plan = _plans(cfg, taught_T)
-    _check(robot, cfg, taught_T, plan)
+    plan, replaced = _plans(robot, cfg, taught_T)
+    for r in replaced:
+        say(r.line())
     say(
         f"plan: {len(plan)} sweeps of {cfg.protocol.frames_per_sweep} frames over "
         f"{', '.join(spheres)}: every pose inside the workspace, every step within the limits"
@@ -275,16 +295,22 @@ def acquire_dataset(
                     current = planned.target
                     say(f"to the taught pose of {current}")
                     robot.move_joints(taught_q[current], f"taught pose of {current}")
-                    # Re-plan this sphere's remaining sweeps from the reported taught pose.
+                    # Re-plan this sphere's remaining sweeps (as checked, spares in
+                    # place) from the reported taught pose.
                     T_taught = here = robot.read().T_base_ee
+                    mine = [p for p in plan if p.target == current]
                     replanned = {
-                        p.pose_id: p
-                        for p in plan_sweeps(
-                            current,
-                            T_taught,
-                            cfg.rig.T_ee_us_coarse,
-                            cfg.protocol,
-                            poses=sphere_poses(cfg.protocol, current),
+                        p.pose_id: replace(q, pose_id=p.pose_id)
+                        for p, q in zip(
+                            mine,
+                            plan_sweeps(
+                                current,
+                                T_taught,
+                                cfg.rig.T_ee_us_coarse,
+                                cfg.protocol,
+                                poses=[p.pose for p in mine],
+                            ),
+                            strict=True,
                         )
                     }
                 # The transit from where the arm is: the taught pose, or the last sweep

@@ -17,11 +17,12 @@ from calib.dataset_files import AcquisitionInfo, DatasetWriter
 from calib.protocol import (
     PlannedSweep,
     PlannedTouch,
+    Replacement,
     acquire,
     acquire_touches,
     check_plan,
+    clear_sweeps,
     facing_pose,
-    plan_sweeps,
     touch_plan,
 )
 from calib.records import Dataset, Sweep, Touch
@@ -31,7 +32,7 @@ from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
 from .config.method import stated_radius
-from .config.plan_file import sphere_poses, sweeps_about
+from .config.plan_file import spare_poses, sphere_poses, sweeps_about
 from .config.scenario import Scenario
 from .files import frames_to_file
 from .progress import report
@@ -86,13 +87,16 @@ def make_imager(
 class SimulatedAcquisition:
     """A simulated acquisition: the dataset the pipeline sees, and the truth kept apart.
 
-    ``T_base_ee_true[(target, pose_id)]`` holds the true flange pose of every frame.
+    ``T_base_ee_true[(target, pose_id)]`` holds the true flange pose of every frame;
+    ``replaced`` the planned sweeps that did not clear in this session and what took
+    their place (:func:`calib.protocol.clear_sweeps`).
     """
 
     dataset: Dataset
     T_ee_us_coarse: NDArray[np.float64]
     T_base_ee_true: dict[tuple[str, int], NDArray[np.float64]]
     robot_time_s: float = 0.0  # the twin controller's session clock over the sweeps
+    replaced: tuple[Replacement, ...] = ()
 
 
 def coarse_estimate(
@@ -186,6 +190,7 @@ def simulate_acquisition(
     coarse = coarse_estimate(T_ee_us, scenario.calibration, rngs["calibration"])
     depth = proto.target_depth_mm * 1e-3
     sweeps: list[Sweep] = []
+    replaced: list[Replacement] = []
     truth: dict[tuple[str, int], list[NDArray[np.float64]]] = {}
     total = sum(sweeps_about(proto, f"sphere_{i}") for i in proto.spheres)
     label = progress or f"{name}: acquire sweeps"
@@ -201,12 +206,21 @@ def simulate_acquisition(
             rngs["protocol"],
             proto.teaching_error_mm,
         )
-        plan = plan_sweeps(
-            target, taught.T_base_ee, coarse, proto, poses=sphere_poses(proto, target)
+        # Every pose checked before the arm moves; a sweep that does not clear in this
+        # session is replaced by a spare of the plan file, never stopping the acquisition.
+        plan, changed = clear_sweeps(
+            target,
+            taught.T_base_ee,
+            coarse,
+            proto,
+            lambda sweep, _here: check_plan(twin.robot, [sweep]),
+            poses=sphere_poses(proto, target),
+            spares=spare_poses(proto, target),
         )
-        check_plan(twin.robot, plan)
+        replaced += changed
+        total -= sum(1 for c in changed if c.spare is None)
 
-        def log(planned: PlannedSweep, j: int) -> None:
+        def log(planned: PlannedSweep, j: int, total: int = total) -> None:
             truth.setdefault((planned.target, planned.pose_id), []).append(
                 twin.robot.truth.T_base_ee
             )
@@ -222,6 +236,7 @@ def simulate_acquisition(
         coarse,
         {k: np.array(v) for k, v in truth.items()},
         twin.robot.clock_s - clock_start,
+        tuple(replaced),
     )
 
 

@@ -112,7 +112,12 @@ def _cmd_plan(args: argparse.Namespace, console: Console) -> int:
         comparison = optimize_plan(scenario, args.sweeps, args.criterion, args.markers)
     print_plan_comparison(comparison, scenario, console)
     if args.out:
-        write_plan(args.out, comparison.optimized.poses, plan_about(comparison, scenario))
+        write_plan(
+            args.out,
+            comparison.optimized.poses,
+            plan_about(comparison, scenario),
+            comparison.optimized.spares,
+        )
         console.print(f"wrote {args.out}; use it with --set protocol.plan={args.out}")
     return 0
 

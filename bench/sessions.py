@@ -17,6 +17,8 @@ errors, the printed phantom) are in :mod:`twin.arm_errors` and :mod:`twin.printi
   was put back for a dataset, and how far it moved between the touches and the sweeps.
 - **Remount** (:data:`REMOUNT_KEY`) and the **touch guide** of the hardware dry run
   (:data:`TOUCH_GUIDE_KEY`).
+- **Other sessions** a plan is checked in (:data:`PLAN_SESSIONS_KEY`): the taught pose
+  and coarse mount another day may bring (:mod:`bench.jobs.plan_optimize`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ __all__ = [
     "DATASET_KEY",
     "DATASET_STREAMS",
     "MAX_DATASETS",
+    "PLAN_SESSIONS_KEY",
     "REMOUNT_KEY",
     "RNG_STREAMS",
     "SESSIONS",
@@ -57,6 +60,9 @@ TOUCH_GUIDE_KEY = 300
 #: Spawn key of the phantom's displacement between a dataset's touches and its sweeps
 #: (one stream per dataset: ``(SESSION_SHIFT_KEY, index)``).
 SESSION_SHIFT_KEY = 430
+#: Spawn key of the other sessions a plan is checked in (their teaching error and
+#: coarse mount).
+PLAN_SESSIONS_KEY = 510
 
 #: Every first spawn key the bench uses, by name (the dataset keys as their range).
 STREAM_KEYS = {
@@ -70,6 +76,7 @@ STREAM_KEYS = {
     "remount": REMOUNT_KEY,
     "touch_guide": TOUCH_GUIDE_KEY,
     "session_shift": SESSION_SHIFT_KEY,
+    "plan_sessions": PLAN_SESSIONS_KEY,
 }
 
 

@@ -43,7 +43,7 @@ is the localizer's and the arm's pose noise, added.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -68,6 +68,7 @@ __all__ = [
     "predict",
     "select_sweeps",
     "sweep_commands",
+    "sweep_scores",
 ]
 
 Array = NDArray[np.float64]
@@ -122,9 +123,31 @@ class PlanningConfig:
     clearance_mm: float = field(
         default=5.0,
         metadata={
-            "doc": "Every frame of a chosen sweep keeps the arm and probe this far from the "
-            "tank and the phantom: room for another session's taught pose and coarse "
-            "mount, which move the commanded poses by millimetres.",
+            "doc": "Every frame and transit of a chosen sweep keeps the arm and probe this "
+            "far from the tank and the phantom, in this session and in each of "
+            "session_draws others.",
+            "ge": 0,
+            "le": 100,
+        },
+    )
+    session_draws: int = field(
+        default=24,
+        metadata={
+            "doc": "A plan is made to be reused: its sweeps are checked in this many other "
+            "sessions, each with its own taught pose (protocol.teaching_error_mm) and "
+            "coarse mount (calibration.initial_error_mm / _deg), drawn as another "
+            "session's would be; a sweep that does not clear in every one is replaced. "
+            "0: this session only.",
+            "ge": 0,
+            "le": 1000,
+        },
+    )
+    spares: int = field(
+        default=10,
+        metadata={
+            "doc": "Spare sweeps per sphere the plan file keeps, best first, each clear "
+            "in the same sessions: at acquisition a sweep that does not clear is "
+            "replaced by the first spare that does.",
             "ge": 0,
             "le": 100,
         },
@@ -406,6 +429,7 @@ def select_sweeps(
     max_passes: int = 10,
     repeats: bool = False,
     min_per_target: int = 0,
+    admissible: Callable[[int], bool] | None = None,
 ) -> list[int]:
     """``n`` of the candidates (indices, in the order chosen) maximizing the criterion:
     greedy (each next sweep the one that adds most), then exchange passes (swap a chosen
@@ -414,7 +438,9 @@ def select_sweeps(
     repeats its few extreme poses, but a sweep repeated shares its view's localization
     bias (which the model does not hold), and distinct views are what the bounds'
     jackknife needs. ``min_per_target``: each target gets at least that many sweeps (a
-    multi-marker fit needs every sphere seen)."""
+    multi-marker fit needs every sphere seen). ``admissible(k)``: asked of a candidate
+    only when it would be taken (a check too dear for every candidate, e.g. the arm's
+    clearance in other sessions); one it refuses is never taken."""
     if criterion not in CRITERIA:
         raise ValueError(f"criterion {criterion!r}: one of {', '.join(CRITERIA)}")
     if n < 1:
@@ -438,9 +464,21 @@ def select_sweeps(
     if not repeats and n > len(cands):
         raise ValueError(f"{n} sweeps from {len(cands)} candidates: too few candidates")
     taken = np.zeros(len(cands), dtype=bool)
+    barred = np.zeros(len(cands), dtype=bool)
 
     def masked(s: Array) -> Array:
+        s = np.where(barred, -np.inf, s)
         return s if repeats else np.where(taken, -np.inf, s)
+
+    def best_of(s: Array) -> int:
+        """The best candidate by ``s`` that is admissible (the others barred)."""
+        s = s.copy()
+        while True:
+            k = int(np.argmax(s))
+            if admissible is None or not np.isfinite(s[k]) or barred[k] or admissible(k):
+                return k
+            barred[k] = True
+            s[k] = -np.inf
 
     def counts(ks: list[int]) -> dict[int, int]:
         return {int(g): sum(1 for k in ks if cands.target[k] == g) for g in targets}
@@ -453,7 +491,9 @@ def select_sweeps(
         short = [g for g in targets if have[g] < min_per_target]
         if short and sum(min_per_target - have[g] for g in short) >= n - step:
             s = np.where(np.isin(cands.target, short), s, -np.inf)
-        k = int(np.argmax(s))
+        k = best_of(s)
+        if not np.isfinite(s[k]) or barred[k]:
+            raise ValueError(f"only {step} of the {n} sweeps can be admitted")
         taken[k] = True
         chosen.append(k)
         sums = [sums[0] + cAA[k], sums[1] + cAB[k], sums[2] + cBB[k]]
@@ -468,14 +508,34 @@ def select_sweeps(
             if min_per_target and counts(chosen)[int(cands.target[k])] <= min_per_target:
                 # Only a sweep of the same target may take its place.
                 s = np.where(cands.target == cands.target[k], s, -np.inf)
-            j = int(np.argmax(s))
-            if s[j] > best + 1e-9 * abs(best) and j != k:
+            # Only a candidate that would improve is asked whether it is admissible.
+            better = np.where(s > best + 1e-9 * abs(best), s, -np.inf)
+            j = best_of(better) if np.isfinite(better).any() else k
+            if np.isfinite(better[j]) and not barred[j] and j != k:
                 chosen[i], best, improved = j, float(s[j]), True
                 taken[k], taken[j] = False, True
                 sums = [without[0] + cAA[j], without[1] + cAB[j], without[2] + cBB[j]]
         if not improved:
             break
     return chosen
+
+
+def sweep_scores(
+    cands: Candidates,
+    chosen: Sequence[int],
+    *,
+    criterion: Criterion = "D",
+    M: Array | None = None,
+) -> Array:
+    """Per candidate, the criterion of the sweeps ``chosen`` with it added (higher is
+    better): what :func:`next_sweep` ranks by."""
+    M = np.eye(6) if M is None else np.asarray(M, dtype=float)
+    S_AA, S_AB, S_BB = cands.sums(chosen)
+    cAA, cAB, cBB = cands.contributions()
+    H = _information(S_AA + cAA, S_AB + cAB, S_BB + cBB)
+    ridge = 1e-9 * float(np.trace(cAA.mean(axis=0)))
+    # With fewer than a handful of sweeps only D is defined; then the criterion asked for.
+    return _score(H, criterion if len(chosen) >= 3 else "D", M, ridge)
 
 
 def next_sweep(
@@ -489,13 +549,7 @@ def next_sweep(
     """The candidate that adds most to the sweeps ``chosen`` so far (the sequential
     mode's step: the sweeps actually localized, not the ones planned), none of
     ``exclude`` (tried already, whether they were localized or not)."""
-    M = np.eye(6) if M is None else np.asarray(M, dtype=float)
-    S_AA, S_AB, S_BB = cands.sums(chosen)
-    cAA, cAB, cBB = cands.contributions()
-    H = _information(S_AA + cAA, S_AB + cAB, S_BB + cBB)
-    ridge = 1e-9 * float(np.trace(cAA.mean(axis=0)))
-    # With fewer than a handful of sweeps only D is defined; then the criterion asked for.
-    s = _score(H, criterion if len(chosen) >= 3 else "D", M, ridge)
+    s = sweep_scores(cands, chosen, criterion=criterion, M=M)
     s[np.asarray(list(exclude), dtype=int)] = -np.inf
     if not np.isfinite(s).any():
         raise ValueError("every candidate has been tried")

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import se3
+from .errors import CollisionError, UnreachablePoseError
 from .planning import SweepPose, paper_poses, sweep_commands
 from .records import RobotReading, Sweep, Touch, UsFrame
 
@@ -32,11 +33,13 @@ __all__ = [
     "PlannedSweep",
     "PlannedTouch",
     "ProtocolConfig",
+    "Replacement",
     "Robot",
     "TouchGuide",
     "acquire",
     "acquire_touches",
     "check_plan",
+    "clear_sweeps",
     "facing_pose",
     "in_plane_offsets",
     "orientation_offsets",
@@ -351,6 +354,92 @@ def check_plan(robot: Robot, plan: Sequence[PlannedSweep]) -> None:
         return
     for T, label in poses:
         robot.check_pose(T, label)
+
+
+@dataclass(frozen=True)
+class Replacement:
+    """A planned sweep that did not clear in this session, and what took its place: the
+    plan's ``spare`` (index into its spares) or nothing (``spare`` None: no spare clears,
+    the sweep is left out)."""
+
+    target: str
+    pose_id: int
+    reason: str
+    spare: int | None
+    pose: SweepPose | None = None
+
+    def line(self) -> str:
+        if self.spare is None or self.pose is None:
+            return f"{self.target} sweep {self.pose_id} left out ({self.reason}; no spare clears)"
+        rx, ry, rz = self.pose.rotation_deg
+        return (
+            f"{self.target} sweep {self.pose_id} replaced by spare {self.spare} "
+            f"(turned {rx:g}°, {ry:g}°, {rz:g}°, shifted {self.pose.lateral_mm:g} / "
+            f"{self.pose.axial_mm:g} mm): {self.reason}"
+        )
+
+
+def clear_sweeps(
+    target: str,
+    T_base_ee_taught: ArrayLike,
+    T_ee_us_coarse: ArrayLike,
+    cfg: ProtocolConfig,
+    check: Callable[[PlannedSweep, Array], None],
+    *,
+    poses: Sequence[SweepPose] | None = None,
+    spares: Sequence[SweepPose] = (),
+) -> tuple[list[PlannedSweep], list[Replacement]]:
+    """The sweeps about one sphere as this session will move through them, each checked
+    before anything moves: ``check(sweep, T_from)`` raises
+    :class:`~calib.errors.UnreachablePoseError` or :class:`~calib.errors.CollisionError`
+    when a frame or the transit to it from ``T_from`` (the last frame before it) does not
+    clear. Such a sweep is replaced by the first unused spare that clears (the plan's
+    next-best, :mod:`bench.jobs.plan_optimize`), or left out when none does — one sweep
+    never stops the acquisition. Returns the sweeps (each keeps its slot's ``pose_id``)
+    and a :class:`Replacement` for every sweep that did not go as planned. A plan of
+    which half the sweeps or more would be left out does not suit the session: the first
+    sweep's error is raised, with the count, before anything moves."""
+    if poses is None:
+        poses = paper_poses(cfg.rotation_deg, cfg.translation_mm)
+    here = np.asarray(T_base_ee_taught, dtype=float)
+    unused = list(enumerate(spares))
+    out: list[PlannedSweep] = []
+    changed: list[Replacement] = []
+    first: UnreachablePoseError | CollisionError | None = None
+
+    def planned(k: int, pose: SweepPose) -> PlannedSweep:
+        (sweep,) = plan_sweeps(target, T_base_ee_taught, T_ee_us_coarse, cfg, poses=[pose])
+        way_in = transit(here, sweep.T_base_ee[0], cfg.transit_step_deg)
+        return PlannedSweep(target, k, pose, sweep.T_base_ee, way_in)
+
+    for k, pose in enumerate(poses):
+        sweep = planned(k, pose)
+        try:
+            check(sweep, here)
+        except (UnreachablePoseError, CollisionError) as e:
+            reason = str(e)
+            for j, (index, spare) in enumerate(unused):
+                sweep = planned(k, spare)
+                try:
+                    check(sweep, here)
+                except (UnreachablePoseError, CollisionError):
+                    continue
+                changed.append(Replacement(target, k, reason, index, spare))
+                del unused[j]
+                break
+            else:
+                changed.append(Replacement(target, k, reason, None))
+                first = first or e
+                continue
+        out.append(sweep)
+        here = sweep.T_base_ee[-1]
+    left_out = len(poses) - len(out)
+    if first is not None and 2 * left_out >= len(poses):
+        raise type(first)(
+            f"{left_out} of the {len(poses)} sweeps about {target} do not clear (first: "
+            f"{first}): the plan does not suit this session"
+        )
+    return out, changed
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,10 @@ The pipeline already holds the evidence; a calibration is judged on these questi
   axial scale free (:func:`image_scale`): a pixel spacing the scanner reports wrong, or
   a speed of sound not corrected, shows as a scale off by more than 1 % and three
   standard errors.
+- **Do the poses determine ``T_ee_us`` at all?** Sweeps from fewer than two distinct
+  flange orientations, or an estimate whose 95 % bound is beyond 10° or 10 mm (where a
+  first-order bound no longer describes the error, and the coarse mount from the CAD is
+  as good), are rejected: the answer is whatever the fit stopped at.
 - **Were enough centres kept?** A fit that drops more than a tenth of the localizer's
   centres as outliers saw errors that are not the noise it assumes (false detections,
   or poses that disagree).
@@ -106,6 +110,11 @@ RADIUS_MISMATCH_MM = 0.4
 SCALE_MISMATCH = 0.01
 #: A fit dropping more than this share of the localizer's centres is suspect.
 MAX_DROPPED_SHARE = 0.1
+#: Beyond these 95 % bounds a calibration has learnt nothing a CAD drawing would not
+#: tell (a holder's drawing places the probe to a few millimetres and degrees), and a
+#: first-order bound no longer describes the error: rejected.
+UNDETERMINED_DEG = 10.0
+UNDETERMINED_MM = 10.0
 #: Without a requirement of the user's, ``accepted`` means known to this (95 % bound over
 #: the image, mm): a bound above it is suspect (the data do not pin the mount down).
 DEFAULT_IMAGE_MM = 1.0
@@ -400,6 +409,24 @@ def judge(
             "sound assumed; check the spacing the scanner reports and the speed-of-sound "
             "correction (imaging.sound_speed_correction, the medium's temperature)"
         )
+    kept = [o for o, k in zip(alt.observations, alt.result.retained, strict=True) if k]
+    views = len(np.unique(orientation_groups(kept))) if kept else 0
+    image_bound = bound.image_mm if bound is not None else None
+    undetermined: list[str] = []
+    if views < 2:
+        undetermined.append(
+            f"the kept sweeps were taken from {views} flange orientation"
+            f"{'' if views == 1 else 's'}: the poses do not determine T_ee_us's rotation; "
+            "add sweeps turned about other axes (uscal plan --optimize)"
+        )
+    elif scale_deg > UNDETERMINED_DEG or max(scale_mm, image_bound or 0.0) > UNDETERMINED_MM:
+        undetermined.append(
+            f"the poses do not determine T_ee_us: its 95 % bound is {scale_deg:.1f}° / "
+            f"{scale_mm:.1f} mm"
+            + ("" if image_bound is None else f" ({image_bound:.1f} mm over the image)")
+            + f", beyond {UNDETERMINED_DEG:g}° / {UNDETERMINED_MM:g} mm; the sweeps' views "
+            "are too alike — add sweeps turned about other axes (uscal plan --optimize)"
+        )
     n_kept = int(alt.result.retained.sum())
     n_given = len(alt.observations)
     if n_given and (n_given - n_kept) > MAX_DROPPED_SHARE * n_given:
@@ -408,7 +435,12 @@ def judge(
             "outliers (more than a tenth): false detections or disagreeing poses; look at "
             "the rejected sweeps' reasons"
         )
-    if requirements.image_mm is None and bound is not None and bound.image_mm > DEFAULT_IMAGE_MM:
+    if (
+        requirements.image_mm is None
+        and bound is not None
+        and bound.image_mm > DEFAULT_IMAGE_MM
+        and not undetermined
+    ):
         suspect.append(
             f"its 95 % bound over the image, {bound.image_mm:.2f} mm, is above "
             f"{DEFAULT_IMAGE_MM:g} mm: the data do not pin T_ee_us down to the millimetre; "
@@ -435,10 +467,11 @@ def judge(
         if suspect:
             # A requirement is met only by an answer that can be trusted.
             rejected.append("not accepted, so not within the requirements")
+    rejected = undetermined + rejected
     status: Status = "rejected" if rejected else "suspect" if suspect else "accepted"
     return Verdict(
         status,
-        tuple(suspect + rejected),
+        tuple(undetermined + suspect + rejected[len(undetermined) :]),
         settled,
         (d_mm, d_deg),
         (n_kept, n_given),

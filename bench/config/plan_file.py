@@ -8,8 +8,14 @@ names::
       sphere_1:
         - {rotation_xyz_deg: [10, -20, 0], lateral_mm: 4, axial_mm: -2}
         - ...
+    spares:                      # optional: best first
+      sphere_1:
+        - {rotation_xyz_deg: [-5, 15, 0], lateral_mm: 0, axial_mm: 3}
 
-Everything else in the file (how it was chosen, what it predicts) is for the reader.
+At acquisition a sweep that no longer clears (another session's taught pose or mount
+moves the arm by millimetres) is replaced by the first spare of its sphere that does
+(:func:`calib.protocol.clear_sweeps`). Everything else in the file (how it was chosen,
+what it predicts) is for the reader.
 Problems give one :class:`~calib.errors.ScenarioError` naming the file and the entry.
 """
 
@@ -36,6 +42,8 @@ __all__ = [
     "check_plan_spheres",
     "plan_beside",
     "read_plan",
+    "read_spares",
+    "spare_poses",
     "sphere_poses",
     "sweeps_about",
     "write_plan",
@@ -61,25 +69,27 @@ def _number(value: Any, where: str, source: str, limit: float, key: str) -> floa
     return float(value)
 
 
-def read_plan(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]]:
-    """{sphere name: its sweeps, in acquisition order} of a plan file."""
+def _read_doc(path: str | os.PathLike[str]) -> tuple[str, dict]:
     source = os.fspath(path)
     doc = read_yaml(source)
     if not isinstance(doc, dict) or doc.get("kind") != KIND:
         raise ScenarioError(
             f"not a plan file (it must be a mapping with kind: {KIND})", source=source
         )
-    spheres = doc.get("spheres")
+    return source, doc
+
+
+def _sweep_lists(doc: dict, key: str, source: str) -> dict[str, tuple[SweepPose, ...]]:
+    """{sphere name: its sweeps} of one section (``spheres`` or ``spares``)."""
+    spheres = doc.get(key)
     if not isinstance(spheres, dict) or not spheres:
-        raise ScenarioError(
-            "no sweeps", source=source, key="spheres", allowed="sphere_N: [sweeps...]"
-        )
+        raise ScenarioError("no sweeps", source=source, key=key, allowed="sphere_N: [sweeps...]")
     out: dict[str, tuple[SweepPose, ...]] = {}
     for name, sweeps in spheres.items():
-        where = f"spheres.{name}"
+        where = f"{key}.{name}"
         if not (isinstance(name, str) and name.startswith("sphere_")):
             raise ScenarioError("not a sphere's name", source=source, key=where, allowed="sphere_N")
-        if not isinstance(sweeps, list) or not sweeps:
+        if not isinstance(sweeps, list) or (key == "spheres" and not sweeps):
             raise ScenarioError("expected a list of sweeps", source=source, key=where)
         poses = []
         for k, sweep in enumerate(sweeps):
@@ -111,35 +121,66 @@ def read_plan(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]]:
     return out
 
 
+def read_plan(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]]:
+    """{sphere name: its sweeps, in acquisition order} of a plan file."""
+    source, doc = _read_doc(path)
+    return _sweep_lists(doc, "spheres", source)
+
+
+def read_spares(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]]:
+    """{sphere name: its spare sweeps, best first} of a plan file (none: an empty dict):
+    what the acquisition puts in place of a sweep that no longer clears."""
+    source, doc = _read_doc(path)
+    if "spares" not in doc:
+        return {}
+    spares = _sweep_lists(doc, "spares", source)
+    plan = read_plan(path)
+    extra = sorted(set(spares) - set(plan))
+    if extra:
+        raise ScenarioError(
+            f"spares for {', '.join(extra)}, which the plan does not scan",
+            source=source,
+            key="spares",
+            allowed=", ".join(plan),
+        )
+    return spares
+
+
 def write_plan(
     path: str | os.PathLike[str],
     poses: Mapping[str, Sequence[SweepPose]],
     about: Mapping[str, Any],
+    spares: Mapping[str, Sequence[SweepPose]] | None = None,
 ) -> Path:
-    """Write a plan file (atomically); ``about`` goes in as the reader's information."""
+    """Write a plan file (atomically); ``about`` goes in as the reader's information,
+    ``spares`` (per sphere, best first) as the sweeps an acquisition may put in place of
+    one that no longer clears."""
 
     def plain(x: float) -> float:
         return round(float(x), 6) + 0.0  # no -0.0
 
+    def listed(sweeps: Sequence[SweepPose]) -> list[dict]:
+        return [
+            {
+                "rotation_xyz_deg": [plain(a) for a in p.rotation_deg],
+                "lateral_mm": plain(p.lateral_mm),
+                "axial_mm": plain(p.axial_mm),
+            }
+            for p in sweeps
+        ]
+
     doc = {
         "kind": KIND,
         **dict(about),
-        "spheres": {
-            name: [
-                {
-                    "rotation_xyz_deg": [plain(a) for a in p.rotation_deg],
-                    "lateral_mm": plain(p.lateral_mm),
-                    "axial_mm": plain(p.axial_mm),
-                }
-                for p in sweeps
-            ]
-            for name, sweeps in poses.items()
-        },
+        "spheres": {name: listed(sweeps) for name, sweeps in poses.items()},
     }
+    if spares:
+        doc["spares"] = {name: listed(sweeps) for name, sweeps in spares.items()}
     header = (
         "# uscal plan: the sweeps about each sphere, relative to its taught nominal pose\n"
         "# (turned about the target by rotation_xyz_deg about the image axes, then shifted\n"
-        "# in the image plane). Use it with protocol.plan: <this file>.\n"
+        "# in the image plane). Use it with protocol.plan: <this file>. A sweep that no\n"
+        "# longer clears in a session is replaced by the first of its sphere's spares that does.\n"
     )
     text = header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
     write_text_atomic(Path(path), text)
@@ -158,6 +199,14 @@ def sphere_poses(protocol: ProtocolConfig, target: str) -> tuple[SweepPose, ...]
             allowed=", ".join(poses),
         )
     return poses[target]
+
+
+def spare_poses(protocol: ProtocolConfig, target: str) -> tuple[SweepPose, ...]:
+    """The spare sweeps of ``protocol.plan`` about ``target``, best first (none for the
+    paper's plan or a plan file without spares)."""
+    if protocol.plan is None:
+        return ()
+    return read_spares(protocol.plan).get(target, ())
 
 
 def sweeps_about(protocol: ProtocolConfig, target: str) -> int:

@@ -31,6 +31,8 @@ def print_verdicts(calibrations: Iterable[CalibrationSummary], console: Console)
 
 
 def print_run(run: RunSummary, console: Console) -> None:
+    for line in run.replaced:
+        console.print(f"plan: {line}", highlight=False)
     loc, e = run.localization, run.localization.error_mm
     against = (
         ""

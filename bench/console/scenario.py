@@ -114,6 +114,12 @@ def print_plan_comparison(c, scenario: Scenario, console: Console) -> None:
         f"chose {o.n_sweeps} sweeps ({per_sphere}) from {o.candidates} candidates ({left}), "
         f"criterion {c.criterion}, for {kind} calibration"
     )
+    spares = ", ".join(f"{k}: {len(v)}" for k, v in (o.spares or {}).items()) or "none"
+    console.print(
+        f"every frame and transit {scenario.planning.clearance_mm:g} mm clear of the tank and "
+        f"phantom here and in {o.sessions} other sessions (their taught pose and coarse "
+        f"mount); spares {spares}"
+    )
     noise = scenario.planning.localization_noise_mm
     table = Table(
         title="predicted for localization noise "

@@ -9,9 +9,15 @@ them for the information of the joint problem (one sphere: its centre unknown; t
 spheres: the phantom's pose unknown, the layout the CAD's within the print tolerance).
 Every frame of the chosen sweeps, and every transit between them in acquisition order,
 must keep the clearance too, each pose solved from the one before as the controller
-moves (from the taught joint angles); a sweep that does not is replaced. The paper's plan is
-scored the same way beside it, and both are timed as the twin's controller would move
-(trapezoidal profiles at the configured speeds, settle and grab per frame).
+moves (from the taught joint angles); a sweep that does not is replaced. A plan is made
+to be reused: the same check runs in ``planning.session_draws`` other sessions, each
+with the taught pose and the coarse mount another day may bring (the stated teaching
+error and coarse-mount error, drawn as the twin draws a session's), and the plan keeps
+``planning.spares`` spare sweeps per sphere (the next-best, clear in the same sessions)
+that an acquisition puts in place of a sweep that no longer clears
+(:func:`calib.protocol.clear_sweeps`). The paper's plan is scored the same way beside
+it, and both are timed as the twin's controller would move (trapezoidal profiles at the
+configured speeds, settle and grab per frame).
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.errors import UscalError
 from calib.planning import (
+    Candidates,
     Criterion,
     PlanPrediction,
     SweepPose,
@@ -33,6 +40,8 @@ from calib.planning import (
     paper_poses,
     predict,
     select_sweeps,
+    sweep_commands,
+    sweep_scores,
 )
 from calib.protocol import PlannedSweep, check_plan, plan_sweeps
 from twin.arm_errors import trapezoid_time_s
@@ -41,6 +50,7 @@ from twin.robot import RobotConfig
 from ..acquire_sim import coarse_estimate, make_twin
 from ..candidates import (
     NOT_CLEAR,
+    PlanSphere,
     candidate_sweeps,
     clear,
     observations,
@@ -49,7 +59,7 @@ from ..candidates import (
 )
 from ..config.method import image_points
 from ..config.scenario import Scenario
-from ..sessions import stage_rngs
+from ..sessions import PLAN_SESSIONS_KEY, stage_rngs, stream
 
 #: Sweeps of each sphere a three-marker plan keeps at least: the multi-marker fit needs
 #: every sphere seen, and its outlier test a handful of views of each.
@@ -71,6 +81,8 @@ class PlanChoice:
     robot_time_s: float
     candidates: int = 0
     left_out: dict[str, int] | None = None
+    spares: dict[str, tuple[SweepPose, ...]] | None = None
+    sessions: int = 0  # other sessions every sweep and spare was checked in
 
     @property
     def n_sweeps(self) -> int:
@@ -120,6 +132,108 @@ def _ordered(chosen: list, start: Array) -> list:
             here = todo[k][3][-1]
             out.append(todo.pop(k))
         start = here
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class OtherSession:
+    """Another session a plan must hold in: each sphere's taught pose and the coarse
+    mount that day, as the pipeline's commands would be made from them."""
+
+    taught: dict[str, Array]
+    coarse: Array
+
+
+def other_sessions(scenario: Scenario, spheres: Sequence[PlanSphere], coarse: Array, n: int):
+    """``n`` sessions drawn as the twin draws a session's (:mod:`bench.acquire_sim`):
+    the taught pose off this one's by the difference of two teaching errors
+    (``protocol.teaching_error_mm`` 1 σ each), the coarse mount off this one's by the
+    difference of two coarse-mount errors (± ``calibration.initial_error_mm / _deg``
+    each). Only stated settings enter, never the truth."""
+    rng = stream(scenario.seed, PLAN_SESSIONS_KEY)
+    sigma = np.sqrt(2.0) * scenario.protocol.teaching_error_mm * 1e-3
+    out = []
+    for _ in range(n):
+        ours, theirs = (coarse_estimate(np.eye(4), scenario.calibration, rng) for _ in range(2))
+        miss = {s.name: rng.normal(0.0, sigma, 3) for s in spheres}
+        taught = {s.name: se3.make(np.eye(3), miss[s.name]) @ s.taught for s in spheres}
+        out.append(OtherSession(taught, coarse @ se3.invert(ours) @ theirs))
+    return out
+
+
+def _unclear_in(scenario, twin, sessions, s: PlanSphere, poses: Sequence[SweepPose]) -> set[int]:
+    """Indices of ``poses`` (one sphere's sweeps, in acquisition order with their
+    transits) that do not keep the clearance on the way in one of ``sessions``."""
+    proto = scenario.protocol
+    bad: set[int] = set()
+    for o in sessions:
+        steps = plan_sweeps(s.name, o.taught[s.name], o.coarse, proto, poses=list(poses))
+        owner = [k for k, st in enumerate(steps) for _ in (*st.approach, *st.T_base_ee)]
+        way = np.array([T for st in steps for T in (*st.approach, *st.T_base_ee)])
+        ok = path_clear(scenario, twin, way, s.taught_q)
+        bad |= {owner[i] for i in np.flatnonzero(~ok)}
+    return bad
+
+
+def _clear_elsewhere(scenario, twin, sessions, found):
+    """``admissible(k)`` of :func:`calib.planning.select_sweeps`: candidate ``k``'s first,
+    middle and last frames keep the clearance in every other session (asked of the few
+    candidates the selection would take, not of all of them; remembered)."""
+    need = scenario.planning.clearance_mm * 1e-3
+    proto = scenario.protocol
+    memo: dict[int, bool] = {}
+
+    def ends(s: PlanSphere, o: OtherSession, pose: SweepPose) -> Array:
+        return sweep_commands(
+            o.taught[s.name],
+            o.coarse,
+            proto.target_depth_mm * 1e-3,
+            pose,
+            half_length=proto.sweep_half_length_mm * 1e-3,
+            n_frames=3,
+        )
+
+    def admissible(k: int) -> bool:
+        if k not in memo:
+            s, pose, _ = found[k]
+            memo[k] = True
+            for batch in range(0, len(sessions), 6):  # most that fail, fail early
+                T = np.array([ends(s, o, pose) for o in sessions[batch : batch + 6]])
+                if np.any(twin.robot.clearances(T.reshape(-1, 4, 4), need + 1e-3) < need):
+                    memo[k] = False
+                    break
+        return memo[k]
+
+    return admissible
+
+
+def _spares(
+    scenario, twin, spheres, sessions, found, cands: Candidates, chosen, criterion, M, admissible
+) -> dict[str, tuple[SweepPose, ...]]:
+    """Per sphere, ``planning.spares`` candidates best first: by what each adds to the
+    plan (:func:`calib.planning.sweep_scores`; a spare stands in for one sweep, not
+    beside the others), every frame clear here and in the other sessions."""
+    want = scenario.planning.spares
+    out: dict[str, tuple[SweepPose, ...]] = {}
+    if not want:
+        return out
+    ranked = np.argsort(-sweep_scores(cands, chosen, criterion=criterion, M=M))
+    taken = set(chosen)
+    for s in spheres:
+        kept: list[int] = []
+        for k in (int(k) for k in ranked):
+            if len(kept) == want:
+                break
+            if k in taken or found[k][0].name != s.name:
+                continue
+            if (
+                admissible(k)
+                and clear(scenario, twin, found[k][2])
+                and not _unclear_in(scenario, twin, sessions, s, [found[k][1]])
+            ):
+                kept.append(k)
+        if kept:
+            out[s.name] = tuple(found[k][1] for k in kept)
     return out
 
 
@@ -177,10 +291,31 @@ def optimize_plan(
             "no candidate sweep keeps the sphere in the image and is reachable without a "
             f"collision ({left}); widen the image or lower planning.image_margin_mm"
         )
+    sessions = other_sessions(scenario, spheres, coarse, scenario.planning.session_draws)
+    clear_elsewhere = _clear_elsewhere(scenario, twin, sessions, found)
+    refused: set[int] = set()  # chosen once, then found not to clear on the way
+
+    def admissible(k: int) -> bool:
+        return k not in refused and clear_elsewhere(k)
+
+    cands = observations(scenario, coarse, spheres, found, multi)
+    least = MIN_SWEEPS_PER_SPHERE if multi else 0
     for _ in range(20):  # replace chosen sweeps that fail the frame-by-frame check
-        cands = observations(scenario, coarse, spheres, found, multi)
-        least = MIN_SWEEPS_PER_SPHERE if multi else 0
-        chosen_idx = select_sweeps(cands, n_sweeps, criterion=criterion, M=M, min_per_target=least)
+        try:
+            chosen_idx = select_sweeps(
+                cands,
+                n_sweeps,
+                criterion=criterion,
+                M=M,
+                min_per_target=least,
+                admissible=admissible,
+            )
+        except ValueError as e:
+            raise UscalError(
+                f"no plan of {n_sweeps} sweeps keeps its clearance in the other sessions "
+                f"({e}); lower planning.clearance_mm or planning.session_draws, or ask for "
+                "fewer sweeps"
+            ) from None
         # Every frame from the taught joint angles, as the acquisition checks the plan
         # before it moves (calib.protocol.check_plan) ...
         bad = {k for k in dict.fromkeys(chosen_idx) if not clear(scenario, twin, found[k][2])}
@@ -200,11 +335,14 @@ def optimize_plan(
                 way = np.array([T for st in steps for T in (*st.approach, *st.T_base_ee)])
                 ok = path_clear(scenario, twin, way, s.taught_q)
                 bad |= {owner[i] for i in np.flatnonzero(~ok)}
+                # ... and so in the other sessions the plan is made for.
+                unclear = _unclear_in(scenario, twin, sessions, s, [o[2] for o in mine])
+                bad |= {mine[i][0] for i in unclear}
                 planned += steps
         if not bad:
             break
         left[NOT_CLEAR] += len(bad)
-        found = [f for k, f in enumerate(found) if k not in bad]
+        refused |= bad
     else:
         raise UscalError("could not find a plan whose every pose is reachable and clear")
     prediction = predict(cands, chosen_idx, M, bias=bias)
@@ -212,12 +350,17 @@ def optimize_plan(
         s.name: tuple(o[2] for o in ordered if o[1].name == s.name) for s in spheres
     }
     check_plan(twin.robot, planned)  # every pose, transits included, in order
+    spares = _spares(
+        scenario, twin, spheres, sessions, found, cands, chosen_idx, criterion, M, admissible
+    )
     optimized = PlanChoice(
         {k: v for k, v in poses.items() if v},
         prediction,
         plan_time_s(planned, scenario.robot, start),
-        len(found),
+        len(found) - len(refused),
         left,
+        spares,
+        len(sessions),
     )
     return PlanComparison(optimized, paper_choice, criterion, names)
 
@@ -243,6 +386,8 @@ def plan_about(comparison: PlanComparison, scenario: Scenario) -> dict:
         "markers": len(comparison.spheres),
         "localization_noise_mm": list(scenario.planning.localization_noise_mm),
         "pose_noise_mm": scenario.planning.pose_noise_mm,
+        "clearance_mm": scenario.planning.clearance_mm,
+        "checked_in_other_sessions": comparison.optimized.sessions,
         "predicted": figures(comparison.optimized),
         "paper_plan": figures(comparison.paper),
     }

@@ -207,6 +207,7 @@ def run(
             "frames": int(sum(s.n_frames for s in acq.dataset.sweeps)),
             "robot_time_s": acq.robot_time_s,
             "plan": "sequential" if until else scenario.protocol.plan or "paper",
+            "replaced": [r.line() for r in acq.replaced],
             **({"sequential": {s.target: s.as_dict() for s in scans}} if until else {}),
         },
         "localization": {

@@ -58,6 +58,8 @@ class RunSummary:
     timing: RunTiming
     evaluation: PaperEvaluation | None = None
     reconstruction: Reconstruction | None = None
+    #: Planned sweeps that did not clear in this session and what took their place.
+    replaced: tuple[str, ...] = ()
 
     @classmethod
     def from_metrics(cls, m: Mapping[str, Any]) -> RunSummary:
@@ -71,6 +73,7 @@ class RunSummary:
             RunTiming.from_metrics(m["timing_s"]),
             PaperEvaluation.from_metrics(m) if "evaluation" in m else None,
             Reconstruction.from_metrics(m) if "reconstruction" in m else None,
+            tuple(m.get("acquisition", {}).get("replaced", ())),
         )
 
     def calibration_table(self) -> Table:
