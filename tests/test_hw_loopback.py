@@ -314,6 +314,54 @@ def test_a_planned_acquisition_on_the_loopback_rig(controller, tmp_path):
     assert m["localization"]["n_rejected"] == 0
 
 
+@pytest.mark.parametrize("controller", [("127.0.0.12",)], indirect=True)
+def test_a_sweep_the_rig_refuses_is_replaced_by_a_spare_not_the_acquisition(controller, tmp_path):
+    """A plan's sweep that falls outside the rig's workspace box this day: `uscal
+    acquire` puts the plan's first spare that passes in its place, says so in one line,
+    and acquires every sweep through the loopback controller."""
+    from bench.config.hw import load_hw_config
+    from bench.config.plan_file import write_plan
+    from calib.dh import NOMINAL_TABLES, forward_kinematics
+    from calib.planning import SweepPose
+    from calib.protocol import plan_sweeps
+
+    sets = ["protocol.spheres=[1]", "protocol.frames_per_sweep=3"]
+    cfg = load_hw_config(controller.hw, sets)
+    taught = forward_kinematics(NOMINAL_TABLES[cfg.robot.model], np.radians(cfg.rig.taught_deg(1)))
+    level = (0.0, 0.0, 0.0)
+    plan = [
+        SweepPose(level, 0.0, 0.0),
+        SweepPose(level, 30.0, 0.0),
+        SweepPose((10.0, 0.0, 0.0), 0.0, 0.0),
+        SweepPose((0.0, 10.0, 0.0), 0.0, 0.0),
+    ]
+    far, spare = SweepPose(level, 28.0, 0.0), SweepPose(level, -4.0, 0.0)
+    every = [*plan, far, spare]
+    sweeps = plan_sweeps("sphere_1", taught, cfg.rig.T_ee_us_coarse, cfg.protocol, poses=every)
+    where = {
+        p: np.array([T[:3, 3] for T in s.T_base_ee]) * 1e3
+        for p, s in zip(every, sweeps, strict=True)
+    }
+    # The box's upper corner cut between the 30 mm sweep and every other (the taught
+    # pose included), along the base axis where they part most.
+    top = {p: xyz.max(axis=0) for p, xyz in where.items()}
+    others = np.max([top[p] for p in where if p not in (plan[1], far)] + [taught[:3, 3] * 1e3], 0)
+    axis = int(np.argmax(top[plan[1]] - others))
+    assert top[plan[1]][axis] - others[axis] > 10 and top[far][axis] > others[axis] + 5
+    box = list(cfg.robot.workspace_max_mm)
+    box[axis] = float(others[axis] + 2.0)
+    path = write_plan(tmp_path / "plan.yaml", {"sphere_1": plan}, {}, {"sphere_1": (far, spare)})
+    use = [*(x for s in sets for x in ("--set", s)), "--set", f"protocol.plan={path}",
+           "--set", f"robot.workspace_max_mm={box}"]  # fmt: skip
+    dataset = tmp_path / "ds"
+    r = uscal("acquire", str(controller.hw), "--out", str(dataset), "--yes", *use)
+    assert r.returncode == 0, r.stderr
+    said = " ".join(r.stdout.split())
+    assert "sphere_1 sweep 1 replaced by spare 1 (turned 0°, 0°, 0°, shifted -4 / 0 mm)" in said
+    ds, _ = read_dataset(dataset)
+    assert len(ds.sweeps) == 4 and all(s.n_frames == 3 for s in ds.sweeps)
+
+
 # The served scanner with the paper's stated widths and smooth surfaces: on the
 # transducer's own beam with printed-surface speckle the predicted bounds stop the
 # acquisition too early (1.17° true rotation error against a 0.35° target: the per-sweep
