@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import wilcoxon
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -135,6 +136,19 @@ def main() -> None:
         s = summary[name]
         print(f"{name:6s} {stopped:>7d} {s['replaced']:>8d} {s['left_out']:>8d}  {cells}")
     p, q = summary["plan"], summary["paper"]
+    # The sessions are paired (the same twin, coarse mount and noise streams): per
+    # session, the plan's true image error over the paper's, and a signed-rank test.
+    both = [s for s in new if "stopped" not in rows[("plan", s)] | rows[("paper", s)]]
+    if len(both) >= 5:
+        a = np.array([rows[("plan", s)]["image_mm"] for s in both])
+        b = np.array([rows[("paper", s)]["image_mm"] for s in both])
+        test = wilcoxon(a, b)
+        print(
+            f"paired over {len(both)} sessions: plan / paper image error median "
+            f"{np.median(a / b):.2f} (p10 {np.percentile(a / b, 10):.2f}, p90 "
+            f"{np.percentile(a / b, 90):.2f}); plan better in {int(np.sum(a < b))}; "
+            f"signed-rank p = {test.pvalue:.2f}"
+        )
     print(
         f"sessions={args.sessions} stopped={p['stopped']} replaced={p['replaced']} "
         f"left_out={p['left_out']} image_ratio={p['image_mm'] / q['image_mm']:.3f}"

@@ -106,13 +106,25 @@ def _not_a_sphere(f_shell: float, f_outer: float) -> str:
     )
 
 
-def _elevation_not_measured(z_sigma: float) -> str:
+def _elevation_not_measured(z_sigma: float, frame_step: float | None = None) -> str:
     """Why a centre whose elevation has a standard error ``z_sigma`` (metres) above
-    ``_MAX_ELEVATION_SIGMA`` is not accepted."""
+    ``_MAX_ELEVATION_SIGMA`` is not accepted (``frame_step``: the sweep's frame spacing,
+    named when the error is that of an elevation known to a frame)."""
+    if not np.isfinite(z_sigma):
+        return (
+            "elevation not measured: the cap's echo does not fall to half its peak on both "
+            "sides across the sweep's frames (a longer sweep, or the sphere nearer its middle)"
+        )
+    sparse = frame_step is not None and z_sigma >= 0.25 * frame_step
     return (
         f"elevation not measured: the cap's echo across the frames gives it to "
         f"± {z_sigma / _M_PER_MM:.2f} mm "
         f"(1 σ; at most {_MAX_ELEVATION_SIGMA / _M_PER_MM:g})"
+        + (
+            f": the frames are {frame_step / _M_PER_MM:.1f} mm apart; take more frames per sweep"
+            if sparse
+            else ""
+        )
     )
 
 

@@ -232,7 +232,7 @@ def _conclude(
     if accepted and z_sigma > _MAX_ELEVATION_SIGMA:
         # The cap's echo is about as bright in many frames (a weak echo in a beam
         # wider than the sphere): its elevation is not measured well enough.
-        accepted, reason = False, _elevation_not_measured(z_sigma)
+        accepted, reason = False, _elevation_not_measured(z_sigma, vol.spacing[2])
     return SweepLocalization(
         sweep.target,
         sweep.pose_id,
