@@ -42,6 +42,7 @@ __all__ = [
     "Observation",
     "calibrate",
     "centres_in_base",
+    "centroid_distances_mm",
     "consensus_initialisation",
     "linear_initialisation",
     "outlier_limit",
@@ -159,6 +160,20 @@ def centres_in_base(obs: Sequence[Observation], T_ee_us: Array) -> Array:
     T = np.array([o.T_base_ee for o in obs]) @ T_ee_us
     P = np.array([o.p_us for o in obs])
     return np.einsum("nij,nj->ni", T[:, :3, :3], P) + T[:, :3, 3]
+
+
+def centroid_distances_mm(
+    obs: Sequence[Observation], T_ee_us: Array, keep: NDArray[np.bool_]
+) -> Array:
+    """(n,) distance (mm) of each reconstructed centre from its sphere's centroid over
+    the ``keep`` observations (all of the sphere's where none is kept)."""
+    X = centres_in_base(obs, T_ee_us)
+    dist = np.zeros(len(obs))
+    for s in dict.fromkeys(o.target for o in obs):
+        idx = np.array([i for i, o in enumerate(obs) if o.target == s])
+        centroid = X[idx[keep[idx]]].mean(axis=0) if keep[idx].any() else X[idx].mean(axis=0)
+        dist[idx] = np.linalg.norm(X[idx] - centroid, axis=1) * _MM
+    return dist
 
 
 def linear_initialisation(obs: Sequence[Observation]) -> Array:
@@ -328,12 +343,7 @@ def calibrate(
             weight = _localization_sigma_mm(kept, targets, T0) / layout_sigma_mm
         sol, T_base_phantom = _solve(kept, targets, cad_centres if multi else None, T0, weight)
         T_X = _params_to_T(sol.x[:6], T0)
-        X = centres_in_base(obs, T_X)
-        dist = np.zeros(len(obs))
-        for s in targets:
-            idx = np.array([i for i, o in enumerate(obs) if o.target == s])
-            centroid = X[idx[keep[idx]]].mean(axis=0) if keep[idx].any() else X[idx].mean(axis=0)
-            dist[idx] = np.linalg.norm(X[idx] - centroid, axis=1) * _MM
+        dist = centroid_distances_mm(obs, T_X, keep)
         limit = outlier_limit(dist[keep], outlier_mm)
         new_keep = dist <= limit
         for i in np.flatnonzero(keep & ~new_keep):

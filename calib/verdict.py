@@ -263,6 +263,7 @@ class Verdict:
     requirements: Requirements = Requirements()
     radius_mm: tuple[float, float] | None = None  # given, as the images draw it
     scale: ImageScale | None = None
+    averaged: int = 0  # not converged: the estimates averaged before the final fit
 
     def line(self) -> str:
         """One line: the status and its reasons."""
@@ -279,6 +280,8 @@ class Verdict:
             "kept": self.kept[0],
             "localized": self.kept[1],
         }
+        if self.averaged:
+            out["averaged_estimates"] = self.averaged
         if self.agreement is not None:
             out["pose_agreement"] = self.agreement.as_dict()
         if self.radius_mm is not None:
@@ -377,12 +380,17 @@ def judge(
         d_mm <= SETTLED_SHARE_OF_BOUND * scale_mm and d_deg <= SETTLED_SHARE_OF_BOUND * scale_deg
     )
     if not settled:
+        kept = (
+            f"T_ee_us is the mean of its last {alt.averaged} estimates, which moved by that "
+            "much between iterations"
+            if alt.averaged
+            else "the answer depends on where the alternation stopped"
+        )
         suspect.append(
             f"did not converge: its last update moved T_ee_us by {d_mm:.2f} mm / "
             f"{d_deg:.2f}° (more than a quarter of its bound, {scale_mm:.2f} mm / "
-            f"{scale_deg:.2f}°); the answer depends on where the alternation stopped — "
-            "check the localizations (rejections, the sphere profile) or use the refined "
-            "localizer"
+            f"{scale_deg:.2f}°); {kept} — check the localizations (rejections, the sphere "
+            "profile) or use the refined localizer"
         )
     agreement = pose_agreement(alt)
     if agreement is not None and agreement.disagree:
@@ -481,4 +489,5 @@ def judge(
         if alt.sphere_size is None
         else (round(alt.sphere_size[0] * _MM, 4), round(alt.sphere_size[1] * _MM, 4)),
         scale,
+        alt.averaged,
     )
