@@ -226,6 +226,12 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
     cfg = load_hw_config(args.hw_config, args.overrides)
     if not args.resume and not args.dry_run:
         check_new_directory(args.out, "--out")
+    required = args.require_image_mm is not None or args.require_rotation_deg is not None
+    if required and not args.dry_run:
+        # What the calibration after the acquisition needs, checked before anything moves.
+        as_calibrate = argparse.Namespace(**{**vars(args), "overrides": []})
+        load_scenario(args.settings, _with_requirements(as_calibrate))
+        check_new_directory(f"{Path(args.out)}-calibration", "the calibration's directory")
     operator = _operator(args, cfg.robot.host, console)
     confirm = None if args.yes or args.dry_run else _confirm_at_terminal(console)
     with progress_bars(console) as bars, reporting(bars.update):
@@ -236,12 +242,31 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
         )  # fmt: skip
     if summary.dry_run:
         console.print(f"dry run: {summary.planned} sweeps planned and checked; nothing moved")
-    else:
-        console.print(
-            f"acquired {summary.acquired} sweeps ({summary.skipped} from before) into "
-            f"{args.out} in {summary.seconds:.0f} s; calibrate with `uscal calibrate {args.out}`"
-        )
-    return 0
+        return 0
+    console.print(
+        f"acquired {summary.acquired} sweeps ({summary.skipped} from before) into "
+        f"{args.out} in {summary.seconds:.0f} s"
+        + ("; calibrating it" if required else f"; calibrate with `uscal calibrate {args.out}`")
+    )
+    if not required:
+        return 0
+    # A lab script gates on the acquisition itself: calibrate it as `uscal calibrate`
+    # would (no recording), and exit 3 unless accepted within the requirements.
+    calibrate = argparse.Namespace(
+        dataset=str(Path(args.out)),
+        out=None,
+        markers=args.markers,
+        dh_from=[],
+        settings=args.settings,
+        overrides=[],
+        require_image_mm=args.require_image_mm,
+        require_rotation_deg=args.require_rotation_deg,
+        force=False,
+        rrd=None,
+        no_rrd=True,
+        rrd_frames=0,
+    )
+    return _cmd_calibrate(calibrate, console)
 
 
 def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:

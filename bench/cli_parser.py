@@ -58,10 +58,10 @@ def _add_until(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
-def _add_requirements(p: argparse.ArgumentParser) -> None:
+def _add_requirements(p: argparse.ArgumentParser, first: str = "") -> None:
     req = p.add_argument_group(
-        "requirements: exit with code 3 unless the calibration used (three-marker when it "
-        "ran, else single-marker) is accepted with its 95 % bounds within them"
+        f"requirements: {first}exit with code 3 unless the calibration used (three-marker "
+        "when it ran, else single-marker) is accepted with its 95 % bounds within them"
     )
     req.add_argument(
         "--require-image-mm",
@@ -204,6 +204,21 @@ def parser() -> argparse.ArgumentParser:
     )
     _add_set(acquire, "hw config", "protocol.spheres=[1]")
     _add_until(acquire)
+    _add_requirements(
+        acquire,
+        "then calibrate the dataset (as `uscal calibrate OUT` into OUT-calibration) and ",
+    )
+    acquire.add_argument(
+        "--markers",
+        choices=["1", "3"],
+        help="with a requirement: calibrate single-marker or three-marker only",
+    )
+    acquire.add_argument(
+        "--settings",
+        metavar="SCENARIO",
+        help="with a requirement: the scenario whose localization and calibration settings "
+        "to calibrate with (default: built-in)",
+    )
 
     calibrate = sub.add_parser(
         "calibrate",

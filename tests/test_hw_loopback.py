@@ -121,9 +121,19 @@ def _calibrates_to_the_truth(dataset: Path, out: Path, max_deg: float = 0.6, *fl
 @pytest.mark.slow
 @pytest.mark.parametrize("controller", [("127.0.0.3",)], indirect=True)
 def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(controller, tmp_path):
+    """`uscal acquire` with a requirement calibrates what it acquired and gates on it: a
+    requirement it cannot meet (0.01 mm) exits 3 with the verdict's reason; `uscal
+    calibrate` of the same dataset within 1 mm is accepted and finds the true mount."""
     dataset, out = tmp_path / "ds", tmp_path / "cal"
-    r = uscal("acquire", str(controller.hw), "--out", str(dataset), "--yes", *ONE_SPHERE)
-    assert r.returncode == 0, r.stderr
+    r = uscal(
+        "acquire", str(controller.hw), "--out", str(dataset), "--yes", *ONE_SPHERE,
+        "--require-image-mm", "0.01", "--markers", "1", "--settings", str(QUICK),
+    )  # fmt: skip
+    assert r.returncode == 3, (r.returncode, r.stderr)
+    said = " ".join(r.stdout.split())
+    assert "acquired 45 sweeps" in said and "required 0.01 mm" in said
+    strict = json.loads((tmp_path / "ds-calibration" / "metrics.json").read_text())
+    assert strict["calibration"]["single"]["verdict"]["status"] == "rejected"
     ds, info = read_dataset(dataset)
     assert len(ds.sweeps) == 45 and all(s.n_frames == 21 for s in ds.sweeps)
     assert info.source == "hardware"
@@ -132,16 +142,21 @@ def test_acquire_on_the_loopback_rig_then_calibrate_finds_the_true_mount(control
     # Accepted within a requirement it meets: exit 0.
     m = _calibrates_to_the_truth(dataset, out, 0.6, "--require-image-mm", "1")
     assert m["calibration"]["single"]["verdict"]["status"] == "accepted"
-    # Not within one it cannot meet: the verdict says why, and the exit code is 3.
-    strict = tmp_path / "strict"
-    r = uscal(
-        "calibrate", str(dataset), "--markers", "1", "--settings", str(QUICK),
-        "--out", str(strict), "--no-rrd", "--require-image-mm", "0.01",
-    )  # fmt: skip
-    assert r.returncode == 3, (r.returncode, r.stderr)
-    verdict = json.loads((strict / "metrics.json").read_text())["calibration"]["single"]
-    assert verdict["verdict"]["status"] == "rejected"
-    assert "required 0.01 mm" in " ".join(r.stdout.split())
+
+
+def test_acquire_checks_what_its_calibration_needs_before_anything_moves(tmp_path, capsys):
+    """With a requirement, `uscal acquire` will calibrate: a settings file that is not
+    there, or a calibration directory already in use, is one line before any motion."""
+    hw = tmp_path / "hw.yaml"
+    hw.write_text("robot: {host: 127.0.0.250}\ngrabber: {source: '0'}\n")
+    (tmp_path / "ds-calibration").mkdir()
+    (tmp_path / "ds-calibration" / "x").write_text("")
+    args = ["acquire", str(hw), "--out", str(tmp_path / "ds"), "--yes"]
+    r = uscal_here(capsys, *args, "--require-image-mm", "1", "--settings", "nowhere.yaml")
+    assert r.returncode == 2 and "nowhere.yaml" in r.stderr
+    r = uscal_here(capsys, *args, "--require-image-mm", "1")
+    assert r.returncode == 2 and "ds-calibration: exists" in r.stderr
+    assert not (tmp_path / "ds").exists()
 
 
 # The gain raised 40 dB, as an operator does in clear water: the receiver noise shows,
