@@ -329,6 +329,7 @@ def test_a_planned_acquisition_on_the_loopback_rig(controller, tmp_path):
     assert m["localization"]["n_rejected"] == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", [("127.0.0.12",)], indirect=True)
 def test_a_sweep_the_rig_refuses_is_replaced_by_a_spare_not_the_acquisition(controller, tmp_path):
     """A plan's sweep that falls outside the rig's workspace box this day: `uscal

@@ -100,7 +100,7 @@ def test_uscal_plan_optimize_writes_a_plan_that_beats_the_papers(tmp_path):
     r = uscal(
         "plan", str(QUICK), "--set", "protocol.spheres=[1]", "--optimize", "--sweeps", "15",
         "--set", "planning.rotation_step_deg=15", "--set", "planning.shift_step_mm=3",
-        "--out", str(plan),
+        "--set", "planning.session_draws=6", "--out", str(plan),
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     doc = yaml.safe_load(plan.read_text())
