@@ -5,6 +5,8 @@ clear by the first spare that does — one line says which — instead of stoppi
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -19,6 +21,7 @@ from calib.planning import SweepPose
 from calib.protocol import check_plan, clear_sweeps
 
 from .conftest import QUICK
+from .test_cli import uscal_here
 
 ONE = ["protocol.spheres=[1]", "robot.dh_error_scale=0"]
 
@@ -96,14 +99,21 @@ def test_without_a_spare_that_clears_the_sweep_is_left_out_not_the_acquisition(s
         _clear(session, [blocked[0], fine[0], blocked[1], fine[1]])
 
 
+def _run_with(plan, tmp_path, capsys):
+    """`uscal run` of quick.yaml's sphere 1 with the plan file: the run and its metrics."""
+    out = tmp_path / "out"
+    r = uscal_here(
+        capsys, "run", str(QUICK), "--out", str(out), *(f"--set={s}" for s in ONE),
+        f"--set=protocol.plan={plan}",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    return r, json.loads((out / "metrics.json").read_text())
+
+
 def test_uscal_run_says_which_sweep_it_replaced_and_calibrates(session, tmp_path, capsys):
     """End to end on the twin: a plan with a sweep that collides in this session runs
     through, one line naming the sweep, the reason and the spare, in the console and in
     metrics.json."""
-    import json
-
-    from .test_cli import uscal_here
-
     *_, fine, blocked = session
     plan = write_plan(
         tmp_path / "plan.yaml",
@@ -111,15 +121,9 @@ def test_uscal_run_says_which_sweep_it_replaced_and_calibrates(session, tmp_path
         {},
         {"sphere_1": (blocked[1], fine[6])},
     )
-    out = tmp_path / "out"
-    r = uscal_here(
-        capsys, "run", str(QUICK), "--out", str(out), *(f"--set={s}" for s in ONE),
-        f"--set=protocol.plan={plan}",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
+    r, m = _run_with(plan, tmp_path, capsys)
     (line,) = [x for x in r.stdout.splitlines() if x.startswith("plan: ")]
     assert line.startswith("plan: sphere_1 sweep 1 replaced by spare 1 (turned")
-    m = json.loads((out / "metrics.json").read_text())
     assert m["acquisition"]["sweeps"] == 7 and len(m["acquisition"]["replaced"]) == 1
     single = m["calibration"]["single"]
     # Seven arbitrary sweeps calibrate to the millimetre, within their own bound.
@@ -131,10 +135,6 @@ def test_a_plan_of_one_orientation_is_rejected_not_handed_back(session, tmp_path
     """Sweeps that all share one flange orientation do not determine T_ee_us's rotation:
     the fit stops anywhere (here metres off over the image), and the verdict says rejected,
     why and what to do, instead of a bound of kilometres marked suspect."""
-    import json
-
-    from .test_cli import uscal_here
-
     scenario, twin, sphere, coarse, *_ = session
     grid = [p for p in scenario.planning.candidates() if in_image(scenario, p)]
     ends = np.array([sweep_of(scenario, sphere, coarse, p)[[0, 10, 20]] for p in grid[:400]])
@@ -143,13 +143,8 @@ def test_a_plan_of_one_orientation_is_rejected_not_handed_back(session, tmp_path
     same = [p for p, r in zip(grid, room, strict=False) if r >= 0.01 and p.rotation_deg == turn]
     assert len(same) >= 6
     plan = write_plan(tmp_path / "plan.yaml", {"sphere_1": tuple(same[:6])}, {})
-    out = tmp_path / "out"
-    r = uscal_here(
-        capsys, "run", str(QUICK), "--out", str(out), *(f"--set={s}" for s in ONE),
-        f"--set=protocol.plan={plan}",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    verdict = json.loads((out / "metrics.json").read_text())["calibration"]["single"]["verdict"]
+    r, m = _run_with(plan, tmp_path, capsys)
+    verdict = m["calibration"]["single"]["verdict"]
     assert verdict["status"] == "rejected"
     assert verdict["reasons"][0].startswith("the kept sweeps were taken from 1 flange orientation")
     assert "single-marker verdict: rejected: the kept sweeps" in " ".join(r.stdout.split())
