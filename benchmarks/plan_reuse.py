@@ -12,7 +12,7 @@ none collides; the plan calibrates at least as well as the paper's (median true 
 error no worse). Last line: ``sessions=<n> stopped=<n> replaced=<n> left_out=<n>
 image_ratio=<median of the plan / median of the paper's>``.
 
-Run: python benchmarks/plan_reuse.py [--sessions 20] [--seed 0] [--workers 2]
+Run: python benchmarks/plan_reuse.py [--sessions 20] [--seed 0] [--workers 2] [--criterion D]
 """
 
 from __future__ import annotations
@@ -72,6 +72,7 @@ def main() -> None:
     ap.add_argument("--sessions", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0, help="draws the plan's and the sessions' seeds")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--criterion", choices=["D", "A", "E"], default="D")
     args = ap.parse_args()
     rng = np.random.default_rng([args.seed, 36_3])
     seeds = [int(s) for s in rng.choice(10**6, size=args.sessions + 1, replace=False)]
@@ -79,7 +80,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp, reporting(None):
         scenario = load_scenario(QUICK, [*BASE, f"seed={plan_seed}"])
         t0 = time.perf_counter()
-        c = optimize_plan(scenario, 15, "D", 1)
+        c = optimize_plan(scenario, 15, args.criterion, 1)
         path = str(Path(tmp) / "plan.yaml")
         write_plan(path, c.optimized.poses, plan_about(c, scenario), c.optimized.spares)
         print(
