@@ -2,7 +2,8 @@
 for? Runs of ``scenarios/quick.yaml`` on conditions drawn at random, a fresh draw for each
 ``--seed`` (the clean draw of ``benchmarks/verdict.py``: gain, target depth, sphere radius,
 water temperature with and without the speed-of-sound correction, coarse-mount error,
-print tolerance, a small kinematic error, the localizer method), single- and
+print tolerance, a small kinematic error or a large one refined from the acquisition's
+own touches, the localizer method), single- and
 three-marker, each run through :func:`bench.jobs.single.run` on a local pool of
 processes. Prints, per method and overall, the fraction of calibrations whose true error
 lies within ``bound95`` for each measure (rotation, translation, image; a calibration
@@ -57,6 +58,7 @@ def runs(n: int, seed: int) -> list[tuple[str, dict[str, Any], int]]:
             f"r {ov['phantom.sphere_radius_mm']:g}, {ov['medium.temperature_c']:g} °C"
             + ("" if ov["imaging.sound_speed_correction"] else " uncorr.")
             + (f", DH ×{ov['robot.dh_error_scale']:g}" if ov["robot.dh_error_scale"] else "")
+            + (" + touches" if ov.get("evaluation.touches_one_dataset") else "")
         )
         out.append((label, ov, run_seed))
     return out

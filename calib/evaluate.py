@@ -77,6 +77,15 @@ class EvaluationConfig:
             "two: no touches and no evaluation, the controller's kinematics are used."
         },
     )
+    touches_one_dataset: bool = field(
+        default=False,
+        metadata={
+            "doc": "Simulation, one acquisition (fewer than two datasets): after the sweeps, "
+            "touch the cone vertices with the stylus and refine the DH model from these "
+            "touches before calibrating (the paper's experiment refines each dataset from "
+            "the others' touches instead)."
+        },
+    )
     dh_regularizer: float = field(
         default=0.01, metadata={"doc": "Weight of ‖z‖² in the touch loss.", "ge": 0, "le": 100}
     )

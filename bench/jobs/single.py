@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -14,14 +15,21 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.alternation import AlternationResult
+from calib.dh import DHTable
 from calib.errors import UscalError
-from calib.kinematics import kinematic_gauge
+from calib.kinematics import DHRefinement, kinematic_gauge, with_kinematics
 from calib.localize import localize_sphere
-from calib.pipeline import calibrate_markers
+from calib.pipeline import calibrate_markers, residual_rms_mm, touch_kinematics
 from calib.uncertainty import UncertaintyInputs, alternation_bound
 from twin.imager import acoustic_scene
 
-from ..acquire_sim import SimulatedAcquisition, make_imager, make_twin, simulate_acquisition
+from ..acquire_sim import (
+    SimulatedAcquisition,
+    make_imager,
+    make_twin,
+    simulate_acquisition,
+    simulate_touches,
+)
 from ..acquire_sim import save_dataset as save_dataset_files
 from ..config.method import (
     axial_scale,
@@ -37,6 +45,7 @@ from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
 from ..results import RunResult, calibration_entry
 from ..sequential import StopRule, acquire_until
+from ..sessions import dataset_rngs
 from ..truth import localization_errors, mount_error, snapshot_of, transform_difference
 from .paper import run_evaluation
 
@@ -49,17 +58,43 @@ def _true_errors(scenario, T_est, T_true) -> dict[str, float]:
     return mount_error(scenario, T_est, T_true)
 
 
-def equivalent_mount(scenario: Scenario, acq: SimulatedAcquisition, truth) -> Array | None:
-    """Truth: the ``T_ee_us`` that best maps the image through the controller's kinematic
-    model when the twin's arm is not nominal (the evaluation's kinematic gauge: a
-    flange-side error of the model is indistinguishable from, and equivalent to, a mount
-    error); None when the arm is nominal."""
-    nominal = scenario.robot.nominal_table
-    if np.array_equal(nominal.as_array(), truth.dh_table.as_array()):
+def equivalent_mount(
+    scenario: Scenario, acq: SimulatedAcquisition, truth, model: DHTable | None = None
+) -> Array | None:
+    """Truth: the ``T_ee_us`` that best maps the image through the kinematic model the
+    poses were computed with (``model``; default the controller's) when the twin's arm is
+    not that model (the evaluation's kinematic gauge: a flange-side error of the model is
+    indistinguishable from, and equivalent to, a mount error); None when it is."""
+    model = scenario.robot.nominal_table if model is None else model
+    if np.array_equal(model.as_array(), truth.dh_table.as_array()):
         return None
     q = np.concatenate([s.q[::10] for s in acq.dataset.sweeps])
     tool_points = se3.apply(truth.T_ee_us, image_points(scenario, 3))
-    return kinematic_gauge(nominal, truth.dh_table, q, tool_points).G @ truth.T_ee_us
+    return kinematic_gauge(model, truth.dh_table, q, tool_points).G @ truth.T_ee_us
+
+
+def refine_from_touches(
+    scenario: Scenario, acq: SimulatedAcquisition, twin
+) -> tuple[SimulatedAcquisition, DHRefinement]:
+    """One acquisition's own touches (``evaluation.touches_one_dataset``): the stylus on
+    every cone vertex (on the twin of the same arm, its own joint and contact noise, as
+    the paper's datasets are touched), the DH model refined from them, and every frame's
+    flange pose recomputed from its joint angles with the refined model."""
+    rngs = dataset_rngs(scenario, 0)
+    touched = make_twin(scenario, rngs["touch_joints"])
+    touches = simulate_touches(scenario, touched, rngs["touch_contact"])
+    vertices = {k: v for k, v in twin.phantom_cad.landmarks.items() if k.startswith("vertex_")}
+    refinement, _ = touch_kinematics(
+        scenario.robot.nominal_table,
+        [touches],
+        touches,
+        vertices=vertices,
+        tip_cad=np.asarray(scenario.evaluation.stylus_tip_cad_mm, dtype=float) * 1e-3,
+        evaluation=scenario.evaluation,
+    )
+    ds = acq.dataset
+    sweeps = tuple(s for t in ds.targets() for s in with_kinematics(ds.of(t), refinement.table))
+    return replace(acq, dataset=replace(ds, sweeps=sweeps, touches=tuple(touches))), refinement
 
 
 def _calibration_metrics(
@@ -173,6 +208,9 @@ def run(
         acq = simulate_acquisition(scenario, twin, imager, progress="acquire sweeps")
     else:
         acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
+    refinement = None
+    if scenario.evaluation.touches_one_dataset:
+        acq, refinement = refine_from_touches(scenario, acq, twin)
     t_sim = time.perf_counter() - t_start
     truth = twin.truth
     radius = stated_radius(scenario)  # the CAD radius: the only prior
@@ -192,10 +230,12 @@ def run(
         final.update(three.retained_localizations())
     errors, n_sweeps, n_rejected = localization_errors(acq, truth, final)
     errors = errors if len(errors) else np.array([np.nan])
-    # The bounds' declared terms: the phantom's print specification and the medium; no
-    # kinematic residual is known (the controller's own model).
-    inputs = scenario_uncertainty(scenario)
-    X_equiv = equivalent_mount(scenario, acq, truth)
+    # The bounds' declared terms: the phantom's print specification and the medium; the
+    # refinement's touch residual where the arm's model was refined (none is known for
+    # the controller's own model).
+    kinematic_rms = 0.0 if refinement is None else residual_rms_mm(refinement.residuals_mm)
+    inputs = scenario_uncertainty(scenario, kinematic_rms)
+    X_equiv = equivalent_mount(scenario, acq, truth, refinement and refinement.table)
     extra = (cad, inputs, X_equiv)
     hist = single.history + (three.history if three else [])
     t_loc = float(sum(h["localize_s"] for h in hist))
@@ -208,6 +248,7 @@ def run(
             "robot_time_s": acq.robot_time_s,
             "plan": "sequential" if until else scenario.protocol.plan or "paper",
             "replaced": [r.line() for r in acq.replaced],
+            "touches": len(acq.dataset.touches),
             **({"sequential": {s.target: s.as_dict() for s in scans}} if until else {}),
         },
         "localization": {
