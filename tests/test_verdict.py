@@ -186,6 +186,28 @@ def test_a_wrong_arm_model_is_suspect_on_the_twin():
     assert any("kinematic model" in r for r in v["reasons"])
 
 
+@pytest.mark.slow
+def test_the_same_arm_refined_from_its_own_touches_is_accepted_within_its_bound():
+    """The arm of the test above (half the paper rig's DH error), but the acquisition's
+    own touches of the cone vertices refine its model first
+    (``evaluation.touches_one_dataset``): the calibration lands within its bound of the
+    mount that is right through the refined model, and is accepted."""
+    from bench.config.scenario import load_scenario
+    from bench.jobs.single import run
+
+    sets = [
+        "robot.dh_error_scale=0.5",
+        "protocol.spheres=[1]",
+        "evaluation.touches_one_dataset=true",
+    ]
+    m = run(load_scenario(QUICK, sets)).metrics
+    assert m["acquisition"]["touches"] == 24  # 4 vertices × 6
+    c = m["calibration"]["single"]
+    assert c["verdict"]["status"] == "accepted", c["verdict"]["reasons"]
+    true = c["true_error_equivalent"]
+    assert true["image_mm"] < 0.5 and true["image_mm"] <= c["bound95"]["image_mm"]
+
+
 def test_an_alternation_that_does_not_converge_returns_the_mean_of_its_estimates(monkeypatch):
     """quick.yaml's sphere 1 with the paper's localizer (seed 24): the estimate still
     moves at the fifth calibration (the localizations follow it back and forth). Where
