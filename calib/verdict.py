@@ -26,10 +26,11 @@ The pipeline already holds the evidence; a calibration is judged on these questi
   axial scale free (:func:`image_scale`): a pixel spacing the scanner reports wrong, or
   a speed of sound not corrected, shows as a scale off by more than 1 % and three
   standard errors.
-- **Do the poses determine ``T_ee_us`` at all?** Sweeps from fewer than two distinct
+- **Do the data determine ``T_ee_us`` at all?** Sweeps from fewer than two distinct
   flange orientations, or an estimate whose 95 % bound is beyond 10° or 10 mm (where a
   first-order bound no longer describes the error, and the coarse mount from the CAD is
-  as good), are rejected: the answer is whatever the fit stopped at.
+  as good: views too alike, or views that disagree), are rejected: the answer is
+  whatever the fit stopped at.
 - **Were enough centres kept?** A fit that drops more than a tenth of the localizer's
   centres as outliers saw errors that are not the noise it assumes (false detections,
   or poses that disagree).
@@ -428,12 +429,19 @@ def judge(
             "add sweeps turned about other axes (uscal plan --optimize)"
         )
     elif scale_deg > UNDETERMINED_DEG or max(scale_mm, image_bound or 0.0) > UNDETERMINED_MM:
+        # Why: the views disagree (said below) or, if they agree, they are too alike.
+        disagree = agreement is not None and agreement.disagree
         undetermined.append(
-            f"the poses do not determine T_ee_us: its 95 % bound is {scale_deg:.1f}° / "
+            f"the data do not determine T_ee_us: its 95 % bound is {scale_deg:.1f}° / "
             f"{scale_mm:.1f} mm"
             + ("" if image_bound is None else f" ({image_bound:.1f} mm over the image)")
-            + f", beyond {UNDETERMINED_DEG:g}° / {UNDETERMINED_MM:g} mm; the sweeps' views "
-            "are too alike — add sweeps turned about other axes (uscal plan --optimize)"
+            + f", beyond {UNDETERMINED_DEG:g}° / {UNDETERMINED_MM:g} mm"
+            + (
+                ""
+                if disagree
+                else "; the sweeps' views are too alike — add sweeps turned about other "
+                "axes (uscal plan --optimize)"
+            )
         )
     n_kept = int(alt.result.retained.sum())
     n_given = len(alt.observations)
