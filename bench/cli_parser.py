@@ -367,17 +367,22 @@ def parser() -> argparse.ArgumentParser:
     import_sub = imports.add_subparsers(dest="import_command", required=True)
     plus = import_sub.add_parser(
         "plus",
-        help="PLUS sequence metafiles (.mha, as PLUS and 3D Slicer write them): one linear "
+        help="PLUS sequence metafiles (.mha, or .mhd with its .raw/.zraw, as PLUS and 3D "
+        "Slicer write them): one linear "
         "sweep of a sphere per file (or per --frames-per-sweep frames), the probe's pose "
         "from a per-frame transform (a tracked probe: the tracker plays the robot base)",
     )
-    plus.add_argument("files", nargs="+", metavar="FILE.mha", help="PLUS sequence files")
+    plus.add_argument(
+        "files", nargs="+", metavar="FILE.mha", help="PLUS sequence files (.mha or .mhd)"
+    )
     plus.add_argument(
         "--pose-transform",
         required=True,
         metavar="NAME",
         help="per-frame transform giving the probe's pose, e.g. ProbeToTrackerTransform "
-        "(T_tracker_probe; the calibration is then T_probe_image)",
+        "(T_tracker_probe; the calibration is then T_probe_image), or one composed from "
+        "those the file records, e.g. ProbeToReference = ReferenceToTracker⁻¹ · "
+        "ProbeToTracker (as PLUS's transform repository composes it)",
     )
     plus.add_argument(
         "--target", default="sphere_1", help="what the sweeps image (default sphere_1)"

@@ -224,9 +224,12 @@ class Metafile:
         return _flange_pose(self.path, key, self.fields.get(key))
 
     def timestamp(self, j: int) -> float:
-        """Frame ``j``'s timestamp (s; NaN when not recorded)."""
+        """Frame ``j``'s timestamp (s; NaN when not recorded, as in a sequence PLUS
+        wrote without timestamps, or a single image)."""
         key = f"Seq_Frame{j:04d}_Timestamp"
-        return float(_numbers(self.path, key, self.fields.get(key, "nan"), 1)[0])
+        if key not in self.fields:
+            return float("nan")
+        return float(_numbers(self.path, key, self.fields[key], 1)[0])
 
     def spacing_mm(self) -> tuple[float, float]:
         """The frames' pixel spacing (columns, rows) as the header gives it, mm."""
@@ -260,9 +263,40 @@ def _mirror_to_mf(path: Path, orientation: str) -> tuple[bool, bool]:
     )
 
 
+@contextlib.contextmanager
+def _element_data(path: Path, header, name: str | None) -> Iterator:
+    """Where the image bytes are: after the header (``LOCAL``, a ``.mha``) or in the file
+    ``ElementDataFile`` names beside it (a ``.mhd`` header with its ``.raw`` or, zlib
+    compressed, ``.zraw``), a plain name in the header's folder."""
+    if name == "LOCAL":
+        yield header
+        return
+    if not name or name in ("LIST",) or name.split()[0] in ("LIST",) or "%" in name:
+        raise DatasetError(
+            f"{path}: ElementDataFile = {name!r}; this reader takes the frames in the same "
+            "file ('LOCAL') or in one data file beside it (e.g. 'frames.raw', 'frames.zraw')"
+        )
+    data_path = path.parent / name
+    if Path(name).is_absolute() or data_path.resolve().parent != path.parent.resolve():
+        raise DatasetError(
+            f"{path}: ElementDataFile = {name!r} is not a file beside the header; "
+            "move the data file next to it"
+        )
+    try:
+        f = open(data_path, "rb")  # noqa: SIM115 - closed below, errors mapped first
+    except OSError as e:
+        raise DatasetError(
+            f"{path}: its ElementDataFile {data_path} cannot be opened ({e.strerror})"
+        ) from None
+    with f:
+        yield f
+
+
 def read_metafile(path: str | os.PathLike[str]) -> Metafile:
     """Read a sequence metafile as PLUS and uscal write it: a stack of single-channel
-    ``MET_UCHAR`` frames, raw or zlib-compressed, in any B-mode orientation.
+    ``MET_UCHAR`` frames (``NDims = 3``) or one frame (``NDims = 2``), raw or
+    zlib-compressed, after the header (``.mha``) or in the data file beside it that
+    ``ElementDataFile`` names (a ``.mhd`` header), in any B-mode orientation.
 
     Raises
     ------
@@ -278,13 +312,16 @@ def read_metafile(path: str | os.PathLike[str]) -> Metafile:
         raise DatasetError(f"{path}: cannot open ({e.strerror})") from None
     with f:
         fields, _ = _read_header(path, f)
-        for key, value in {"ObjectType": "Image", "NDims": "3"}.items():
-            if fields.get(key) != value:
-                raise DatasetError(
-                    f"{path}: {key} = {fields.get(key)!r}; this reader needs {value!r} "
-                    "(a stack of 2-D frames)"
-                )
-        dims = _numbers(path, "DimSize", fields.get("DimSize"), 3)
+        if fields.get("ObjectType") != "Image" or fields.get("NDims") not in ("2", "3"):
+            raise DatasetError(
+                f"{path}: ObjectType = {fields.get('ObjectType')!r}, NDims = "
+                f"{fields.get('NDims')!r}; this reader needs an 'Image' of NDims '3' (a stack "
+                "of 2-D frames) or '2' (one frame)"
+            )
+        ndims = int(fields["NDims"])
+        dims = _numbers(path, "DimSize", fields.get("DimSize"), ndims)
+        if ndims == 2:
+            dims = np.append(dims, 1.0)  # one frame
         if fields.get("ElementType") == "MET_OTHER" or np.any(dims[:2] == 0):
             raise DatasetError(
                 f"{path}: holds no images (ElementType = {fields.get('ElementType')}, "
@@ -295,11 +332,6 @@ def read_metafile(path: str | os.PathLike[str]) -> Metafile:
             raise DatasetError(
                 f"{path}: ElementType = {fields.get('ElementType')!r}; this reader takes "
                 "8-bit grey frames (MET_UCHAR)"
-            )
-        if fields.get("ElementDataFile") != "LOCAL":
-            raise DatasetError(
-                f"{path}: ElementDataFile = {fields.get('ElementDataFile')!r}; this reader "
-                "needs the frames in the same file ('LOCAL')"
             )
         if fields.get("ElementNumberOfChannels", "1") != "1":
             raise DatasetError(f"{path}: only single-channel (grey) images are supported")
@@ -315,10 +347,9 @@ def read_metafile(path: str | os.PathLike[str]) -> Metafile:
         ):
             raise DatasetError(f"{path}: DimSize = {fields['DimSize']!r} is not a frame stack")
         size = W * H * n
-        if fields.get("CompressedData", "False").lower() == "true":
-            data = _decompress(path, f, size)
-        else:
-            data = f.read(size + 1)
+        compressed = fields.get("CompressedData", "False").lower() == "true"
+        with _element_data(path, f, fields.get("ElementDataFile")) as data_file:
+            data = _decompress(path, data_file, size) if compressed else data_file.read(size + 1)
         if len(data) != size:
             raise DatasetError(
                 f"{path}: {len(data)} image bytes, the header announces {size} "

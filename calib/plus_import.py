@@ -19,6 +19,7 @@ a failed import leaves nothing behind.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from collections import Counter
 from collections.abc import Sequence
@@ -59,49 +60,102 @@ class PlusFrames:
     skipped: Counter[str] = field(default_factory=Counter)
 
 
-def _transform_name(meta: Metafile, name: str) -> str:
-    """``name`` as a frame field (``ProbeToTracker`` or ``ProbeToTrackerTransform``), or
-    one line listing the file's transforms."""
+_LINK = re.compile(r"^([A-Z][A-Za-z0-9]*?)To([A-Z][A-Za-z0-9]*)Transform$")
+
+
+def _transform_chain(meta: Metafile, name: str) -> list[tuple[str, bool]]:
+    """``name`` (``ProbeToReference`` or ``ProbeToReferenceTransform``) as the per-frame
+    transforms the file records, composed as PLUS's transform repository composes them:
+    (field, inverted) links from the ``From`` frame to the ``To`` frame, e.g.
+    ``ProbeToReference`` = ``ReferenceToTracker``⁻¹ · ``ProbeToTracker``. One line listing
+    the file's transforms when no chain connects the two."""
     full = name if name.endswith("Transform") else name + "Transform"
-    names = meta.frame_names()
-    if full not in names:
-        known = sorted(n for n in names if n.endswith("Transform"))
-        raise DatasetError(
-            f"{meta.path}: no per-frame transform {full!r}; the file records "
-            + (", ".join(known) if known else "none")
-        )
-    return full
+    names = [n for n in meta.frame_names() if n.endswith("Transform")]
+    if full in names:
+        return [(full, False)]
+    wanted = _LINK.match(full)
+    # Edges between coordinate frames, both ways (a link read backwards is inverted).
+    edges: dict[str, list[tuple[str, str, bool]]] = {}
+    for n in names:
+        m = _LINK.match(n)
+        if m:
+            a, b = m.groups()
+            edges.setdefault(a, []).append((b, n, False))
+            edges.setdefault(b, []).append((a, n, True))
+    if wanted:
+        start, goal = wanted.groups()
+        previous: dict[str, tuple[str, str, bool] | None] = {start: None}
+        queue = [start]
+        while queue and goal not in previous:
+            here = queue.pop(0)
+            for there, field_name, inverted in edges.get(here, []):
+                if there not in previous:
+                    previous[there] = (here, field_name, inverted)
+                    queue.append(there)
+        if goal in previous and goal != start:
+            chain = []
+            node = goal
+            while previous[node] is not None:
+                here, field_name, inverted = previous[node]  # type: ignore[misc]
+                chain.append((field_name, inverted))
+                node = here
+            return chain[::-1]
+    raise DatasetError(
+        f"{meta.path}: no per-frame transform {full!r}, nor a chain of them from "
+        + (f"{wanted.group(1)} to {wanted.group(2)}" if wanted else "one frame to another")
+        + "; the file records "
+        + (", ".join(sorted(names)) if names else "none")
+    )
 
 
 def plus_frames(path: str | os.PathLike[str], pose_transform: str) -> PlusFrames:
     """Read one PLUS file's frames with the per-frame transform ``pose_transform`` as
-    the probe's pose; frames whose pose or image status is not OK are skipped."""
+    the probe's pose (recorded, or composed from the transforms recorded:
+    :func:`_transform_chain`); frames whose pose (any link of it) or image status is not
+    OK are skipped. A file without timestamps (PLUS writes none for a single image, and
+    some recordings have none) numbers its frames instead."""
     meta = read_metafile(path)
-    name = _transform_name(meta, pose_transform)
+    chain = _transform_chain(meta, pose_transform)
     keep, poses, times = [], [], []
     skipped: Counter[str] = Counter()
     for j in range(len(meta.images)):
-        status = meta.frame_field(j, f"{name}Status", default="OK")
         image_status = meta.frame_field(j, "ImageStatus", default="OK")
         if str(image_status).upper() != "OK":
             skipped[f"ImageStatus {image_status}"] += 1
             continue
-        if str(status).upper() != "OK":
-            skipped[f"{name}Status {status}"] += 1
+        bad = [
+            (link, status)
+            for link, _ in chain
+            if str(status := meta.frame_field(j, f"{link}Status", default="OK")).upper() != "OK"
+        ]
+        if bad:
+            skipped[f"{bad[0][0]}Status {bad[0][1]}"] += 1
             continue
-        poses.append(meta.transform(j, name))
+        T = np.eye(4)
+        for link, inverted in chain:
+            L = meta.transform(j, link)
+            T = (se3.invert(L) if inverted else L) @ T
+        poses.append(T)
         times.append(meta.timestamp(j))
         keep.append(j)
     spacing = meta.spacing_mm()
+    t = np.array(times, dtype=float)
+    if np.isnan(t).any():
+        t = np.array(keep, dtype=float)  # no timestamps: the frames in order
+    name = chain[0][0] if len(chain) == 1 and not chain[0][1] else _full(pose_transform)
     return PlusFrames(
         meta.path,
         name,
         meta.images[keep],
         np.array(poses).reshape(-1, 4, 4),
-        np.array(times),
+        t,
         None if spacing == _PLUS_DEFAULT_SPACING else spacing,
         skipped,
     )
+
+
+def _full(name: str) -> str:
+    return name if name.endswith("Transform") else name + "Transform"
 
 
 @dataclass(frozen=True)

@@ -96,7 +96,7 @@ def test_compressed_data_as_plus_writes_it(tmp_path, rng):
         (lambda b: b[:200], "truncated|missing|ends before"),
         (lambda b: b"\x89PNG\r\n\x1a\n" + b"\x00" * 64, "not 'key = value'|not text"),
         (lambda b: b.replace(b"MET_UCHAR", b"MET_FLOAT"), "ElementType"),
-        (lambda b: b.replace(b"File = LOCAL", b"File = /etc/passwd"), "LOCAL"),
+        (lambda b: b.replace(b"File = LOCAL", b"File = /etc/passwd"), "beside the header"),
         (lambda b: b.replace(b"DimSize = 30 40 5", b"DimSize = 30 40 -5"), "DimSize"),
         (lambda b: b.replace(b"Status = OK", b"Status = INVALID", 1), "INVALID"),
         (lambda b: b.replace(b"0002_JointAnglesRad = ", b"0002_JointAnglesRad = 1 "), "Joint"),

@@ -6,6 +6,7 @@ write it from the twin, imported and calibrated against the truth."""
 from __future__ import annotations
 
 import json
+import zlib
 from decimal import Decimal
 from pathlib import Path
 
@@ -32,6 +33,7 @@ PLUS_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
 NWIRE = PLUS_DATA / "NwirePhantomFreehandCropped.igs.mha"
 SYNTHETIC = PLUS_DATA / "SyntheticVideoBuffer20.igs.mha"
 TRACKING = PLUS_DATA / "SlidingProbeTrackingData.igs.mha"
+FCAL = PLUS_DATA / "fCal_Test_Calibration_3NWires_fCal2.0.igs.mha"
 needs_plus_data = pytest.mark.skipif(not PLUS_DATA.is_dir(), reason="no ../shared/data/plus")
 
 
@@ -117,6 +119,94 @@ def test_tracking_only_file_and_unknown_transform_are_one_line(capsys, tmp_path)
     )  # fmt: skip
     assert r.returncode == 2 and "0 to 60" in r.stderr and r.stderr.count("\n") == 1
     assert not (tmp_path / "d").exists()
+
+
+# ---------------------------------------- PLUS files as PLUS writes them (issue 37)
+
+
+def _split(path: Path, folder: Path, name: str, inflate: bool) -> Path:
+    """The real ``.mha`` as a ``.mhd`` header with its data file beside it (zlib as the
+    file has it: ``.zraw``; ``inflate``: raw bytes, ``.raw``), as PLUS writes a sequence
+    with ``.mhd``."""
+    blob = path.read_bytes()
+    end = blob.index(b"ElementDataFile = LOCAL") + len(b"ElementDataFile = LOCAL\n")
+    header, data = blob[:end].decode("latin-1"), blob[end:]
+    data_name = f"{name}.{'raw' if inflate else 'zraw'}"
+    if inflate:
+        data = zlib.decompress(data)
+        header = header.replace("CompressedData = True", "CompressedData = False")
+    header = header.replace("ElementDataFile = LOCAL", f"ElementDataFile = {data_name}")
+    (folder / data_name).write_bytes(data)
+    mhd = folder / f"{name}.mhd"
+    mhd.write_text(header, encoding="latin-1")
+    return mhd
+
+
+@needs_plus_data
+@pytest.mark.parametrize("inflate", [False, True])
+def test_a_sequence_with_its_frames_in_a_data_file_beside_it(tmp_path, inflate):
+    """``.mhd`` + ``.zraw`` (or ``.raw``): the same frames as ITK reads from that pair
+    and as the real ``.mha`` holds; a data file that is not there is one line."""
+    mhd = _split(NWIRE, tmp_path, "nwire", inflate)
+    frames = read_metafile(mhd).images
+    assert np.array_equal(frames, _itk_frames(mhd))
+    assert np.array_equal(frames, read_metafile(NWIRE).images)
+    (tmp_path / f"nwire.{'raw' if inflate else 'zraw'}").unlink()
+    with pytest.raises(DatasetError, match=r"ElementDataFile .* cannot be opened"):
+        read_metafile(mhd)
+
+
+def test_a_single_image_reads_as_one_frame(tmp_path, rng):
+    """``NDims = 2`` (one B-mode image, as ITK and PLUS write a single frame)."""
+    image = rng.integers(0, 256, (40, 30), dtype=np.uint8)
+    path = tmp_path / "one.mha"
+    sitk.WriteImage(sitk.GetImageFromArray(image), str(path))
+    assert "NDims = 2" in path.read_bytes()[:400].decode("latin-1")
+    meta = read_metafile(path)
+    assert meta.images.shape == (1, 40, 30) and np.array_equal(meta.images[0], image)
+    assert np.isnan(meta.timestamp(0))
+
+
+@needs_plus_data
+def test_a_transform_the_file_does_not_record_is_composed_from_the_chain():
+    """fCal 2.0's calibration sweep records ProbeToTracker and ReferenceToTracker per
+    frame; ProbeToReference is ReferenceToTracker⁻¹ · ProbeToTracker, as PLUS's transform
+    repository composes it (the numbers read by ITK); a frame where a link is not OK is
+    skipped as PLUS skips it; no chain is one line naming what the file records."""
+    composed = plus_frames(FCAL, "ProbeToReference")
+    fields = _itk_fields(FCAL)
+
+    def matrix(j: int, name: str) -> np.ndarray:
+        T = np.array([float(v) for v in fields[f"Seq_Frame{j:04d}_{name}"].split()])
+        T = T.reshape(4, 4)
+        T[:3, 3] *= 1e-3
+        return T
+
+    n = len(composed.images)
+    assert n == len(plus_frames(FCAL, "ProbeToTracker").images) > 100
+    for j in (0, n // 2, n - 1):
+        expected = np.linalg.inv(matrix(j, "ReferenceToTrackerTransform")) @ matrix(
+            j, "ProbeToTrackerTransform"
+        )
+        # To the six digits the file prints (its rotations are orthonormal to 1e-6).
+        assert np.allclose(composed.T_base_probe[j], expected, atol=2e-5)
+    with pytest.raises(DatasetError, match="nor a chain of them from Probe to Phantom"):
+        plus_frames(FCAL, "ProbeToPhantom")
+
+
+@needs_plus_data
+def test_a_sequence_without_timestamps_imports_in_frame_order(tmp_path):
+    """Timestamps removed from a real file: its frames are numbered in order instead of
+    refused ("Seq_Frame0000_Timestamp must be 1 finite numbers")."""
+    blob = NWIRE.read_bytes()
+    end = blob.index(b"ElementDataFile = LOCAL")
+    lines = blob[:end].decode("latin-1").splitlines(keepends=True)
+    header = "".join(line for line in lines if "_Timestamp =" not in line)
+    path = tmp_path / "untimed.mha"
+    path.write_bytes(header.encode("latin-1") + blob[end:])
+    frames = plus_frames(path, "ProbeToTracker")
+    assert np.array_equal(frames.timestamps, np.arange(len(frames.images)))
+    assert np.array_equal(frames.images, plus_frames(NWIRE, "ProbeToTracker").images)
 
 
 # -------------------------------------------------------------- orientations
