@@ -1,0 +1,266 @@
+"""PLUS's own files about a calibration: the device set configuration (its
+``CoordinateDefinitions`` and the N-wire phantom's ``PhantomDefinition``) and fCal's
+results file (``ImageToProbe``, the 3-D and 2-D reprojection errors, and the wire points
+its segmentation found in each frame).
+
+These are read to calibrate from PLUS's real N-wire recordings and to compare with PLUS's
+answer on PLUS's data (issue "N-wire and wire targets"); nothing here depends on the
+twin. Lengths are turned from PLUS's millimetres to metres; image points stay in pixels
+(PLUS's image frame: column, row). XML is read with the standard library's parser (no
+entity expansion beyond expat's limits, no network, no schema); every problem is one
+:class:`~calib.errors.DatasetError` naming the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import DatasetError
+
+__all__ = [
+    "NWire",
+    "NWirePattern",
+    "PlusConfig",
+    "PlusFrameSegmentation",
+    "PlusResults",
+    "read_plus_config",
+    "read_plus_results",
+]
+
+Array = NDArray[np.float64]
+_MM = 1e-3
+#: The outer wires of an N pattern are parallel, the three in one plane: to this much.
+_PARALLEL_DEG = 1.0
+_COPLANAR_MM = 0.5
+
+
+@dataclass(frozen=True)
+class NWire:
+    """One wire of the phantom: its name and its end points (phantom frame, metres)."""
+
+    name: str
+    front: Array
+    back: Array
+
+    @property
+    def direction(self) -> Array:
+        d = self.back - self.front
+        return d / np.linalg.norm(d)
+
+
+@dataclass(frozen=True)
+class NWirePattern:
+    """An N: two parallel outer wires and the diagonal between them, in one plane."""
+
+    wires: tuple[NWire, NWire, NWire]
+
+
+@dataclass(frozen=True)
+class PlusConfig:
+    """What a PLUS device set configuration says of a calibration: its coordinate
+    definitions (``(From, To)`` → ``T_To_From``, metres) and its N-wire patterns; the
+    sequence file its simulation mode replays, when it names one."""
+
+    path: Path
+    transforms: dict[tuple[str, str], Array]
+    patterns: tuple[NWirePattern, ...]
+    sequence_file: str | None
+
+    def transform(self, source: str, target: str) -> Array:
+        """``T_target_source``: a coordinate definition, or the inverse of the one the
+        other way; one line listing the definitions when there is neither."""
+        if (source, target) in self.transforms:
+            return self.transforms[(source, target)]
+        if (target, source) in self.transforms:
+            return np.linalg.inv(self.transforms[(target, source)])
+        known = ", ".join(f"{a}To{b}" for a, b in self.transforms)
+        raise DatasetError(
+            f"{self.path}: no coordinate definition {source}To{target}; it defines {known}"
+        )
+
+
+@dataclass(frozen=True)
+class PlusFrameSegmentation:
+    """fCal's segmentation of one frame: ``ok`` and the wire points it found (wire name →
+    (column, row) in pixels)."""
+
+    index: int
+    ok: bool
+    points: dict[str, tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class PlusResults:
+    """fCal's result: ``image_to_probe`` maps image pixels (column, row, 0, 1) to the
+    probe frame in metres (PLUS's ``ImageToProbe``, pixel spacing included); the mean and
+    SD of its 3-D reprojection error (mm) on the calibration and validation frames; the
+    2-D error per wire (pixels); its segmentation of every frame of both sets."""
+
+    path: Path
+    image_to_probe: Array
+    reprojection_3d_mm: dict[str, float]
+    reprojection_2d_px: dict[str, dict[str, tuple[float, float]]]
+    calibration: tuple[PlusFrameSegmentation, ...]
+    validation: tuple[PlusFrameSegmentation, ...]
+
+
+def _parse(path: str | os.PathLike[str], what: str) -> tuple[Path, ET.Element]:
+    path = Path(path)
+    try:
+        root = ET.parse(path).getroot()
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot open ({e.strerror})") from None
+    except ET.ParseError as e:
+        raise DatasetError(f"{path}: not {what} (not XML: {e})") from None
+    return path, root
+
+
+def _numbers(path: Path, where: str, text: str | None, n: int) -> Array:
+    try:
+        v = np.array([float(x) for x in (text or "").split()])
+    except ValueError:
+        v = np.array([])
+    if len(v) != n or not np.all(np.isfinite(v)):
+        raise DatasetError(f"{path}: {where} must be {n} numbers, got {(text or '')[:60]!r}")
+    return v
+
+
+def _matrix_m(path: Path, where: str, text: str | None) -> Array:
+    """A PLUS ``Matrix`` attribute (16 numbers, row-major, mm) with its translation in
+    metres."""
+    T = _numbers(path, where, text, 16).reshape(4, 4)
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise DatasetError(f"{path}: {where} is not a homogeneous transform (last row)")
+    T[:3, 3] *= _MM
+    return T
+
+
+def _pattern(path: Path, k: int, element: ET.Element) -> NWirePattern:
+    where = f"PhantomDefinition pattern {k + 1}"
+    wires = []
+    for w in element.findall("Wire"):
+        name = w.get("Name") or f"wire {len(wires) + 1}"
+        front = _numbers(path, f"{where} {name} EndPointFront", w.get("EndPointFront"), 3)
+        back = _numbers(path, f"{where} {name} EndPointBack", w.get("EndPointBack"), 3)
+        if np.linalg.norm(back - front) < 1.0:
+            raise DatasetError(f"{path}: {where}: wire {name} has no length")
+        wires.append(NWire(name, front * _MM, back * _MM))
+    if len(wires) != 3:
+        raise DatasetError(
+            f"{path}: {where} has {len(wires)} wires; an N pattern has three (two parallel "
+            "outer wires and the diagonal between them)"
+        )
+    a, m, b = wires
+    angle = np.degrees(np.arccos(min(abs(float(a.direction @ b.direction)), 1.0)))
+    diagonal = np.degrees(np.arccos(min(abs(float(a.direction @ m.direction)), 1.0)))
+    normal = np.cross(a.direction, b.front - a.front)
+    if angle > _PARALLEL_DEG or diagonal <= _PARALLEL_DEG or np.linalg.norm(normal) == 0:
+        raise DatasetError(
+            f"{path}: {where} ({a.name}, {m.name}, {b.name}) is not an N: its outer wires "
+            f"are {angle:.1f}° apart and its middle wire {diagonal:.1f}° off them (outer "
+            f"wires parallel within {_PARALLEL_DEG:g}°, the middle one across them)"
+        )
+    normal /= np.linalg.norm(normal)
+    off = max(abs(float(normal @ (p - a.front))) for p in (m.front, m.back, b.back)) / _MM
+    if off > _COPLANAR_MM:
+        raise DatasetError(
+            f"{path}: {where} is not an N: its wires are {off:.2f} mm out of one plane"
+        )
+    return NWirePattern((a, m, b))
+
+
+def read_plus_config(path: str | os.PathLike[str]) -> PlusConfig:
+    """Read a PLUS device set configuration: its coordinate definitions and N-wire
+    phantom (``PhantomDefinition/Geometry/Pattern Type="NWire"``)."""
+    path, root = _parse(path, "a PLUS configuration")
+    if root.tag != "PlusConfiguration":
+        raise DatasetError(
+            f"{path}: not a PLUS configuration (its root element is <{root.tag}>, not "
+            "<PlusConfiguration>)"
+        )
+    transforms = {}
+    for t in root.findall("CoordinateDefinitions/Transform"):
+        source, target = t.get("From"), t.get("To")
+        if not source or not target:
+            raise DatasetError(f"{path}: a CoordinateDefinitions transform without From/To")
+        transforms[(source, target)] = _matrix_m(
+            path, f"CoordinateDefinitions {source}To{target}", t.get("Matrix")
+        )
+    geometry = root.find("PhantomDefinition/Geometry")
+    if geometry is None:
+        raise DatasetError(
+            f"{path}: no PhantomDefinition/Geometry: the configuration defines no phantom "
+            "to calibrate with"
+        )
+    found = [p for p in geometry.findall("Pattern") if p.get("Type") == "NWire"]
+    if not found:
+        raise DatasetError(f"{path}: the PhantomDefinition has no NWire pattern")
+    patterns = tuple(_pattern(path, k, p) for k, p in enumerate(found))
+    device = root.find(".//Device[@SequenceFile]")
+    return PlusConfig(
+        path, transforms, patterns, None if device is None else device.get("SequenceFile")
+    )
+
+
+def _frames(path: Path, element: ET.Element | None) -> tuple[PlusFrameSegmentation, ...]:
+    if element is None:
+        return ()
+    out = []
+    for f in element.findall("Frame"):
+        index = int(_numbers(path, "a Frame's Index", f.get("Index"), 1)[0])
+        points = {}
+        for p in f.findall("SegmentedPoints/Point"):
+            name = p.get("WireName") or ""
+            x, y, _ = _numbers(path, f"frame {index} point {name}", p.get("Position"), 3)
+            points[name] = (float(x), float(y))
+        out.append(PlusFrameSegmentation(index, f.get("SegmentationStatus") == "OK", points))
+    return tuple(out)
+
+
+def read_plus_results(path: str | os.PathLike[str]) -> PlusResults:
+    """Read fCal's calibration results file (``ProbeCalibrationResult``)."""
+    path, root = _parse(path, "a PLUS calibration result")
+    if root.tag != "ProbeCalibrationResult":
+        raise DatasetError(
+            f"{path}: not a PLUS calibration result (its root element is <{root.tag}>)"
+        )
+    result = root.find("CalibrationResults/Transform[@From='Image'][@To='Probe']")
+    if result is None:
+        raise DatasetError(f"{path}: no Image → Probe transform in its CalibrationResults")
+    T = _matrix_m(path, "ImageToProbe", result.get("Matrix"))
+    T[:3, :3] *= _MM  # mm per pixel → m per pixel
+    stats = root.find("ErrorReport/ReprojectionError3DStatistics")
+    keys = {
+        "calibration_mean_mm": "CalibrationMeanMm",
+        "calibration_sd_mm": "CalibrationStdDevMm",
+        "validation_mean_mm": "ValidationMeanMm",
+        "validation_sd_mm": "ValidationStdDevMm",
+    }
+    errors_3d = {}
+    if stats is not None:
+        for key, attr in keys.items():
+            if stats.get(attr) is not None:
+                errors_3d[key] = float(_numbers(path, attr, stats.get(attr), 1)[0])
+    errors_2d = {}
+    for w in root.findall("ErrorReport/ReprojectionError2DStatistics/Wire"):
+        errors_2d[w.get("Name") or ""] = {
+            key: tuple(float(v) for v in _numbers(path, f"{w.get('Name')} {attr}", w.get(attr), 2))
+            for key, attr in (("calibration_mean_px", "CalibrationMeanPx"),
+                              ("validation_mean_px", "ValidationMeanPx"))
+            if w.get(attr) is not None
+        }  # fmt: skip
+    report = root.find("ErrorReport")
+    return PlusResults(
+        path,
+        T,
+        errors_3d,
+        errors_2d,
+        _frames(path, None if report is None else report.find("CalibrationData")),
+        _frames(path, None if report is None else report.find("ValidationData")),
+    )
