@@ -64,7 +64,8 @@ class NWirePattern:
 @dataclass(frozen=True)
 class PlusConfig:
     """What a PLUS device set configuration says of a calibration: its coordinate
-    definitions (``(From, To)`` → ``T_To_From``, metres) and its N-wire patterns; the
+    definitions (``(From, To)`` → ``T_To_From``, metres; pixels in and out of the image
+    frames) and its N-wire patterns; the
     sequence file its simulation mode replays, when it names one."""
 
     path: Path
@@ -83,6 +84,12 @@ class PlusConfig:
         raise DatasetError(
             f"{self.path}: no coordinate definition {source}To{target}; it defines {known}"
         )
+
+    def pixel_spacing_mm(self) -> tuple[float, float]:
+        """The image's pixel spacing (columns, rows; mm) as PLUS's
+        ``TransducerOriginPixel`` → ``TransducerOrigin`` definition gives it."""
+        S = self.transform("TransducerOriginPixel", "TransducerOrigin")
+        return float(np.linalg.norm(S[:3, 0])) * 1e3, float(np.linalg.norm(S[:3, 1])) * 1e3
 
 
 @dataclass(frozen=True)
@@ -131,13 +138,24 @@ def _numbers(path: Path, where: str, text: str | None, n: int) -> Array:
     return v
 
 
-def _matrix_m(path: Path, where: str, text: str | None) -> Array:
-    """A PLUS ``Matrix`` attribute (16 numbers, row-major, mm) with its translation in
-    metres."""
+def _is_pixel(frame: str) -> bool:
+    """PLUS's frames in pixels: the image and those named ``...Pixel``."""
+    return frame == "Image" or frame.endswith("Pixel")
+
+
+def _matrix_m(
+    path: Path, where: str, text: str | None, source: str = "", target: str = ""
+) -> Array:
+    """A PLUS ``Matrix`` attribute (16 numbers, row-major, mm) in metres: its output in
+    metres unless the ``target`` frame is in pixels; a pixel ``source`` frame mapped to a
+    metric one has its scale (mm per pixel) in metres per pixel too."""
     T = _numbers(path, where, text, 16).reshape(4, 4)
     if not np.allclose(T[3], [0, 0, 0, 1]):
         raise DatasetError(f"{path}: {where} is not a homogeneous transform (last row)")
-    T[:3, 3] *= _MM
+    if not _is_pixel(target):
+        T[:3, 3] *= _MM
+        if _is_pixel(source):
+            T[:3, :3] *= _MM
     return T
 
 
@@ -190,7 +208,7 @@ def read_plus_config(path: str | os.PathLike[str]) -> PlusConfig:
         if not source or not target:
             raise DatasetError(f"{path}: a CoordinateDefinitions transform without From/To")
         transforms[(source, target)] = _matrix_m(
-            path, f"CoordinateDefinitions {source}To{target}", t.get("Matrix")
+            path, f"CoordinateDefinitions {source}To{target}", t.get("Matrix"), source, target
         )
     geometry = root.find("PhantomDefinition/Geometry")
     if geometry is None:
@@ -233,8 +251,7 @@ def read_plus_results(path: str | os.PathLike[str]) -> PlusResults:
     result = root.find("CalibrationResults/Transform[@From='Image'][@To='Probe']")
     if result is None:
         raise DatasetError(f"{path}: no Image → Probe transform in its CalibrationResults")
-    T = _matrix_m(path, "ImageToProbe", result.get("Matrix"))
-    T[:3, :3] *= _MM  # mm per pixel → m per pixel
+    T = _matrix_m(path, "ImageToProbe", result.get("Matrix"), "Image", "Probe")
     stats = root.find("ErrorReport/ReprojectionError3DStatistics")
     keys = {
         "calibration_mean_mm": "CalibrationMeanMm",

@@ -100,3 +100,30 @@ def test_a_configuration_that_is_not_one_or_defines_no_n_is_one_line(tmp_path, b
     with pytest.raises(DatasetError, match=message) as err:
         read_plus_config(path)
     assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+@needs_plus_data
+def test_n_wires_are_found_where_plus_finds_them_without_a_threshold():
+    """uscal's threshold-free N-wire detection (calib/nwire.py) on fCal 2.0's 190 real
+    calibration frames, against PLUS's own segmentation of them: found in at least as
+    many frames (PLUS: 184), and within a pixel of PLUS's points in the median."""
+    from calib.metafile import read_metafile
+    from calib.nwire import detect_nwires
+
+    config, results = read_plus_config(CONFIG), read_plus_results(RESULTS)
+    frames = read_metafile(PLUS_DATA / config.sequence_file).images
+    spacing = config.pixel_spacing_mm()
+    np.testing.assert_allclose(spacing, (0.0796446, 0.0744856))
+    found = [detect_nwires(f, config.patterns, spacing) for f in frames]
+    plus = results.calibration
+    assert sum(d.ok for d in found) >= sum(p.ok for p in plus) == 184
+    distances = []
+    for ours, theirs in zip(found, plus, strict=True):
+        if ours.ok and theirs.ok:
+            for name, p in ours.points.items():
+                distances.append(np.hypot(*np.subtract(p, theirs.points[name])))
+    assert len(distances) == 9 * 184
+    assert np.median(distances) <= 1.0
+    # A frame with nothing in it: rejected, with the reason.
+    blank = detect_nwires(np.zeros_like(frames[0]), config.patterns, spacing)
+    assert not blank.ok and "9 wires to find" in blank.reason
