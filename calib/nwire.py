@@ -34,12 +34,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from .plus_config import NWirePattern
 
-__all__ = ["NWireDetection", "detect_nwires"]
+__all__ = ["NWireDetection", "detect_nwires", "middle_wire_point"]
 
 Array = NDArray[np.float64]
 
@@ -156,3 +156,25 @@ def detect_nwires(
         for wire, c in zip(pattern.wires, dots, strict=True):
             points[wire.name] = _centroid(frame, cand[c, 0], cand[c, 1], spacing_mm)
     return NWireDetection(True, points)
+
+
+def middle_wire_point(pattern: NWirePattern, pa: ArrayLike, pm: ArrayLike, pb: ArrayLike) -> Array:
+    """Where the image plane cuts the pattern's diagonal wire, in the phantom frame
+    (metres), from the three dots ``pa``, ``pm``, ``pb`` (outer, diagonal, outer; image
+    millimetres or any units of equal scale along their line).
+
+    The N's geometry (the classic N-wire construction): the dots lie on the plane's cut
+    through the N's plane, so the diagonal's dot divides the outer two in the ratio
+    ``t = |pm − pa| / |pb − pa|``, an affine invariant; across the outer wires (the
+    direction perpendicular to them in the N's plane) it therefore sits at the fraction
+    ``t`` between them, and that one coordinate fixes the point on the diagonal."""
+    a, m, b = pattern.wires
+    pa, pm, pb = (np.asarray(p, dtype=float) for p in (pa, pm, pb))
+    t = float(np.linalg.norm(pm - pa) / np.linalg.norm(pb - pa))
+    d = a.direction
+    across = b.front - a.front
+    across = across - (across @ d) * d
+    across /= np.linalg.norm(across)
+    x = a.front @ across + t * ((b.front - a.front) @ across)
+    u = (x - m.front @ across) / ((m.back - m.front) @ across)
+    return m.front + u * (m.back - m.front)

@@ -127,3 +127,27 @@ def test_n_wires_are_found_where_plus_finds_them_without_a_threshold():
     # A frame with nothing in it: rejected, with the reason.
     blank = detect_nwires(np.zeros_like(frames[0]), config.patterns, spacing)
     assert not blank.ok and "9 wires to find" in blank.reason
+
+
+def test_the_middle_wire_point_follows_from_the_ratio_of_the_dots():
+    """A plane cutting fCal 2.0's first N obliquely: the dots' ratio along their line
+    gives back the diagonal's true crossing point (the N-wire construction)."""
+    from calib.nwire import middle_wire_point
+    from calib.plus_config import NWire, NWirePattern
+
+    wires = (
+        NWire("a", np.array([30.0, 0, 20]) * MM, np.array([30.0, 40, 20]) * MM),
+        NWire("m", np.array([55.0, 0, 20]) * MM, np.array([35.0, 40, 20]) * MM),
+        NWire("b", np.array([60.0, 0, 20]) * MM, np.array([60.0, 40, 20]) * MM),
+    )
+    pattern = NWirePattern(wires)
+    # The cut: the line y = 10 + 0.4 (x − 30) in the N's plane.
+    pa, pb = np.array([30.0, 10.0]), np.array([60.0, 22.0])
+    # The diagonal x = 55 − y / 2 meets it where x = 55 − (10 + 0.4 (x − 30)) / 2.
+    x = 56.0 / 1.2
+    truth = np.array([x, 10 + 0.4 * (x - 30), 20.0]) * MM
+    pm = np.array([x, 10 + 0.4 * (x - 30)])
+    # Seen in an image: the plane's own 2-D coordinates, scaled and turned.
+    R = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]]) * 13.0
+    p = middle_wire_point(pattern, R @ pa, R @ pm, R @ pb)
+    np.testing.assert_allclose(p, truth, atol=1e-12)
