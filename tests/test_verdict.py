@@ -171,9 +171,10 @@ def test_requirements_reject_a_bound_above_them_and_need_a_bound():
 
 
 @pytest.mark.slow
-def test_a_wrong_arm_model_is_suspect_on_the_twin():
+def test_a_wrong_arm_model_is_rejected_on_the_twin():
     """quick.yaml with the arm's DH table off (half the paper rig's error) and no touches:
-    the calibration lands mm from the true mount; its verdict says the views disagree."""
+    the calibration lands mm from the true mount; its verdict rejects it and says the
+    views disagree."""
     from bench.config.scenario import load_scenario
     from bench.jobs.single import run
 
@@ -182,7 +183,10 @@ def test_a_wrong_arm_model_is_suspect_on_the_twin():
     ]["single"]
     assert m["true_error"]["image_mm"] > 1.0
     v = m["verdict"]
-    assert v["status"] == "suspect"
+    # Its bound is beyond 10° / 10 mm: rejected, the views' disagreement said as the cause.
+    assert v["status"] == "rejected"
+    assert v["reasons"][0].startswith("the data do not determine T_ee_us")
+    assert "too alike" not in v["reasons"][0]
     assert any("kinematic model" in r for r in v["reasons"])
 
 
