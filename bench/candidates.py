@@ -80,7 +80,15 @@ def in_image(scenario: Scenario, pose: SweepPose) -> bool:
     return abs(x) + r <= scenario.imaging.width_mm / 2 and r <= y <= scenario.imaging.depth_mm - r
 
 
-def sweep_of(scenario: Scenario, sphere: PlanSphere, coarse: Array, pose: SweepPose) -> Array:
+def sweep_of(
+    scenario: Scenario,
+    sphere: PlanSphere,
+    coarse: Array,
+    pose: SweepPose,
+    n_frames: int | None = None,
+) -> Array:
+    """The flange commands of one sweep about ``sphere`` (``n_frames``: the protocol's,
+    or e.g. 3 for its first, middle and last frames)."""
     proto = scenario.protocol
     return sweep_commands(
         sphere.taught,
@@ -88,7 +96,7 @@ def sweep_of(scenario: Scenario, sphere: PlanSphere, coarse: Array, pose: SweepP
         proto.target_depth_mm * 1e-3,
         pose,
         half_length=proto.sweep_half_length_mm * 1e-3,
-        n_frames=proto.frames_per_sweep,
+        n_frames=proto.frames_per_sweep if n_frames is None else n_frames,
     )
 
 

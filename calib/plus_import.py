@@ -69,7 +69,7 @@ def _transform_chain(meta: Metafile, name: str) -> list[tuple[str, bool]]:
     (field, inverted) links from the ``From`` frame to the ``To`` frame, e.g.
     ``ProbeToReference`` = ``ReferenceToTracker``⁻¹ · ``ProbeToTracker``. One line listing
     the file's transforms when no chain connects the two."""
-    full = name if name.endswith("Transform") else name + "Transform"
+    full = _full(name)
     names = [n for n in meta.frame_names() if n.endswith("Transform")]
     if full in names:
         return [(full, False)]
@@ -142,10 +142,9 @@ def plus_frames(path: str | os.PathLike[str], pose_transform: str) -> PlusFrames
     t = np.array(times, dtype=float)
     if np.isnan(t).any():
         t = np.array(keep, dtype=float)  # no timestamps: the frames in order
-    name = chain[0][0] if len(chain) == 1 and not chain[0][1] else _full(pose_transform)
     return PlusFrames(
         meta.path,
-        name,
+        _full(pose_transform),
         meta.images[keep],
         np.array(poses).reshape(-1, 4, 4),
         t,

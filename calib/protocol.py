@@ -408,9 +408,15 @@ def clear_sweeps(
     first: UnreachablePoseError | CollisionError | None = None
 
     def planned(k: int, pose: SweepPose) -> PlannedSweep:
-        (sweep,) = plan_sweeps(target, T_base_ee_taught, T_ee_us_coarse, cfg, poses=[pose])
-        way_in = transit(here, sweep.T_base_ee[0], cfg.transit_step_deg)
-        return PlannedSweep(target, k, pose, sweep.T_base_ee, way_in)
+        frames = sweep_commands(
+            T_base_ee_taught,
+            T_ee_us_coarse,
+            cfg.target_depth_mm * 1e-3,
+            pose,
+            half_length=cfg.sweep_half_length_mm * 1e-3,
+            n_frames=cfg.frames_per_sweep,
+        )
+        return PlannedSweep(target, k, pose, frames, transit(here, frames[0], cfg.transit_step_deg))
 
     for k, pose in enumerate(poses):
         sweep = planned(k, pose)

@@ -134,7 +134,7 @@ def read_spares(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]
     if "spares" not in doc:
         return {}
     spares = _sweep_lists(doc, "spares", source)
-    plan = read_plan(path)
+    plan = _sweep_lists(doc, "spheres", source)
     extra = sorted(set(spares) - set(plan))
     if extra:
         raise ScenarioError(

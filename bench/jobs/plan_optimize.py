@@ -23,7 +23,7 @@ configured speeds, settle and grab per frame).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,7 +40,6 @@ from calib.planning import (
     paper_poses,
     predict,
     select_sweeps,
-    sweep_commands,
     sweep_scores,
 )
 from calib.protocol import PlannedSweep, check_plan, plan_sweeps
@@ -55,6 +54,7 @@ from ..candidates import (
     clear,
     observations,
     path_clear,
+    sweep_of,
     taught_sphere,
 )
 from ..config.method import image_points
@@ -180,18 +180,10 @@ def _clear_elsewhere(scenario, twin, sessions, found):
     middle and last frames keep the clearance in every other session (asked of the few
     candidates the selection would take, not of all of them; remembered)."""
     need = scenario.planning.clearance_mm * 1e-3
-    proto = scenario.protocol
     memo: dict[int, bool] = {}
 
     def ends(s: PlanSphere, o: OtherSession, pose: SweepPose) -> Array:
-        return sweep_commands(
-            o.taught[s.name],
-            o.coarse,
-            proto.target_depth_mm * 1e-3,
-            pose,
-            half_length=proto.sweep_half_length_mm * 1e-3,
-            n_frames=3,
-        )
+        return sweep_of(scenario, replace(s, taught=o.taught[s.name]), o.coarse, pose, 3)
 
     def admissible(k: int) -> bool:
         if k not in memo:
@@ -292,6 +284,7 @@ def optimize_plan(
             f"collision ({left}); widen the image or lower planning.image_margin_mm"
         )
     sessions = other_sessions(scenario, spheres, coarse, scenario.planning.session_draws)
+    this = OtherSession({s.name: s.taught for s in spheres}, coarse)
     clear_elsewhere = _clear_elsewhere(scenario, twin, sessions, found)
     refused: set[int] = set()  # chosen once, then found not to clear on the way
 
@@ -323,22 +316,17 @@ def optimize_plan(
             # ... and along the way it then moves: in acquisition order, with the
             # transits between sweeps, each sphere's moves from its taught joint angles;
             # every pose keeps the clearance on that way (the sweep is replaced if not).
+            # The same in the other sessions the plan is made for.
             ordered = _ordered([(k, *found[k]) for k in chosen_idx], start)
             planned = []
             for s in spheres:
                 mine = [o for o in ordered if o[1].name == s.name]
                 if not mine:
                     continue
-                steps = plan_sweeps(s.name, s.taught, coarse, proto, poses=[o[2] for o in mine])
-                owner = [k for (k, *_), st in zip(mine, steps, strict=True)
-                         for _ in (*st.approach, *st.T_base_ee)]  # fmt: skip
-                way = np.array([T for st in steps for T in (*st.approach, *st.T_base_ee)])
-                ok = path_clear(scenario, twin, way, s.taught_q)
-                bad |= {owner[i] for i in np.flatnonzero(~ok)}
-                # ... and so in the other sessions the plan is made for.
-                unclear = _unclear_in(scenario, twin, sessions, s, [o[2] for o in mine])
+                poses_s = [o[2] for o in mine]
+                unclear = _unclear_in(scenario, twin, [this, *sessions], s, poses_s)
                 bad |= {mine[i][0] for i in unclear}
-                planned += steps
+                planned += plan_sweeps(s.name, s.taught, coarse, proto, poses=poses_s)
         if not bad:
             break
         left[NOT_CLEAR] += len(bad)
