@@ -20,7 +20,9 @@ import numpy as np
 from rich.console import Console
 from rich.logging import RichHandler
 
+from calib.dataset_files import dataset_kind, read_dataset
 from calib.errors import UscalError
+from calib.plus_config import read_plus_config
 from calib.plus_import import import_plus
 from twin.ur_controller import ControllerFaults
 
@@ -35,6 +37,7 @@ from .console import (
     print_cached_run,
     print_evaluation,
     print_import,
+    print_nwire,
     print_plan,
     print_plan_comparison,
     print_reconstruction,
@@ -50,6 +53,7 @@ from .console import (
 from .files import atomic_output_dir, check_new_directory
 from .jobs.budget import plan_budget, run_budget
 from .jobs.gallery import write_gallery
+from .jobs.nwire import calibrate_nwire_dataset, write_nwire
 from .jobs.plan import plan_report
 from .jobs.plan_optimize import optimize_plan, plan_about
 from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
@@ -273,6 +277,8 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     settings = load_scenario(args.settings, _with_requirements(args))
     dataset = Path(args.dataset)
     out = Path(args.out) if args.out else dataset.with_name(dataset.name + "-calibration")
+    if dataset_kind(dataset) == "nwire":
+        return _calibrate_nwire(args, settings, dataset, out, console)
     markers = (int(args.markers),) if args.markers else (1, 3)
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
@@ -286,10 +292,42 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     return _gate(settings, recorded.calibrations, console)
 
 
+def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console) -> int:
+    """``uscal calibrate`` of an N-wire dataset (:mod:`bench.jobs.nwire`)."""
+    data, info = read_dataset(dataset)
+    with atomic_output_dir(out, force=args.force) as tmp:
+        with console.status(f"finding the wires in {dataset}"):
+            result = calibrate_nwire_dataset(
+                data,
+                info,
+                dataset,
+                requirements(settings),
+                estimate_scale=not args.fixed_pixel_scale,
+            )
+        written = write_nwire(tmp, result)
+    print_nwire(result, console)
+    print_written(out, written, console)
+    if requirements(settings).any and result.verdict.status != "accepted":
+        console.print(
+            f"the N-wire calibration is {result.verdict.status}, not accepted within the "
+            f"requirements: exit code {EXIT_NOT_ACCEPTED}",
+            highlight=False,
+        )
+        return EXIT_NOT_ACCEPTED
+    return 0
+
+
 def _cmd_import_plus(args: argparse.Namespace, console: Console) -> int:
+    config = read_plus_config(args.config) if args.config else None
+    if config is None and args.temperature_c is None and not args.no_speed_correction:
+        raise UscalError(
+            "import plus: give the water's --temperature-c C, or --no-speed-correction when "
+            "the medium's speed of sound is the scanner's"
+        )
     with console.status(f"importing {len(args.files)} PLUS file(s)"):
         summary = import_plus(
             args.files,
+            config=config,
             pose_transform=args.pose_transform,
             target=args.target,
             out=args.out,

@@ -240,6 +240,12 @@ def parser() -> argparse.ArgumentParser:
         "default: the dataset's own touches, when it has any; repeatable",
     )
     calibrate.add_argument(
+        "--fixed-pixel-scale",
+        action="store_true",
+        help="N-wire datasets: hold the dataset's pixel spacing instead of fitting it "
+        "with the calibration (PLUS fits it; a robot rig with a trusted spacing may not)",
+    )
+    calibrate.add_argument(
         "--settings",
         metavar="SCENARIO",
         help="scenario whose localization and calibration settings to use (default: built-in)",
@@ -376,10 +382,17 @@ def parser() -> argparse.ArgumentParser:
         "files", nargs="+", metavar="FILE.mha", help="PLUS sequence files (.mha or .mhd)"
     )
     plus.add_argument(
+        "--config",
+        metavar="PLUS_CONFIG.xml",
+        help="an N-wire phantom: the PLUS device set configuration with its "
+        "PhantomDefinition and Phantom→Reference (the frames are then freehand frames of "
+        "the phantom; `uscal calibrate` finds the wires and fits ImageToProbe)",
+    )
+    plus.add_argument(
         "--pose-transform",
-        required=True,
         metavar="NAME",
-        help="per-frame transform giving the probe's pose, e.g. ProbeToTrackerTransform "
+        help="per-frame transform giving the probe's pose (default with --config: "
+        "ProbeToReference, as PLUS's calibration), e.g. ProbeToTrackerTransform "
         "(T_tracker_probe; the calibration is then T_probe_image), or one composed from "
         "those the file records, e.g. ProbeToReference = ReferenceToTracker⁻¹ · "
         "ProbeToTracker (as PLUS's transform repository composes it)",
@@ -389,9 +402,9 @@ def parser() -> argparse.ArgumentParser:
     )
     plus.add_argument("--out", required=True, help="new dataset directory")
     plus.add_argument(
-        "--radius-mm", type=_positive_mm, required=True, help="the sphere's CAD radius (mm)"
+        "--radius-mm", type=_positive_mm, help="spheres: the sphere's CAD radius (mm)"
     )
-    speed = plus.add_mutually_exclusive_group(required=True)
+    speed = plus.add_mutually_exclusive_group()
     speed.add_argument(
         "--temperature-c",
         type=float,

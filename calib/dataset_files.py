@@ -52,6 +52,7 @@ from .metafile import (
     read_sequence,
     write_sequence,
 )
+from .plus_config import NWirePhantom
 from .records import Dataset, Sweep, Touch
 
 __all__ = [
@@ -59,6 +60,7 @@ __all__ = [
     "VERSION",
     "AcquisitionInfo",
     "DatasetWriter",
+    "dataset_kind",
     "read_dataset",
 ]
 
@@ -100,6 +102,7 @@ class AcquisitionInfo:
     source: str = "hardware"
     target_depth_mm: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    nwire: NWirePhantom | None = None
 
     def to_yaml(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -108,8 +111,11 @@ class AcquisitionInfo:
             "temperature_c": float(self.temperature_c),
             "assumed_speed_m_s": float(self.assumed_speed_m_s),
             "sound_speed_correction": bool(self.sound_speed_correction),
-            "sphere_radius_mm": float(self.sphere_radius_mm),
         }
+        if self.nwire is None:
+            out["sphere_radius_mm"] = float(self.sphere_radius_mm)
+        else:
+            out["phantom"] = self.nwire.to_yaml()
         if self.T_ee_us_coarse is not None:
             out["T_ee_us_coarse_mm"] = _matrix_mm(self.T_ee_us_coarse)
         out["landmarks_mm"] = {k: [mm_decimal(x) for x in v] for k, v in self.landmarks.items()}
@@ -337,9 +343,14 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
         raise DatasetError(f"{path}: acquisition must be a mapping")
     landmarks = _get(path, acq, "landmarks_mm", dict)
     tip = acq.get("stylus_tip_cad_mm")
-    radius = float(_get(path, acq, "sphere_radius_mm", _NUMBER))
-    if not 0 < radius < 1000:
-        raise DatasetError(f"{path}: acquisition.sphere_radius_mm = {radius} is out of range")
+    nwire = None
+    if acq.get("phantom") is not None:
+        nwire = NWirePhantom.from_yaml(path, acq["phantom"])
+        radius = float("nan")  # no sphere
+    else:
+        radius = float(_get(path, acq, "sphere_radius_mm", _NUMBER))
+        if not 0 < radius < 1000:
+            raise DatasetError(f"{path}: acquisition.sphere_radius_mm = {radius} is out of range")
     depth = acq.get("target_depth_mm")
     if depth is not None:
         depth = float(_get(path, acq, "target_depth_mm", _NUMBER))
@@ -374,7 +385,19 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
         source=str(acq.get("source", "hardware")),
         target_depth_mm=depth,
         extra=dict(acq.get("extra") or {}),
+        nwire=nwire,
     )
+
+
+def dataset_kind(directory: str | os.PathLike[str]) -> str:
+    """``"nwire"`` for a dataset of an N-wire phantom, ``"spheres"`` otherwise (from the
+    manifest alone; a directory that is not a dataset reads as spheres and
+    :func:`read_dataset` says what is wrong)."""
+    manifest = Path(directory) / MANIFEST
+    if not manifest.is_file():
+        return "spheres"
+    acq = _load_manifest(manifest).get("acquisition")
+    return "nwire" if isinstance(acq, dict) and acq.get("phantom") is not None else "spheres"
 
 
 def read_dataset(

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import os
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +28,7 @@ from .errors import DatasetError
 __all__ = [
     "NWire",
     "NWirePattern",
+    "NWirePhantom",
     "PlusConfig",
     "PlusFrameSegmentation",
     "PlusResults",
@@ -59,6 +62,66 @@ class NWirePattern:
     """An N: two parallel outer wires and the diagonal between them, in one plane."""
 
     wires: tuple[NWire, NWire, NWire]
+
+
+@dataclass(frozen=True)
+class NWirePhantom:
+    """An N-wire phantom in a dataset: its patterns (phantom frame, metres) and, when a
+    tracker measured it, its pose in the base frame (a tracked probe's ``Reference``:
+    PLUS's ``Phantom`` → ``Reference``); None: unknown, estimated with ``T_ee_us`` (a
+    robot rig)."""
+
+    patterns: tuple[NWirePattern, ...]
+    T_base_phantom: Array | None = None
+
+    def to_yaml(self) -> dict[str, Any]:
+        """The manifest's ``acquisition.phantom`` (millimetres)."""
+        out: dict[str, Any] = {
+            "kind": "nwire",
+            "patterns": [
+                [
+                    {
+                        "name": w.name,
+                        "front_mm": [round(float(v) / _MM, 6) for v in w.front],
+                        "back_mm": [round(float(v) / _MM, 6) for v in w.back],
+                    }
+                    for w in p.wires
+                ]
+                for p in self.patterns
+            ],
+        }
+        if self.T_base_phantom is not None:
+            T = np.array(self.T_base_phantom, dtype=float)
+            T[:3, 3] /= _MM
+            out["T_base_phantom_mm"] = np.round(T, 9).tolist()
+        return out
+
+    @classmethod
+    def from_yaml(cls, path: Path, doc: Any) -> NWirePhantom:
+        """Read :meth:`to_yaml`'s mapping; one line naming what is wrong."""
+        where = "acquisition.phantom"
+        if not isinstance(doc, dict) or doc.get("kind") != "nwire":
+            raise DatasetError(f"{path}: {where} must be a mapping with kind: nwire")
+        patterns = doc.get("patterns")
+        if not isinstance(patterns, list) or not patterns:
+            raise DatasetError(f"{path}: {where}.patterns must list the N patterns")
+        read = []
+        for k, p in enumerate(patterns):
+            if not isinstance(p, list) or not all(isinstance(w, dict) for w in p):
+                raise DatasetError(f"{path}: {where}.patterns[{k}] must list wires")
+            wires = [
+                (str(w.get("name", "")), _text(w.get("front_mm")), _text(w.get("back_mm")))
+                for w in p
+            ]
+            read.append(_pattern(path, f"{where}.patterns[{k}]", wires))
+        T = doc.get("T_base_phantom_mm")
+        T_m = None
+        if T is not None:
+            rows = T if isinstance(T, list) and all(isinstance(r, list) for r in T) else []
+            T_m = _matrix_m(
+                path, f"{where}.T_base_phantom_mm", " ".join(_text(r) for r in rows) or repr(T)
+            )
+        return cls(tuple(read), T_m)
 
 
 @dataclass(frozen=True)
@@ -159,13 +222,20 @@ def _matrix_m(
     return T
 
 
-def _pattern(path: Path, k: int, element: ET.Element) -> NWirePattern:
-    where = f"PhantomDefinition pattern {k + 1}"
+def _text(v: Any) -> str:
+    """A list of numbers from YAML as the space-separated text PLUS's XML holds."""
+    return " ".join(str(x) for x in v) if isinstance(v, list) else ""
+
+
+def _pattern(
+    path: Path, where: str, read: Sequence[tuple[str, str | None, str | None]]
+) -> NWirePattern:
+    """One N pattern from its wires' (name, front, back) as text (millimetres)."""
     wires = []
-    for w in element.findall("Wire"):
-        name = w.get("Name") or f"wire {len(wires) + 1}"
-        front = _numbers(path, f"{where} {name} EndPointFront", w.get("EndPointFront"), 3)
-        back = _numbers(path, f"{where} {name} EndPointBack", w.get("EndPointBack"), 3)
+    for name, front_text, back_text in read:
+        name = name or f"wire {len(wires) + 1}"
+        front = _numbers(path, f"{where} {name} EndPointFront", front_text, 3)
+        back = _numbers(path, f"{where} {name} EndPointBack", back_text, 3)
         if np.linalg.norm(back - front) < 1.0:
             raise DatasetError(f"{path}: {where}: wire {name} has no length")
         wires.append(NWire(name, front * _MM, back * _MM))
@@ -219,7 +289,17 @@ def read_plus_config(path: str | os.PathLike[str]) -> PlusConfig:
     found = [p for p in geometry.findall("Pattern") if p.get("Type") == "NWire"]
     if not found:
         raise DatasetError(f"{path}: the PhantomDefinition has no NWire pattern")
-    patterns = tuple(_pattern(path, k, p) for k, p in enumerate(found))
+    patterns = tuple(
+        _pattern(
+            path,
+            f"PhantomDefinition pattern {k + 1}",
+            [
+                (w.get("Name") or "", w.get("EndPointFront"), w.get("EndPointBack"))
+                for w in p.findall("Wire")
+            ],
+        )
+        for k, p in enumerate(found)
+    )
     device = root.find(".//Device[@SequenceFile]")
     return PlusConfig(
         path, transforms, patterns, None if device is None else device.get("SequenceFile")

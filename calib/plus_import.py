@@ -33,12 +33,24 @@ from . import se3
 from .dataset_files import AcquisitionInfo, DatasetWriter
 from .errors import DatasetError
 from .metafile import Metafile, read_metafile
+from .plus_config import NWirePhantom, PlusConfig
 from .records import Sweep
 
-__all__ = ["ImportSummary", "PlusFrames", "import_plus", "plus_frames"]
+__all__ = [
+    "NWIRE_TARGET",
+    "PLUS_CALIBRATION_POSE",
+    "ImportSummary",
+    "PlusFrames",
+    "import_plus",
+    "plus_frames",
+]
 
 Array = NDArray[np.float64]
 
+#: The pose PLUS's freehand calibration uses: the probe in the phantom's reference body.
+PLUS_CALIBRATION_POSE = "ProbeToReferenceTransform"
+#: The target name of an N-wire phantom's frames in a dataset.
+NWIRE_TARGET = "nwire"
 #: A sweep needs enough frames to follow the section radius across the sphere.
 MIN_FRAMES_PER_SWEEP = 5
 #: PLUS's default ElementSpacing: PLUS keeps the pixel spacing in ImageToProbe instead.
@@ -167,6 +179,7 @@ class ImportSummary:
     frames: int
     skipped: Counter[str]
     sweep_lines: list[str]
+    nwire: bool = False
 
 
 def _check_sweep(label: str, T: Array, max_turn_deg: float) -> tuple[float, float]:
@@ -194,17 +207,26 @@ def _check_sweep(label: str, T: Array, max_turn_deg: float) -> tuple[float, floa
 def import_plus(
     files: Sequence[str | os.PathLike[str]],
     *,
-    pose_transform: str,
+    pose_transform: str | None,
     target: str,
     out: str | os.PathLike[str],
-    radius_mm: float,
+    radius_mm: float | None,
     temperature_c: float | None,
     spacing_mm: tuple[float, float] | None = None,
     frames_per_sweep: int | None = None,
     max_turn_deg: float = 1.0,
     assumed_speed_m_s: float = 1540.0,
+    config: PlusConfig | None = None,
 ) -> ImportSummary:
     """Turn PLUS recordings into a uscal dataset at ``out`` (which must not exist).
+
+    Spheres (no ``config``): ``radius_mm`` the sphere's; each file (or run of
+    ``frames_per_sweep`` frames) a linear sweep. An N-wire phantom (``config``, a PLUS
+    device set with its ``PhantomDefinition``): each file's frames as recorded (freehand,
+    no sweep shape asked), the phantom's patterns and its pose in the pose transform's
+    base frame (``Phantom`` → ``Reference`` for PLUS's default ``ProbeToReference``) in
+    the manifest, the pixel spacing from the configuration's ``TransducerOriginPixel`` →
+    ``TransducerOrigin`` when the files hold none.
 
     ``temperature_c``: the water's (the axial spacing is corrected from the scanner's
     ``assumed_speed_m_s``); None: no correction (the medium matches the scanner).
@@ -212,6 +234,15 @@ def import_plus(
     default 1 × 1, the spacing then being in PLUS's ImageToProbe).
     """
     out = Path(out)
+    if pose_transform is None:
+        if config is None:
+            raise DatasetError("--pose-transform: name the per-frame transform of the probe")
+        pose_transform = PLUS_CALIBRATION_POSE
+    if config is None and radius_mm is None:
+        raise DatasetError(
+            "--radius-mm: the sphere's CAD radius is needed (or --config PLUS_CONFIG.xml "
+            "for an N-wire phantom)"
+        )
     if temperature_c is not None and not 0.0 <= temperature_c <= 60.0:
         raise DatasetError(
             f"--temperature-c {temperature_c:g}: the water's temperature in °C, 0 to 60"
@@ -231,16 +262,43 @@ def import_plus(
     spacing = spacing_mm
     if spacing is None:
         found = {r.spacing_mm for r in read}
+        if found == {None} and config is not None:
+            found = {config.pixel_spacing_mm()}
         if None in found or len(found) != 1:
             raise DatasetError(
                 f"{read[0].path}: the pixel spacing is not in the files (ElementSpacing is "
                 "PLUS's default 1 1, or differs between files): give --spacing-mm SX SY"
             )
         spacing = found.pop()
+    phantom = None
+    if config is not None:
+        base = _LINK.match(_full(pose_transform))
+        phantom = NWirePhantom(
+            config.patterns, config.transform("Phantom", base.group(2) if base else "")
+        )
+        target = NWIRE_TARGET
     sweeps: list[tuple[Sweep, Array]] = []
     lines = []
     for r in read:
         n = len(r.images)
+        if phantom is not None:  # freehand frames of the N-wire phantom, as recorded
+            if n == 0:
+                raise DatasetError(f"{r.path}: no usable frames ({dict(r.skipped)})")
+            sweeps.append(
+                (
+                    Sweep(
+                        target,
+                        len(sweeps),
+                        r.images,
+                        (spacing[0] * 1e-3, spacing[1] * 1e-3),
+                        np.full((n, 6), np.nan),
+                        r.T_base_probe,
+                    ),
+                    r.timestamps,
+                )
+            )
+            lines.append(f"sequence {len(sweeps) - 1}: {r.path}, {n} frames")
+            continue
         step = frames_per_sweep or max(n, 1)
         for start in range(0, max(n, 1), step):
             sl = slice(start, start + step)
@@ -268,7 +326,7 @@ def import_plus(
     info = AcquisitionInfo(
         T_ee_us_coarse=None,
         landmarks={},
-        sphere_radius_mm=radius_mm,
+        sphere_radius_mm=float("nan") if radius_mm is None else radius_mm,
         temperature_c=20.0 if temperature_c is None else temperature_c,
         assumed_speed_m_s=assumed_speed_m_s,
         sound_speed_correction=temperature_c is not None,
@@ -276,7 +334,9 @@ def import_plus(
         extra={
             "imported_from": [str(Path(f)) for f in files],
             "pose_transform": read[0].pose_name,
+            **({"plus_config": str(config.path)} if config is not None else {}),
         },
+        nwire=phantom,
     )
     tmp = out.with_name(f".{out.name}.importing-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -291,4 +351,6 @@ def import_plus(
     skipped: Counter[str] = Counter()
     for r in read:
         skipped.update(r.skipped)
-    return ImportSummary(out, len(sweeps), sum(len(s.images) for s, _ in sweeps), skipped, lines)
+    return ImportSummary(
+        out, len(sweeps), sum(len(s.images) for s, _ in sweeps), skipped, lines, phantom is not None
+    )

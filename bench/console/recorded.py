@@ -7,11 +7,12 @@ from rich.console import Console
 
 from calib.plus_import import ImportSummary
 
+from ..jobs.nwire import NWireRun
 from ..summaries import RecordedSummary
 from .run import print_verdicts
 from .tables import print_table
 
-__all__ = ["print_import", "print_recorded"]
+__all__ = ["print_import", "print_nwire", "print_recorded"]
 
 
 def print_recorded(rec: RecordedSummary, console: Console) -> None:
@@ -50,5 +51,30 @@ def print_import(summary: ImportSummary, console: Console) -> None:
     console.print(
         f"wrote {summary.directory}: {summary.sweeps} sweeps, {summary.frames} frames; "
         + (f"skipped {skipped} frames ({why})" if skipped else "no frame skipped")
-        + f". Next: uscal calibrate {summary.directory} --markers 1"
+        + f". Next: uscal calibrate {summary.directory}"
+        + ("" if summary.nwire else " --markers 1")
     )
+
+
+def print_nwire(run: NWireRun, console: Console) -> None:
+    """``uscal calibrate`` of an N-wire dataset: detection, calibration, verdict."""
+    m, cal = run.metrics, run.calibration
+    det, e = m["detection"], m["calibration"]["nwire"]["reprojection_3d_mm"]
+    console.print(
+        f"dataset {run.dataset.name} (N-wire, phantom pose {m['dataset']['phantom_pose']}): "
+        f"{m['dataset']['n_frames']} frames, every pattern found in {det['frames_found']}",
+        highlight=False,
+    )
+    for reason, n in list(det["refused"].items())[:3]:
+        console.print(f"  not used ({n}×): {reason}", highlight=False)
+    sx, sy = (v * 1e3 for v in cal.spacing_m)
+    b = cal.bound95
+    console.print(
+        f"pixel spacing {sx:.5f} × {sy:.5f} mm"
+        + (" (fitted)" if cal.scale_estimated else "")
+        + f"; 3-D reprojection error {e['plus_mean']:.3f} ± {e['plus_sd']:.3f} mm (PLUS's "
+        f"definition); 95 % bound {b['rotation_deg']:.2f}°, {b['translation_mm']:.2f} mm, "
+        f"{b['image_mm']:.2f} mm over the image",
+        highlight=False,
+    )
+    console.print(f"verdict: {run.verdict.line()}", highlight=False)
