@@ -9,6 +9,7 @@ Every :class:`~calib.errors.UscalError` becomes one line on stderr and exit code
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -50,7 +51,7 @@ from .console import (
     progress_bars,
     spawn_viewer,
 )
-from .files import atomic_output_dir, check_new_directory
+from .files import atomic_output_dir, check_new_directory, write_text_atomic
 from .jobs.budget import plan_budget, run_budget
 from .jobs.gallery import write_gallery
 from .jobs.nwire import calibrate_nwire_dataset, write_nwire
@@ -60,6 +61,7 @@ from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_res
 from .jobs.single import run
 from .jobs.sweep import load_sweep, run_sweep
 from .jobs.twin_serve import export_twin, landmarks_mm, serve_twin
+from .jobs.validate import read_calibration, validate_dataset
 from .outputs.budget_report import write_budget
 from .outputs.run_files import run_directory
 from .outputs.sweep_report import write_sweep
@@ -317,6 +319,18 @@ def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console)
     return 0
 
 
+def _cmd_validate(args: argparse.Namespace, console: Console) -> int:
+    settings = load_scenario(args.settings, args.overrides)
+    given = read_calibration(args.calibration)
+    with console.status(f"validating on {args.dataset}"):
+        result = validate_dataset(args.dataset, given, settings)
+    if args.json:
+        write_text_atomic(Path(args.json), json.dumps(result.metrics, indent=2) + "\n")
+    for line in result.lines:
+        console.print(line, highlight=False, soft_wrap=True)
+    return 0
+
+
 def _cmd_import_plus(args: argparse.Namespace, console: Console) -> int:
     config = read_plus_config(args.config) if args.config else None
     if config is None and args.temperature_c is None and not args.no_speed_correction:
@@ -399,6 +413,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "plan": _cmd_plan,
         "run": _cmd_run,
         "sweep": _cmd_sweep,
+        "validate": _cmd_validate,
     }
     try:
         if args.command == "import":

@@ -437,6 +437,27 @@ def parser() -> argparse.ArgumentParser:
         help="refuse a sweep whose probe turns more than this (default 1°)",
     )  # fmt: skip
 
+    validate = sub.add_parser(
+        "validate",
+        help="check a calibration on another dataset with uscal's detection (N-wire: "
+        "PLUS's 3-D reprojection error; spheres: the centres' scatter and layout)",
+    )
+    validate.add_argument("dataset", help="dataset directory (dataset.yaml + sweeps/*.mha)")
+    validate.add_argument(
+        "--calibration",
+        required=True,
+        metavar="FILE",
+        help="uscal's calibration.yaml, a PLUS calibration result (.xml) or a PLUS device "
+        "set configuration holding Image→Probe",
+    )
+    validate.add_argument(
+        "--settings",
+        metavar="SCENARIO",
+        help="scenario whose localization settings to use for spheres (default: built-in)",
+    )
+    _add_set(validate, "settings", "localization.method=paper")
+    validate.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
+
     image = sub.add_parser(
         "image", help="render a gallery of B-mode frames at the paper's representative poses"
     )

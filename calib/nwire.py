@@ -20,8 +20,9 @@ and no per-machine parameter.
    triples); the patterns are named
    in the configuration's order from the shallowest line down, the wires along each line
    from the image's marked side.
-4. **Sub-pixel centres.** Each dot's grey-weighted centroid within a dot's reach, above
-   the window's own border level.
+4. **Sub-pixel centres.** Each dot's grey-weighted centroid over its whole echo: the
+   connected region about its maximum that stands out of the local background by more
+   than the background's own spread (no level chosen, see :func:`_centroid`).
 
 A frame where no such set exists is rejected with the reason (too few candidates, no
 collinear triple, not enough parallel lines).
@@ -48,6 +49,11 @@ Array = NDArray[np.float64]
 #: machine's.
 COLLINEAR_MM = 0.6
 _PARALLEL_DEG = 15.0
+#: How far a wire's echo reaches from its maximum (its centroid's window, half-size): a
+#: wire well under a millimetre thick, drawn by a beam about a millimetre wide laterally.
+_DOT_REACH_MM = 2.0
+#: The echo is where the frame stands out of the local background by its own spread.
+_DOT_SPREADS = 2.0
 _MAX_TRIPLES = 40
 
 
@@ -71,14 +77,28 @@ def _candidates(frame: NDArray[np.uint8], spacing_mm: tuple[float, float], n: in
     return np.column_stack([cols[order], rows[order], smooth[rows[order], cols[order]]])
 
 
-def _centroid(frame: NDArray[np.uint8], col: float, row: float, spacing_mm) -> tuple[float, float]:
+def _centroid(
+    frame: NDArray[np.uint8], col: float, row: float, spacing_mm, reach_mm: float
+) -> tuple[float, float]:
+    """The dot's grey-weighted centroid over its whole echo: the connected region about
+    its maximum where the (lightly smoothed) frame stands out of the local background by
+    more than the background's own spread (median and 1.4826 × MAD of the window within
+    ``reach_mm``). No level is chosen: measured on PLUS's frames the result does not move
+    for 1–3 spreads, while a fixed window cut at the core (0.5 mm) biases the dot toward
+    its brightest pixels (3-D error 0.517 against 0.475 mm)."""
     sx, sy = spacing_mm
-    hx, hy = max(2, round(0.5 / sx)), max(2, round(0.5 / sy))
+    hx, hy = max(2, round(reach_mm / sx)), max(2, round(reach_mm / sy))
     r0, r1 = max(int(row) - hy, 0), min(int(row) + hy + 1, frame.shape[0])
     c0, c1 = max(int(col) - hx, 0), min(int(col) + hx + 1, frame.shape[1])
     win = frame[r0:r1, c0:c1].astype(float)
-    border = np.concatenate([win[0], win[-1], win[:, 0], win[:, -1]])
-    w = np.clip(win - np.median(border), 0.0, None)
+    smooth = ndimage.gaussian_filter(win, (0.1 / sy, 0.1 / sx))
+    background = float(np.median(win))
+    spread = max(1.4826 * float(np.median(np.abs(win - background))), 1.0)
+    labels, _ = ndimage.label(smooth > background + _DOT_SPREADS * spread)
+    here = labels[int(row) - r0, int(col) - c0]
+    w = np.clip(win - background, 0.0, None)
+    if here > 0:
+        w = w * (labels == here)
     if w.sum() <= 0:
         return float(col), float(row)
     rr, cc = np.mgrid[r0:r1, c0:c1]
@@ -151,10 +171,14 @@ def detect_nwires(
     # Shallowest line first; along each line from the marked side (high column) over.
     chosen = sorted(best, key=lambda t: float(np.mean(cand[list(triples[t][:3]), 1])))
     points = {}
+    used = [c for t in chosen for c in triples[t][:3]]
     for pattern, t in zip(patterns, chosen, strict=True):
         dots = sorted(triples[t][:3], key=lambda c: -cand[c, 0])
         for wire, c in zip(pattern.wires, dots, strict=True):
-            points[wire.name] = _centroid(frame, cand[c, 0], cand[c, 1], spacing_mm)
+            # Half the way to the nearest other dot at most: one dot's echo only.
+            nearest = min(float(np.hypot(*(xy[c] - xy[o]))) for o in used if o != c)
+            reach = min(_DOT_REACH_MM, nearest / 2)
+            points[wire.name] = _centroid(frame, cand[c, 0], cand[c, 1], spacing_mm, reach)
     return NWireDetection(True, points)
 
 

@@ -50,7 +50,7 @@ from . import se3
 from .errors import CalibrationError
 from .image import pixel_axes
 from .nwire import NWireDetection, detect_nwires, middle_wire_point
-from .plus_config import NWirePattern
+from .plus_config import NWirePattern, image_to_probe_mm
 from .uncertainty import _dominating, image_grid
 from .verdict import (
     DEFAULT_IMAGE_MM,
@@ -177,18 +177,7 @@ class NWireCalibration:
     def image_to_probe_mm(self) -> Array:
         """PLUS's ``ImageToProbe``: pixel (column, row, 0, 1) → probe (ee) millimetres,
         the fitted pixel spacing included."""
-        sx, sy = (s * _MM for s in self.spacing_m)
-        S = np.array(
-            [
-                [sx, 0.0, 0.0, -(self.width_px - 1) / 2 * sx],
-                [0.0, sy, 0.0, 0.0],
-                [0.0, 0.0, 1.0, 0.0],
-                [0.0, 0.0, 0.0, 1.0],
-            ]
-        )
-        T = self.T_ee_us.copy()
-        T[:3, 3] *= _MM
-        return T @ S
+        return image_to_probe_mm(self.T_ee_us, self.width_px, self.spacing_m)
 
 
 def plus_error_mm(errors_mm: Array) -> tuple[float, float]:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +32,10 @@ __all__ = [
     "PlusConfig",
     "PlusFrameSegmentation",
     "PlusResults",
+    "image_to_probe_mm",
     "read_plus_config",
     "read_plus_results",
+    "us_of_image_to_probe",
 ]
 
 Array = NDArray[np.float64]
@@ -157,12 +159,32 @@ class PlusConfig:
 
 @dataclass(frozen=True)
 class PlusFrameSegmentation:
-    """fCal's segmentation of one frame: ``ok`` and the wire points it found (wire name →
-    (column, row) in pixels)."""
+    """fCal's segmentation of one frame: ``ok``, the wire points it found (wire name →
+    (column, row) in pixels) and the frame's tracked transforms as the results file
+    records them (``ProbeToTrackerTransform`` → 4 × 4 in metres; only those with status
+    OK)."""
 
     index: int
     ok: bool
     points: dict[str, tuple[float, float]]
+    transforms: dict[str, Array] = field(default_factory=dict)
+
+    def transform(self, name: str) -> Array:
+        """A recorded transform, or the one composed from two through their common frame
+        (``ProbeToReference`` = ``ReferenceToTracker``⁻¹ · ``ProbeToTracker``); one line
+        when the frame has neither."""
+        source, _, target = name.removesuffix("Transform").partition("To")
+        if f"{source}To{target}Transform" in self.transforms:
+            return self.transforms[f"{source}To{target}Transform"]
+        for key, T in self.transforms.items():
+            a, _, via = key.removesuffix("Transform").partition("To")
+            other = self.transforms.get(f"{target}To{via}Transform")
+            if a == source and other is not None:
+                return np.linalg.inv(other) @ T
+        raise DatasetError(
+            f"frame {self.index}: no {name}, nor two transforms composing it, among "
+            + (", ".join(sorted(self.transforms)) or "none with status OK")
+        )
 
 
 @dataclass(frozen=True)
@@ -263,9 +285,10 @@ def _pattern(
     return NWirePattern((a, m, b))
 
 
-def read_plus_config(path: str | os.PathLike[str]) -> PlusConfig:
+def read_plus_config(path: str | os.PathLike[str], *, phantom: bool = True) -> PlusConfig:
     """Read a PLUS device set configuration: its coordinate definitions and N-wire
-    phantom (``PhantomDefinition/Geometry/Pattern Type="NWire"``)."""
+    phantom (``PhantomDefinition/Geometry/Pattern Type="NWire"``; with ``phantom``
+    False, a configuration without one reads too, for its transforms)."""
     path, root = _parse(path, "a PLUS configuration")
     if root.tag != "PlusConfiguration":
         raise DatasetError(
@@ -281,6 +304,8 @@ def read_plus_config(path: str | os.PathLike[str]) -> PlusConfig:
             path, f"CoordinateDefinitions {source}To{target}", t.get("Matrix"), source, target
         )
     geometry = root.find("PhantomDefinition/Geometry")
+    if geometry is None and not phantom:
+        return PlusConfig(path, transforms, (), None)
     if geometry is None:
         raise DatasetError(
             f"{path}: no PhantomDefinition/Geometry: the configuration defines no phantom "
@@ -317,7 +342,17 @@ def _frames(path: Path, element: ET.Element | None) -> tuple[PlusFrameSegmentati
             name = p.get("WireName") or ""
             x, y, _ = _numbers(path, f"frame {index} point {name}", p.get("Position"), 3)
             points[name] = (float(x), float(y))
-        out.append(PlusFrameSegmentation(index, f.get("SegmentationStatus") == "OK", points))
+        fields = {c.get("Name"): c.get("Value") for c in f.findall("TrackedFrame/CustomFrameField")}
+        transforms = {
+            name: _matrix_m(path, f"frame {index} {name}", value, "x", "y")
+            for name, value in fields.items()
+            if name
+            and name.endswith("Transform")
+            and str(fields.get(name + "Status", "OK")).upper() == "OK"
+        }
+        out.append(
+            PlusFrameSegmentation(index, f.get("SegmentationStatus") == "OK", points, transforms)
+        )
     return tuple(out)
 
 
@@ -361,3 +396,39 @@ def read_plus_results(path: str | os.PathLike[str]) -> PlusResults:
         _frames(path, None if report is None else report.find("CalibrationData")),
         _frames(path, None if report is None else report.find("ValidationData")),
     )
+
+
+def image_to_probe_mm(T_ee_us: Array, width_px: int, spacing_m: tuple[float, float]) -> Array:
+    """PLUS's ``ImageToProbe``: pixel (i = column, j = row, 0, 1) → probe (ee) millimetres.
+
+    PLUS keeps the pixel spacing in this transform, not in the image: it is
+    ``T_ee_us`` (in mm) times the pixel-to-``us`` map of :mod:`calib.image`
+    (x = (i − (W − 1)/2)·sx, y = j·sy); :func:`us_of_image_to_probe` inverts it."""
+    sx, sy = (float(s) / _MM for s in spacing_m)
+    S = np.array(
+        [[sx, 0.0, 0.0, -(width_px - 1) / 2 * sx], [0.0, sy, 0.0, 0.0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    )
+    T = np.asarray(T_ee_us, dtype=float).copy()
+    T[:3, 3] /= _MM
+    return T @ S
+
+
+def us_of_image_to_probe(
+    image_to_probe_mm: Array, width_px: int
+) -> tuple[Array, tuple[float, float]]:
+    """``T_ee_us`` (metres) and the pixel spacing (columns, rows; metres) a PLUS
+    ``ImageToProbe`` (pixel → probe mm, spacing included) holds, for images ``width_px``
+    wide: the inverse of writing one (uscal's ``us`` frame has its origin at the centre of
+    the top row, x along the columns, y along the rows). PLUS's matrix need not be
+    exactly a scaled rotation; its columns are orthonormalized (nearest rotation)."""
+    A = np.asarray(image_to_probe_mm, dtype=float)
+    sx, sy = float(np.linalg.norm(A[:3, 0])), float(np.linalg.norm(A[:3, 1]))
+    if not (sx > 0 and sy > 0):
+        raise DatasetError("ImageToProbe has a zero column: not an image-to-probe transform")
+    x, y = A[:3, 0] / sx, A[:3, 1] / sy
+    U, _, Vt = np.linalg.svd(np.column_stack([x, y, np.cross(x, y)]))
+    R = U @ Vt
+    origin = (A @ np.array([(width_px - 1) / 2, 0.0, 0.0, 1.0]))[:3]
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, origin * _MM
+    return T, (sx * _MM, sy * _MM)

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.dh import DHTable
 from calib.evaluate import METHOD_TITLES
+from calib.plus_config import image_to_probe_mm
 
 from ..config.scenario import Scenario
 from ..results import RunResult
@@ -21,21 +22,6 @@ from .ros import URDF_FILE, static_transform_command
 
 Array = NDArray[np.float64]
 _MM = 1e3
-
-
-def image_to_probe_mm(T_ee_us: Array, width_px: int, spacing_m: tuple[float, float]) -> Array:
-    """PLUS's ``ImageToProbe``: pixel (i = column, j = row, 0, 1) → flange millimetres.
-
-    PLUS keeps the pixel spacing in this transform, not in the image: it is
-    ``T_ee_us`` (in mm) times the pixel-to-``us`` map of :mod:`calib.image`
-    (x = (i − (W − 1)/2)·sx, y = j·sy)."""
-    sx, sy = (s * _MM for s in spacing_m)
-    S = np.array(
-        [[sx, 0.0, 0.0, -(width_px - 1) / 2 * sx], [0.0, sy, 0.0, 0.0], [0, 0, 1, 0], [0, 0, 0, 1]]
-    )
-    T = np.asarray(T_ee_us, dtype=float).copy()
-    T[:3, 3] *= _MM
-    return T @ S
 
 
 def _pose_doc(T: Array) -> dict[str, Any]:
