@@ -21,8 +21,9 @@ estimates the layout's; a tracker measures it, PLUS's ``Phantom`` → ``Referenc
    ``M = [k_x r_1, k_y r_2, t]`` from nominal image coordinates to the probe frame (and, on
    a robot, in those of ``T_base_phantom``): linear least squares, then the nearest
    rotations. No initial guess is needed.
-2. **Refinement.** Robust least squares (soft-L1) of the 3-D distances, at the scale of
-   the closed form's own residuals (their median absolute deviation): no threshold.
+2. **Refinement.** Robust least squares of the 3-D distances (soft-L1, then Cauchy at three
+   times that scale), at the scale of the residuals' own median absolute deviation: no
+   threshold.
 3. **Error.** The 3-D reprojection error of each point (the distance above, mm) — what
    PLUS reports — and its summary as PLUS states it (mean and SD below the 95th
    percentile, its ``ErrorConfidenceLevel``).
@@ -82,6 +83,9 @@ JACKNIFE_BLOCKS = 10
 #: A point is an outlier when its 3-D error squared exceeds the χ²(3) 0.1 % quantile of
 #: the fit's own per-axis scale: a segmentation or tracking glitch, not noise.
 _OUTLIER_P = 1e-3
+#: The Cauchy loss's scale in the data's own σ: points within a few σ count fully (the
+#: noise), those far beyond fade (glitches).
+_GLITCH_SIGMAS = 3.0
 #: PLUS's ErrorConfidenceLevel: its 3-D error is stated below this percentile.
 PLUS_CONFIDENCE = 95.0
 
@@ -282,9 +286,9 @@ class _Model:
         return ((image - wire) * _MM).ravel()
 
 
-def _fit(model: _Model, x0: Array, f_scale: float, rows=slice(None)):
+def _fit(model: _Model, x0: Array, f_scale: float, rows=slice(None), loss="soft_l1", **kw):
     return least_squares(
-        lambda x: model.residuals(x, rows), x0, loss="soft_l1", f_scale=f_scale, x_scale="jac"
+        lambda x: model.residuals(x, rows), x0, loss=loss, f_scale=f_scale, x_scale="jac", **kw
     )
 
 
@@ -335,8 +339,14 @@ def calibrate_nwire(
     model = _Model(xy, T_k, p, T_X0, T_P0, T_base_phantom is None, estimate_scale, scale0)
     sigma = _robust_sigma(model.residuals(model.x0()))
     fit = _fit(model, model.x0(), sigma)
-    sigma = _robust_sigma(fit.fun)  # the data's own scale at the solution
-    fit = _fit(model, fit.x, sigma)
+    # Then at the data's own scale at that solution, with a loss whose influence fades
+    # (Cauchy): a glitch millimetres off no longer pulls the answer.
+    for _ in range(3):  # the scale re-measured at each solution, until it holds
+        sigma = _robust_sigma(fit.fun)
+        fit = _fit(model, fit.x, _GLITCH_SIGMAS * sigma, loss="cauchy")
+        if abs(_robust_sigma(fit.fun) / sigma - 1) < 0.02:
+            break
+    sigma = _robust_sigma(fit.fun)
     T_X, T_P, scale = model.unpack(fit.x)
     r = fit.fun.reshape(-1, 3)
     errors = np.linalg.norm(r, axis=1)
@@ -350,14 +360,7 @@ def calibrate_nwire(
     estimates = []
     for b in range(g):
         keep = blocks != b
-        part = least_squares(
-            lambda x, keep=keep: model.residuals(x, keep),
-            fit.x,
-            loss="soft_l1",
-            f_scale=sigma,
-            x_scale="jac",
-            max_nfev=50,
-        )
+        part = _fit(model, fit.x, _GLITCH_SIGMAS * sigma, keep, loss="cauchy", max_nfev=50)
         estimates.append(part.x)
     E = np.array(estimates)
     d = E - E.mean(axis=0)
