@@ -4,18 +4,17 @@ frames found by each, the distance from uscal's points to PLUS's (pixels, same w
 name), the time per frame; and a figure of the frames where the two disagree most (PLUS's
 points as circles, uscal's as crosses), written to ``docs/figures/nwire_vs_plus.png``.
 
-Then an experiment ahead of the pipeline (issue 37, item 3): ``ImageToProbe`` fitted
-from uscal's own points — each frame's diagonal-wire points (:func:`calib.nwire.
-middle_wire_point`) mapped to the Reference frame through PLUS's ``Phantom`` →
-``Reference`` definition, against the image points through the tracked
-``ProbeToReference`` (composed per frame) and the unknown ``ImageToProbe`` with the
-pixel scale free (robust least squares) — beside PLUS's answer: the 3-D error (the
-distance between the wire point and the image point mapped through the calibration and
-the tracking, mm) of each transform on each set of points, and the two transforms'
-distance over the image; the 3-D error also as PLUS states it (mean and SD of the errors
-below the 95th percentile, as its source computes it). Last line:
-``found=<uscal>/<frames> plus=<PLUS> median_px=<median> image_vs_plus_mm=<max over the
-image corners>``.
+Then the calibration (issue 37, item 3; :func:`calib.nwire_calibration.calibrate_nwire`
+from uscal's own detection, as ``uscal calibrate`` runs it) beside PLUS's answer: the
+3-D reprojection error as PLUS states it (mean and SD below the 95th percentile, as its
+source computes it) of each transform on uscal's points, on PLUS's points, and on PLUS's
+separate validation sweep (its segmented points and tracked poses from the results file:
+its images are not published); the two transforms' distance over the image and their
+rotation; each half of the frames calibrated and measured on the other (what a bound
+must cover); and the same frames with the phantom's pose left to the fit (a robot rig's
+case). Last line: ``found=<uscal>/<frames> plus=<PLUS> median_px=<median>
+reprojection_mm=… plus_reprojection_mm=… validation_mm=… plus_validation_mm=…
+image_vs_plus_mm=<max over the image corners> rotation_vs_plus_deg=…``.
 
 Run: python benchmarks/nwire_plus.py [--data ../shared/data/plus] [--figure PATH]
 """
@@ -28,14 +27,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calib import se3  # noqa: E402
+from calib.errors import CalibrationError  # noqa: E402
 from calib.metafile import read_metafile  # noqa: E402
 from calib.nwire import detect_nwires, middle_wire_point  # noqa: E402
+from calib.nwire_calibration import (  # noqa: E402
+    NWireObservations,
+    calibrate_nwire,
+    judge_nwire,
+    observe_nwires,
+    plus_error_mm,
+    reprojection_errors_mm,
+)
 from calib.plus_config import read_plus_config, read_plus_results  # noqa: E402
 from calib.plus_import import plus_frames  # noqa: E402
 
@@ -97,90 +103,121 @@ def main() -> None:
     Path(args.figure).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.figure, dpi=90)
     print(f"wrote {args.figure}")
-    away = calibrate_against_plus(data, config, results, found)
+    fig = calibrate_against_plus(data, config, results, frames)
     print(
         f"found={n_ours}/{len(frames)} plus={n_plus} median_px={np.median(d):.3f} "
-        f"image_vs_plus_mm={away:.3f}"
+        + " ".join(f"{k}={v:.3f}" for k, v in fig.items())
     )
 
 
-def _wire_points(config, segmentations, spacing):
-    """(frame, column, row, Reference-frame point in m) of every diagonal wire."""
-    T_ref_phantom = config.transform("Phantom", "Reference")
-    out = []
-    for k, seg in segmentations:
+def _plus_observations(config, frames, spacing, key=lambda f: f.index):
+    """PLUS's segmented points as uscal's observations (the diagonal-wire point of each
+    pattern from PLUS's three dots)."""
+    rows, pix, pts = [], [], []
+    for f in frames:
         for pattern in config.patterns:
-            pa, pm, pb = (np.array(seg.points[w.name]) * spacing for w in pattern.wires)
-            P = se3.apply(T_ref_phantom, middle_wire_point(pattern, pa, pm, pb))
-            out.append((k, *seg.points[pattern.wires[1].name], P))
-    return out
+            pa, pm, pb = (np.array(f.points[w.name]) for w in pattern.wires)
+            rows.append(key(f))
+            pix.append(pm)
+            pts.append(middle_wire_point(pattern, pa * spacing, pm * spacing, pb * spacing))
+    n = len(rows)
+    return NWireObservations(np.array(rows), np.zeros(n, int), np.array(pix), np.array(pts), ())
 
 
-def calibrate_against_plus(data: Path, config, results, found) -> float:
-    """The experiment of the module doc; returns the largest distance (mm) between
-    uscal's and PLUS's transform over the image's corners and centre."""
+def _subset(obs: NWireObservations, keep) -> NWireObservations:
+    return NWireObservations(
+        obs.frame[keep], obs.pattern[keep], obs.pixel[keep], obs.phantom_point[keep], ()
+    )
+
+
+def calibrate_against_plus(data: Path, config, results, frames) -> dict[str, float]:
+    """uscal's calibration (calib.nwire_calibration, from uscal's own detection) beside
+    PLUS's answer, each measured by PLUS's 3-D error on both sets of points, on PLUS's
+    separate validation sweep (its segmented points and tracked poses: the images are not
+    published), and half against half."""
     tracked = plus_frames(data / config.sequence_file, "ProbeToReference").T_base_probe
     spacing = np.array(config.pixel_spacing_mm())
-    ours = _wire_points(config, [(k, f) for k, f in enumerate(found) if f.ok], spacing)
-    plus = _wire_points(config, [(s.index, s) for s in results.calibration if s.ok], spacing)
-
-    def mapped(x, rows):
-        k = np.array([r[0] for r in rows])
-        uv = np.array([[r[1], r[2]] for r in rows])
-        R = se3.matrix_from_rotvec(x[:3])
-        p_probe = np.column_stack([uv * x[6:8], np.zeros(len(uv))]) @ R.T + x[3:6]
-        T = tracked[k]
-        return np.einsum("nij,nj->ni", T[:, :3, :3], p_probe) + T[:, :3, 3]
-
-    def errors_mm(x, rows):
-        return 1e3 * np.linalg.norm(mapped(x, rows) - np.array([r[3] for r in rows]), axis=1)
-
-    A = results.image_to_probe[:3, :3]
-    scale = np.linalg.norm(A, axis=0)
-    U, _, Vt = np.linalg.svd(A / scale)
-    origin = results.image_to_probe[:3, 3]
-    x_plus = np.concatenate([se3.rotvec_from_matrix(U @ Vt), origin, scale[:2]])
-    fit = least_squares(
-        lambda x: (mapped(x, ours) - np.array([r[3] for r in ours])).ravel() * 1e3,
-        x_plus,
-        loss="soft_l1",
-    )
-    x_ours = fit.x
-    print(f"\nImageToProbe from uscal's own points ({len(ours)} diagonal-wire points):")
-    print(f"  pixel spacing fitted {x_ours[6] * 1e3:.5f} × {x_ours[7] * 1e3:.5f} mm")
-
-    def trimmed(e):
-        """PLUS's statistic: mean and SD of the errors below the 95th percentile (its
-        ``ErrorConfidenceLevel``, vtkProbeCalibrationAlgo's ComputePercentile)."""
-        kept = e[e <= np.percentile(e, 95)]
-        return kept.mean(), kept.std()
-
-    for name, x in (("uscal's", x_ours), ("PLUS's", x_plus)):
-        e_o, e_p = errors_mm(x, ours), errors_mm(x, plus)
-        print(
-            f"  {name:8s} transform: 3-D error on uscal's points {e_o.mean():.3f} ± "
-            f"{e_o.std():.3f} mm, on PLUS's points {e_p.mean():.3f} ± {e_p.std():.3f} mm; "
-            "as PLUS states it (below the 95th percentile): %.3f ± %.3f, %.3f ± %.3f"
-            % (*trimmed(e_o), *trimmed(e_p))
-        )
+    T_phantom = config.transform("Phantom", "Reference")
+    H, W = frames.shape[1:]
+    obs = observe_nwires(frames, config.patterns, tuple(spacing))
+    cal = calibrate_nwire(
+        obs, tracked, width_px=W, height_px=H, spacing_m=tuple(spacing * 1e-3),
+        T_base_phantom=T_phantom,
+    )  # fmt: skip
+    ours = cal.image_to_probe_mm()
+    theirs = results.image_to_probe.copy()
+    theirs[:3, :] *= 1e3
+    plus_points = _plus_observations(config, [f for f in results.calibration if f.ok], spacing)
+    valid = [f for f in results.validation if f.ok]
+    valid_points = _plus_observations(config, valid, spacing, key=valid.index)
+    valid_poses = np.array([f.transform("ProbeToReference") for f in valid])
     stated = results.reprojection_3d_mm
+    print(f"\nImageToProbe from uscal's own points ({len(obs.frame)} diagonal-wire points):")
     print(
-        f"  (PLUS reports {stated['calibration_mean_mm']:.3f} ± "
-        f"{stated['calibration_sd_mm']:.3f} mm on its calibration frames)"
+        f"  pixel spacing fitted {cal.spacing_m[0] * 1e3:.5f} × {cal.spacing_m[1] * 1e3:.5f} mm;"
+        f" 95 % bound {cal.bound95['rotation_deg']:.2f}°, {cal.bound95['translation_mm']:.2f} "
+        f"mm, {cal.bound95['image_mm']:.2f} mm over the image; verdict "
+        f"{judge_nwire(cal).line()}"
     )
-    H, W = 616, 820
-    corners = np.array([[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1], [W / 2, H / 2]])
-
-    def in_probe(x):
-        R = se3.matrix_from_rotvec(x[:3])
-        return np.column_stack([corners * x[6:8], np.zeros(len(corners))]) @ R.T + x[3:6]
-
-    away = 1e3 * np.linalg.norm(in_probe(x_ours) - in_probe(x_plus), axis=1)
-    turn = np.degrees(np.linalg.norm(se3.rotvec_from_matrix(
-        se3.matrix_from_rotvec(x_ours[:3]).T @ se3.matrix_from_rotvec(x_plus[:3])
-    )))  # fmt: skip
+    print("  3-D error as PLUS states it (mean ± SD below the 95th percentile), mm:")
+    print(f"  {'transform':10s} {'uscal pts':>15s} {'PLUS pts':>15s} {'PLUS validation':>16s}")
+    figures = {}
+    for name, A in (("uscal", ours), ("PLUS", theirs)):
+        cells = [
+            plus_error_mm(reprojection_errors_mm(o, poses, A, T_phantom))
+            for o, poses in ((obs, tracked), (plus_points, tracked), (valid_points, valid_poses))
+        ]
+        print(f"  {name:10s} " + " ".join(f"{m:8.3f} ± {s:5.3f}" for m, s in cells))
+        figures[name] = cells
+    print(
+        f"  (PLUS states {stated['calibration_mean_mm']:.3f} ± "
+        f"{stated['calibration_sd_mm']:.3f} on its calibration frames, "
+        f"{stated['validation_mean_mm']:.3f} ± {stated['validation_sd_mm']:.3f} on validation)"
+    )
+    corners = np.array([[0, 0, 0, 1], [W - 1, 0, 0, 1], [0, H - 1, 0, 1], [W - 1, H - 1, 0, 1],
+                        [W / 2, H / 2, 0, 1]])  # fmt: skip
+    away = np.linalg.norm((corners @ ours.T - corners @ theirs.T)[:, :3], axis=1)
+    RA, RB = (M[:3, :3] / np.linalg.norm(M[:3, :3], axis=0) for M in (ours, theirs))
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(RA.T @ RB) - 1) / 2, -1, 1))))
     print(f"  uscal's vs PLUS's over the image: {np.round(away, 3)} mm; rotation {turn:.3f}°")
-    return float(away.max())
+    # Half against half: calibrate on one half of the frames, measure on the other.
+    half = len(frames) // 2
+    print("  half against half (calibrated on one, 3-D error on the other):")
+    for train, test in (
+        (obs.frame < half, obs.frame >= half),
+        (obs.frame >= half, obs.frame < half),
+    ):
+        part = calibrate_nwire(
+            _subset(obs, train), tracked, width_px=W, height_px=H,
+            spacing_m=tuple(spacing * 1e-3), T_base_phantom=T_phantom, n_draws=500,
+        )  # fmt: skip
+        e = reprojection_errors_mm(_subset(obs, test), tracked, part.image_to_probe_mm(), T_phantom)
+        m, sd = plus_error_mm(e)
+        moved = np.linalg.norm(
+            (corners @ part.image_to_probe_mm().T - corners @ ours.T)[:, :3], axis=1
+        )
+        print(
+            f"    frames {'first' if train[0] else 'second'} half → other: {m:.3f} ± {sd:.3f} mm "
+            f"(in-sample {plus_error_mm(part.errors_mm)[0]:.3f}); from the whole's answer "
+            f"{moved[:4].mean():.2f} mm at the corners, {moved[4]:.2f} at the centre; its "
+            f"bound over the image {part.bound95['image_mm']:.2f} mm"
+        )
+    # The robotic case on the same frames: the phantom's pose left to the fit.
+    try:
+        robot = calibrate_nwire(
+            obs, tracked, width_px=W, height_px=H, spacing_m=tuple(spacing * 1e-3), n_draws=500
+        )
+        print(f"  phantom pose estimated too (a robot rig): {judge_nwire(robot).line()}")
+    except CalibrationError as e:
+        print(f"  phantom pose estimated too (a robot rig): refused: {e}")
+    return {
+        "reprojection_mm": figures["uscal"][0][0],
+        "plus_reprojection_mm": figures["PLUS"][0][0],
+        "validation_mm": figures["uscal"][2][0],
+        "plus_validation_mm": figures["PLUS"][2][0],
+        "image_vs_plus_mm": float(away.max()),
+        "rotation_vs_plus_deg": turn,
+    }
 
 
 if __name__ == "__main__":

@@ -27,11 +27,13 @@ estimates the layout's; a tracker measures it, PLUS's ``Phantom`` → ``Referenc
 3. **Error.** The 3-D reprojection error of each point (the distance above, mm) — what
    PLUS reports — and its summary as PLUS states it (mean and SD below the 95th
    percentile, its ``ErrorConfidenceLevel``).
-4. **Bounds and verdict.** A delete-group jackknife over blocks of consecutive frames
-   (neighbouring frames share the tracker's and the hand's errors) against the
-   first-order covariance, the larger in every direction, Student-t widened; the 95 %
-   bounds of rotation, translation and the mean error over the image; and a verdict as
-   :mod:`calib.verdict` gives the sphere method's.
+4. **Bounds and verdict.** A delete-group jackknife over blocks of consecutive frames,
+   each twice as long as the residuals stay correlated (neighbouring frames share the
+   tracker's and the phantom's pose-dependent errors: on PLUS's fCal recording the two
+   halves' answers differ by 1.2 mm over the image, which blocks of ten frames would
+   call impossible) against the first-order covariance, the larger in every direction,
+   Student-t widened; the 95 % bounds of rotation, translation and the mean error over
+   the image; and a verdict as :mod:`calib.verdict` gives the sphere method's.
 """
 
 from __future__ import annotations
@@ -67,6 +69,7 @@ __all__ = [
     "NWireObservations",
     "NWireVerdict",
     "calibrate_nwire",
+    "correlation_frames",
     "judge_nwire",
     "observe_nwires",
     "plus_error_mm",
@@ -78,8 +81,12 @@ _MM = 1e3
 #: Fewer frames with every pattern found than this cannot be split into jackknife blocks
 #: and leave a fit: refuse (PLUS's own tests calibrate from well over a hundred).
 MIN_FRAMES = 10
-#: Jackknife blocks of consecutive frames (at most; one per frame below that).
-JACKNIFE_BLOCKS = 10
+#: Jackknife blocks of consecutive frames: each at least twice the residuals' correlation
+#: length (:func:`correlation_frames`), so that blocks, not frames, are independent; at
+#: most ten (the sphere method's nine views), at least four (fewer leave the t quantile,
+#: and the bound, unusable: it is then wide, and the verdict says so).
+MAX_BLOCKS = 10
+MIN_BLOCKS = 4
 #: A point is an outlier when its 3-D error squared exceeds the χ²(3) 0.1 % quantile of
 #: the fit's own per-axis scale: a segmentation or tracking glitch, not noise.
 _OUTLIER_P = 1e-3
@@ -297,10 +304,35 @@ def _robust_sigma(r: Array) -> float:
     return max(1.4826 * float(np.median(np.abs(r))), 1e-6)
 
 
-def _blocks(frame: NDArray[np.int_]) -> NDArray[np.int_]:
-    """The jackknife's group of each point: blocks of consecutive used frames."""
+def correlation_frames(frame: NDArray[np.int_], pattern: NDArray[np.int_], r: Array) -> int:
+    """How many consecutive frames share an error: the first lag (in frames used) at which
+    the autocorrelation of the residual vectors, per pattern, averaged, falls below
+    1/e. Neighbouring frames of a freehand sweep share the tracker's and the phantom's
+    pose-dependent errors; on PLUS's fCal recording this is about 20 frames."""
     used = np.unique(frame)
-    g = min(JACKNIFE_BLOCKS, len(used))
+    n = len(used)
+    order = {f: i for i, f in enumerate(used)}
+    acf = np.zeros(max(n // 3, 1))
+    for j in np.unique(pattern):
+        rows = np.flatnonzero(pattern == j)
+        series = np.full((n, 3), np.nan)
+        series[[order[f] for f in frame[rows]]] = r[rows]
+        series -= np.nanmean(series, axis=0)
+        power = np.nanmean(np.sum(series * series, axis=1))
+        for lag in range(1, len(acf)):
+            products = np.sum(series[:-lag] * series[lag:], axis=1)
+            acf[lag] += np.nanmean(products) / power if np.isfinite(products).any() else 0.0
+    acf /= len(np.unique(pattern))
+    below = np.flatnonzero(acf[1:] < np.exp(-1.0))
+    return int(below[0] + 1) if len(below) else len(acf)
+
+
+def _blocks(frame: NDArray[np.int_], length: int) -> NDArray[np.int_]:
+    """The jackknife's group of each point: blocks of consecutive used frames, each at
+    least ``length`` frames, between MIN_BLOCKS and MAX_BLOCKS of them."""
+    used = np.unique(frame)
+    g = int(np.clip(len(used) // max(length, 1), MIN_BLOCKS, MAX_BLOCKS))
+    g = min(g, len(used))
     block_of = dict(zip(used, np.arange(len(used)) * g // len(used), strict=True))
     return np.array([block_of[f] for f in frame])
 
@@ -355,7 +387,7 @@ def calibrate_nwire(
     # First-order covariance of the parameters (robust scale) and the block jackknife.
     # fit.jac is the Jacobian the robust loss weighted (inliers ≈ 1, outliers less).
     cov1 = np.linalg.pinv(fit.jac.T @ fit.jac) * sigma**2
-    blocks = _blocks(obs.frame)
+    blocks = _blocks(obs.frame, 2 * correlation_frames(obs.frame, obs.pattern, r))
     g = int(blocks.max()) + 1
     estimates = []
     for b in range(g):
