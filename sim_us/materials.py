@@ -72,7 +72,8 @@ def water(temperature_c: float = 20.0) -> Material:
 
 #: Materials by name. PLA and resin are printed solids (diffuse share 0.1 and 0.08: their
 #: oblique faces show as granular lines), acrylic a cast or machined sheet, steel a polished
-#: ball bearing (a mirror: nothing returns off its specular point).
+#: ball bearing (a mirror: nothing returns off its specular point), nylon a calibration
+#: wire's monofilament.
 MATERIALS: dict[str, Material] = {
     "water": water(20.0),
     "gel": Material("gel", 1540.0, 1030.0, 0.5, 1.0, -38.0),
@@ -80,6 +81,8 @@ MATERIALS: dict[str, Material] = {
     "resin": Material("resin", 2500.0, 1180.0, 5.0, 1.0, None, 0.08),
     "acrylic": Material("acrylic", 2750.0, 1190.0, 0.8, 1.0, None, 0.02),
     "steel": Material("steel", 5900.0, 7850.0, 0.05, 1.0, None, 0.0),
+    # Nylon monofilament (fishing line, the usual calibration wire): polyamide 6.
+    "nylon": Material("nylon", 2620.0, 1140.0, 3.0, 1.0, None, 0.0),
 }
 
 

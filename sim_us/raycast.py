@@ -22,6 +22,7 @@ from embreex.mesh_construction import TriangleMesh
 from numpy.typing import NDArray
 
 from .materials import Material
+from .wires import Wire
 
 __all__ = ["AcousticScene", "Hits", "RayCaster", "ScenePart"]
 
@@ -61,10 +62,12 @@ class ScenePart:
 
 @dataclass(frozen=True, eq=False)
 class AcousticScene:
-    """What the probe can see: solid parts in one frame. Ground truth stays with the
-    caller; the simulator only renders."""
+    """What the probe can see: solid parts in one frame, and wires (thinner than the
+    beam: drawn as line targets, :mod:`sim_us.wires`, not ray-cast). Ground truth stays
+    with the caller; the simulator only renders."""
 
     parts: tuple[ScenePart, ...]
+    wires: tuple[Wire, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,7 @@ from .probe import MediumConfig, ProbeConfig
 from .propagation import Echoes, trace
 from .raycast import AcousticScene, RayCaster
 from .speckle import ScattererField, _smooth_values
+from .wires import wire_echoes
 from .transducer import band_loss, transducer
 
 __all__ = ["BmodeSimulator", "Timings"]
@@ -130,6 +131,7 @@ class BmodeSimulator:
             for p in scene.parts
         ]
         self.caster = RayCaster(scene)
+        self.wires = scene.wires
         self.mirror = mirror_of(probe)
         # Scatterer cells of a third of the finer resolution: ≥ 10 per PSF cell.
         cell = min(axial_fwhm_m(probe), narrowest_lateral_fwhm_m(probe)) / 3.0
@@ -556,6 +558,48 @@ class BmodeSimulator:
         base = frame * (H * W) + self.columns[line]
         return base, a, b, rho_a, beta
 
+    def _add_wire_echoes(
+        self, image: NDArray[np.float32], T_scene_us: Array, medium: Material, medium_end: Array
+    ) -> None:
+        """The scene's wires (:mod:`sim_us.wires`) added to the surface echoes ``image``
+        (n, H, W) before the PSF, in place. Each echo is scaled so that after the PSF its
+        peak is its amplitude² times the sub-plane's beam weight, as a flat mirror's level
+        is; it is hidden where its scanline has entered a solid before its depth."""
+        H, W = self.shape
+        probe = self.probe
+        mirror = self.mirror
+        echoes = wire_echoes(
+            self.wires,
+            T_scene_us,
+            self.z,
+            medium=medium,
+            width_px=W,
+            true_spacing=self.true_spacing,
+            offset=self.offset,
+            assumed_speed_m_s=probe.assumed_speed_m_s,
+            f_mhz=probe.f_mhz,
+            wavelength_m=mirror.wavelength_m,
+            focal_spot_m=mirror.focal_spot_m,
+            elevation_lobe=lambda depth, tilt: mirror.lobes(
+                depth, np.zeros_like(depth), tilt, np.zeros_like(depth)
+            )[1],
+            loss_db=lambda depth: band_attenuation_db(probe, medium, depth),
+            dynamic_range_db=probe.dynamic_range_db,
+        )
+        c0 = np.floor(echoes.col).astype(np.int64)
+        keep = (c0 >= 0) & (c0 + 1 < W) & (echoes.row > -1) & (echoes.row < H - 1)
+        f, k, c0, row, energy = (
+            v[keep] for v in (echoes.frame, echoes.plane, c0, echoes.row, echoes.energy)
+        )
+        frac = echoes.col[keep] - c0
+        row_idx = np.clip(np.rint(row).astype(np.int64), 0, H - 1)
+        seen = (row * self.true_spacing[1] + self.offset[1]) <= medium_end[f, k, c0]
+        peak = self._kernels[1].max(axis=1)  # the lateral intensity PSF's peak per row
+        value = energy * self.weights[k, row_idx] / peak[row_idx] * seen
+        flat = image.reshape(-1)
+        for col, share in ((c0, 1.0 - frac), (c0 + 1, frac)):
+            _splat_points(flat, H, W, f, col, row, (value * share).astype(np.float32))
+
     # ------------------------------------------------------------------ speckle
 
     def _speckle(
@@ -645,6 +689,8 @@ class BmodeSimulator:
         T = np.asarray(T_scene_us, dtype=float).reshape(-1, 4, 4)
         medium, floor_db = self._medium_at(temperature_c)
         image, surface, medium_end = self._echo_intensity(T, medium, floor_db)
+        if self.wires:
+            self._add_wire_echoes(image, T, medium, medium_end)
         t0 = time.perf_counter()
         # The intensity PSF of an incoherent echo is |h|² (with the ring-down tail when
         # configured). The medium's speckle below goes through h without the ring-down:
