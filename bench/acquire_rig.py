@@ -34,12 +34,13 @@ from calib.errors import (
 )
 from calib.localize import LocalizerConfig, localize_sphere
 from calib.pipeline import axial_scale as axial_scale_of
-from calib.planning import Candidates, bias_covariance, paper_poses
+from calib.planning import Candidates, bias_covariance
 from calib.protocol import (
     PlannedSweep,
     Replacement,
     acquire,
     clear_sweeps,
+    default_poses,
     plan_sweeps,
     touch_plan,
     transit,
@@ -351,7 +352,7 @@ def _acquire_until(cfg, robot, grabber, writer, target, q_taught, until, say) ->
     robot.move_joints(q_taught, f"taught pose of {target}")
     T_taught = robot.read().T_base_ee
     coarse = cfg.rig.T_ee_us_coarse
-    poses = sphere_poses(proto, target) or paper_poses(proto.rotation_deg, proto.translation_mm)
+    poses = sphere_poses(proto, target) or default_poses(proto)
     single = [plan_sweeps(target, T_taught, coarse, proto, poses=[p])[0] for p in poses]
     depth = proto.target_depth_mm * 1e-3
     cands = Candidates.build(

@@ -31,6 +31,7 @@ from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
+from .config.geometry import lateral_axis
 from .config.method import stated_radius
 from .config.plan_file import spare_poses, sphere_poses, sweeps_about
 from .config.scenario import Scenario
@@ -160,6 +161,14 @@ def teach_at(
     return twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), label)
 
 
+def acquisition_targets(scenario: Scenario) -> list[str]:
+    """What an acquisition sweeps: the protocol's spheres, or the N-wire phantom's
+    patterns (one target, ``nwire``, at their centre)."""
+    if scenario.phantom.kind == "nwire":
+        return ["nwire"]
+    return [f"sphere_{i}" for i in scenario.protocol.spheres]
+
+
 def simulate_acquisition(
     scenario: Scenario,
     twin: Twin,
@@ -192,11 +201,11 @@ def simulate_acquisition(
     sweeps: list[Sweep] = []
     replaced: list[Replacement] = []
     truth: dict[tuple[str, int], list[NDArray[np.float64]]] = {}
-    total = sum(sweeps_about(proto, f"sphere_{i}") for i in proto.spheres)
+    targets = acquisition_targets(scenario)
+    total = sum(sweeps_about(proto, t) for t in targets)
     label = progress or f"{name}: acquire sweeps"
     report(label, 0, total)
-    for index in proto.spheres:
-        target = f"sphere_{index}"
+    for target in targets:
         centre = twin.truth.landmarks_base[target]
         taught = teach_at(
             twin,
@@ -205,6 +214,7 @@ def simulate_acquisition(
             f"taught pose at {target}",
             rngs["protocol"],
             proto.teaching_error_mm,
+            lateral_axis=lateral_axis(scenario.phantom),
         )
         # Every pose checked before the arm moves; a sweep that does not clear in this
         # session is replaced by a spare of the plan file, never stopping the acquisition.

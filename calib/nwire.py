@@ -9,12 +9,16 @@ and no per-machine parameter.
 
 1. **Candidates.** The frame smoothed at the dots' scale (a Gaussian of σ = 0.15 mm,
    about a wire's diameter), its local maxima within a dot's reach (1 mm), ranked by
-   their smoothed grey level; the brightest ``4 × wires`` are kept (the rest of a frame's
-   maxima are speckle and reverberation, far below them).
+   their smoothed grey level, those that are dots (fallen to half their height 2 mm away
+   on at least one side in every direction: not a plate's or the tank's line); the
+   brightest ``4 × wires`` are kept (the rest of a frame's maxima are speckle and
+   reverberation, far below them).
 2. **Triples.** Every three candidates on one line (the middle one within
    ``collinear_mm`` of the line through the outer two, and between them), the outer two
    between 0.8 and 2 × the pattern's outer spacing apart (the image plane cuts the
-   pattern obliquely, never shorter than square on).
+   pattern obliquely, never shorter than square on), the line within 45° of the image's
+   lateral axis (the patterns lie in planes the probe looks down on: stacked patterns'
+   outer wires also line up, vertically).
 3. **Patterns.** The set of disjoint triples, one per pattern, whose lines are nearly
    parallel (within 15°) with the greatest total brightness (among the 40 brightest
    triples); the patterns are named
@@ -49,6 +53,10 @@ Array = NDArray[np.float64]
 #: machine's.
 COLLINEAR_MM = 0.6
 _PARALLEL_DEG = 15.0
+#: A pattern's wires lie in one plane the probe looks down on: its dots' line is within
+#: this of the image's lateral axis. Steeper lines are other dots that happen to line up
+#: (the outer wires of stacked patterns form vertical lines of the same spacing).
+_MAX_LINE_TILT_DEG = 45.0
 #: How far a wire's echo reaches from its maximum (its centroid's window, half-size): a
 #: wire well under a millimetre thick, drawn by a beam about a millimetre wide laterally.
 _DOT_REACH_MM = 2.0
@@ -73,8 +81,44 @@ def _candidates(frame: NDArray[np.uint8], spacing_mm: tuple[float, float], n: in
     reach = (max(3, round(1.0 / sy) | 1), max(3, round(1.0 / sx) | 1))
     peaks = (smooth == ndimage.maximum_filter(smooth, size=reach)) & (smooth > 0)
     rows, cols = np.nonzero(peaks)
-    order = np.argsort(-smooth[rows, cols])[:n]
-    return np.column_stack([cols[order], rows[order], smooth[rows[order], cols[order]]])
+    order = np.argsort(-smooth[rows, cols], kind="stable")
+    rows, cols = rows[order], cols[order]
+    # One maximum per dot: a flat top (a saturated echo) has several; keep the first.
+    keep: list[int] = []
+    for i in range(len(rows)):
+        if len(keep) >= 4 * n:
+            break
+        if all(np.hypot((rows[i] - rows[j]) * sy, (cols[i] - cols[j]) * sx) > 1.0 for j in keep):
+            keep.append(i)
+    rows, cols = rows[keep], cols[keep]
+    dot = _is_dot(smooth, rows[: 4 * n], cols[: 4 * n], spacing_mm)
+    rows, cols = rows[: 4 * n][dot][:n], cols[: 4 * n][dot][:n]
+    return np.column_stack([cols, rows, smooth[rows, cols]])
+
+
+def _is_dot(smooth: Array, rows, cols, spacing_mm) -> NDArray[np.bool_]:
+    """Whether each maximum is a dot: at ``_DOT_REACH_MM`` from it, in every pair of
+    opposite directions, at least one side has fallen below half its height over the
+    frame's background (its median). A line (a plate's or the tank's surface) stays
+    bright both ways along itself; a neighbouring dot, or a comet tail, on one side only."""
+    if len(rows) == 0:
+        return np.zeros(0, dtype=bool)
+    sx, sy = spacing_mm
+    background = float(np.median(smooth))
+    half = background + 0.5 * (smooth[rows, cols] - background)
+    angles = np.linspace(0.0, np.pi, 8, endpoint=False)
+    dr, dc = _DOT_REACH_MM * np.sin(angles) / sy, _DOT_REACH_MM * np.cos(angles) / sx
+    both = []
+    for sign in (1.0, -1.0):
+        r = rows[:, None] + sign * dr[None, :]
+        c = cols[:, None] + sign * dc[None, :]
+        # Outside the frame nothing is known: it never counts as fallen.
+        seen = ndimage.map_coordinates(
+            smooth, [r.ravel(), c.ravel()], order=1, mode="constant", cval=np.inf
+        )
+        both.append(seen.reshape(r.shape))
+    low = np.minimum(both[0], both[1]) < half[:, None]
+    return low.all(axis=1)
 
 
 def _centroid(
@@ -131,6 +175,8 @@ def detect_nwires(
         if not lo <= length <= hi:
             continue
         u = d / length
+        if abs(u[1]) > abs(u[0]) * np.tan(np.radians(_MAX_LINE_TILT_DEG)):
+            continue  # steeper than a pattern imaged from above can be
         rel = xy - xy[i]
         along = rel @ u
         off = np.abs(rel @ np.array([-u[1], u[0]]))
@@ -141,8 +187,9 @@ def detect_nwires(
         return NWireDetection(
             False,
             {},
-            f"{len(triples)} collinear triples of dots ({collinear_mm:g} mm from a line, the "
-            f"outer two {lo:.0f}–{hi:.0f} mm apart); {k} patterns to find",
+            f"{len(triples)} collinear triples of dots ({collinear_mm:g} mm from a line within "
+            f"{_MAX_LINE_TILT_DEG:g}° of the image's lateral axis, the outer two "
+            f"{lo:.0f}–{hi:.0f} mm apart); {k} patterns to find",
         )
     best, best_score = None, -np.inf
     brightness = cand[:, 2]
@@ -191,14 +238,15 @@ def middle_wire_point(pattern: NWirePattern, pa: ArrayLike, pm: ArrayLike, pb: A
     through the N's plane, so the diagonal's dot divides the outer two in the ratio
     ``t = |pm − pa| / |pb − pa|``, an affine invariant; across the outer wires (the
     direction perpendicular to them in the N's plane) it therefore sits at the fraction
-    ``t`` between them, and that one coordinate fixes the point on the diagonal."""
+    ``t`` between them, and that one coordinate fixes the point on the diagonal. Points
+    (n, 2) give n points (n, 3)."""
     a, m, b = pattern.wires
     pa, pm, pb = (np.asarray(p, dtype=float) for p in (pa, pm, pb))
-    t = float(np.linalg.norm(pm - pa) / np.linalg.norm(pb - pa))
+    t = np.linalg.norm(pm - pa, axis=-1) / np.linalg.norm(pb - pa, axis=-1)
     d = a.direction
     across = b.front - a.front
     across = across - (across @ d) * d
     across /= np.linalg.norm(across)
     x = a.front @ across + t * ((b.front - a.front) @ across)
     u = (x - m.front @ across) / ((m.back - m.front) @ across)
-    return m.front + u * (m.back - m.front)
+    return m.front + np.asarray(u)[..., None] * (m.back - m.front)

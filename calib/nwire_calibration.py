@@ -40,7 +40,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -68,9 +68,11 @@ __all__ = [
     "NWireCalibration",
     "NWireObservations",
     "NWireVerdict",
+    "calibrate_either_side",
     "calibrate_nwire",
     "correlation_frames",
     "judge_nwire",
+    "observations_of",
     "observe_nwires",
     "plus_error_mm",
     "reprojection_errors_mm",
@@ -104,13 +106,15 @@ class NWireObservations:
     ``frame`` (n,) index into the frames; ``pattern`` (n,) into the phantom's patterns;
     ``pixel`` (n, 2) the diagonal dot (column, row); ``phantom_point`` (n, 3) where the
     plane cuts the diagonal (phantom frame, metres); ``detections`` every frame's result
-    (reasons for those not used)."""
+    (reasons for those not used); ``outer`` the outer dots the point was read with (for
+    the phantom's tolerance in the bounds)."""
 
     frame: NDArray[np.int_]
     pattern: NDArray[np.int_]
     pixel: Array
     phantom_point: Array
     detections: tuple[NWireDetection, ...]
+    outer: Array | None = None  # (n, 2, 2): the outer dots (first, last) as read, pixels
 
     @property
     def frames_used(self) -> int:
@@ -129,24 +133,41 @@ def observe_nwires(
     """Detect the N patterns in every frame and turn each found pattern into its
     diagonal-wire point (image and phantom)."""
     detections = tuple(detect_nwires(f, patterns, spacing_mm) for f in frames)
+    return observations_of(detections, patterns, spacing_mm)
+
+
+def observations_of(
+    detections: Sequence[NWireDetection],
+    patterns: Sequence[NWirePattern],
+    spacing_mm: tuple[float, float],
+    *,
+    mirrored: bool = False,
+) -> NWireObservations:
+    """The diagonal-wire points of detections; ``mirrored``: each line's outer dots
+    taken the other way round (the image's marked side showing the pattern's last wire
+    first: a probe turned half a turn about its axis)."""
     sx, sy = spacing_mm
-    rows_f, rows_p, pix, pts = [], [], [], []
+    mm = np.array([sx, sy])
+    rows_f, rows_p, pix, pts, outer = [], [], [], [], []
     for k, det in enumerate(detections):
         if not det.ok:
             continue
         for j, pattern in enumerate(patterns):
             a, m, b = (np.array(det.points[w.name]) for w in pattern.wires)
-            mm = np.array([sx, sy])
+            if mirrored:
+                a, b = b, a
             rows_f.append(k)
             rows_p.append(j)
             pix.append(m)
+            outer.append((a, b))
             pts.append(middle_wire_point(pattern, a * mm, m * mm, b * mm))
     return NWireObservations(
         np.array(rows_f, dtype=int),
         np.array(rows_p, dtype=int),
         np.array(pix, dtype=float).reshape(-1, 2),
         np.array(pts, dtype=float).reshape(-1, 3),
-        detections,
+        tuple(detections),
+        np.array(outer, dtype=float).reshape(-1, 2, 2),
     )
 
 
@@ -337,6 +358,50 @@ def _blocks(frame: NDArray[np.int_], length: int) -> NDArray[np.int_]:
     return np.array([block_of[f] for f in frame])
 
 
+def _jacobian(f, x: Array, h: float = 1e-7) -> Array:
+    r0 = f(x)
+    J = np.empty((len(r0), len(x)))
+    for j in range(len(x)):
+        dx = np.zeros(len(x))
+        dx[j] = h
+        J[:, j] = (f(x + dx) - r0) / h
+    return J
+
+
+def _declared_columns(model, x, obs, patterns, spacing_m, tolerance, axial_bias):
+    """The residuals' response (mm) to each declared error at its 1 σ, as columns: every
+    coordinate of every wire end (the build tolerance: the diagonal point is read through
+    the pattern's geometry) and a common shift of the echoes' depth. None without either."""
+    columns = []
+    if tolerance > 0 and patterns is not None and obs.outer is not None:
+        _, T_P, _ = model.unpack(x)
+        mm = np.array(spacing_m) * _MM
+        for j, pattern in enumerate(patterns):
+            rows = np.flatnonzero(obs.pattern == j)
+            a, b = obs.outer[rows, 0] * mm, obs.outer[rows, 1] * mm
+            m = obs.pixel[rows] * mm
+            base = middle_wire_point(pattern, a, m, b)
+            for w in range(3):
+                for end in ("front", "back"):
+                    for axis in range(3):
+                        wires = list(pattern.wires)
+                        point = getattr(wires[w], end).copy()
+                        point[axis] += tolerance
+                        wires[w] = replace(wires[w], **{end: point})
+                        moved = NWirePattern(tuple(wires))  # type: ignore[arg-type]
+                        p = middle_wire_point(moved, a, m, b)
+                        col = np.zeros((len(obs.frame), 3))
+                        col[rows] = -(p - base) @ T_P[:3, :3].T * _MM
+                        columns.append(col.ravel())
+    if axial_bias > 0:
+        r0 = model.residuals(x)
+        xy = model.xy
+        model.xy = xy + np.array([0.0, axial_bias])
+        columns.append(model.residuals(x) - r0)
+        model.xy = xy
+    return np.column_stack(columns) if columns else None
+
+
 def calibrate_nwire(
     obs: NWireObservations,
     T_base_ee: Array,
@@ -347,12 +412,21 @@ def calibrate_nwire(
     T_base_phantom: Array | None = None,
     estimate_scale: bool = True,
     n_draws: int = 4000,
+    patterns: Sequence[NWirePattern] | None = None,
+    wire_tolerance_m: float = 0.0,
+    axial_bias_m: float = 0.0,
 ) -> NWireCalibration:
     """``T_ee_us`` (and the pixel scale, and the phantom's pose when ``T_base_phantom``
     is None) from the N-wire observations of frames taken at poses ``T_base_ee`` (one per
     frame); see the module doc. One :class:`~calib.errors.CalibrationError` when the
     frames cannot determine it (too few frames with every pattern, orientations too
-    alike)."""
+    alike).
+
+    The bounds add two declared errors every frame shares, which no residual shows:
+    the phantom's build tolerance (``wire_tolerance_m``, 1 σ per axis of each wire's
+    ends, with the ``patterns`` the points were read with) and a bias of the echoes'
+    depth (``axial_bias_m``, 1 σ: the echo comes from the wire's front surface, drawn by
+    a pulse), each propagated to first order through the fit."""
     import time
 
     t0 = time.perf_counter()
@@ -400,6 +474,14 @@ def calibrate_nwire(
     cov = _dominating(cov1, cov_jack)
     widen = (float(stdtrit(g - 1, 0.975)) / float(ndtri(0.975))) ** 2
     cov = cov * widen
+    declared = _declared_columns(
+        model, fit.x, obs, patterns, spacing_m, wire_tolerance_m, axial_bias_m
+    )
+    if declared is not None:
+        J = _jacobian(lambda x: model.residuals(x), fit.x)
+        w = 1.0 / (1.0 + (fit.fun / (_GLITCH_SIGMAS * sigma)) ** 2)  # the Cauchy weights
+        A = np.linalg.pinv(J.T @ (w[:, None] * J)) @ (J.T * w) @ declared
+        cov = cov + A @ A.T
 
     # Draws: rotation, translation, and mean distance over the image.
     keep_idx = list(range(6)) + ([model.n - 2, model.n - 1] if estimate_scale else [])
@@ -441,6 +523,34 @@ def calibrate_nwire(
         time.perf_counter() - t0,
         {"scale": (float(scale[0]), float(scale[1])), "sigma_mm": sigma},
     )
+
+
+def calibrate_either_side(
+    obs: NWireObservations,
+    patterns: Sequence[NWirePattern],
+    spacing_mm: tuple[float, float],
+    T_base_ee: Array,
+    **kwargs: Any,
+) -> tuple[NWireCalibration, NWireObservations, bool]:
+    """:func:`calibrate_nwire` with the image's marked side unknown: the wires read from
+    either side (:func:`observations_of`), each fitted, the one whose points agree best
+    (the smaller robust scatter) kept. A probe mounted the other way round swaps which
+    outer wire each line shows first; the wrong reading puts every diagonal point at the
+    other end of its diagonal, and the poses cannot agree with it. Returns (calibration,
+    the observations it rests on, whether they are mirrored)."""
+    best: tuple[NWireCalibration, NWireObservations, bool] | None = None
+    for mirrored in (False, True):
+        o = observations_of(obs.detections, patterns, spacing_mm, mirrored=mirrored)
+        try:
+            cal = calibrate_nwire(o, T_base_ee, patterns=patterns, **kwargs)
+        except CalibrationError:
+            if mirrored and best is None:
+                raise
+            continue
+        if best is None or cal.terms["sigma_mm"] < best[0].terms["sigma_mm"]:
+            best = (cal, o, mirrored)
+    assert best is not None
+    return best
 
 
 def reprojection_errors_mm(

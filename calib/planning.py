@@ -227,13 +227,17 @@ class SweepPose:
         return np.array([-self.lateral_mm * 1e-3, depth - self.axial_mm * 1e-3, 0.0])
 
 
-def paper_poses(rotation_deg: float, translation_mm: float) -> list[SweepPose]:
+def paper_poses(
+    rotation_deg: float, translation_mm: float, tilt_deg: float | None = None
+) -> list[SweepPose]:
     """The paper's 45 sweeps about one sphere: the nominal orientation and the eight
     (±r, ±r, ±r) corners, each at the nominal position and the four (±t, ±t) in-plane
-    corners (the order of :func:`calib.protocol.plan_sweeps`)."""
+    corners (the order of :func:`calib.protocol.plan_sweeps`). ``tilt_deg``: the corners
+    about the image's lateral axis at ± this instead (None: ± r)."""
     r, t = float(rotation_deg), float(translation_mm)
+    tx = r if tilt_deg is None else float(tilt_deg)
     corners = [(0.0, 0.0, 0.0)] + [
-        (sx * r, sy * r, sz * r) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)
+        (sx * tx, sy * r, sz * r) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)
     ]
     shifts = [(0.0, 0.0)] + [(sx * t, sy * t) for sx in (-1, 1) for sy in (-1, 1)]
     return [SweepPose(c, dx, dy) for c in corners for dx, dy in shifts]

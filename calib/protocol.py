@@ -40,6 +40,7 @@ __all__ = [
     "acquire_touches",
     "check_plan",
     "clear_sweeps",
+    "default_poses",
     "facing_pose",
     "in_plane_offsets",
     "orientation_offsets",
@@ -68,6 +69,17 @@ class ProtocolConfig:
     rotation_deg: float = field(
         default=10.0,
         metadata={"doc": "Orientation corners: ± this about each probe axis.", "ge": 0, "le": 45},
+    )
+    tilt_deg: float | None = field(
+        default=None,
+        metadata={
+            "doc": "Orientation corners about the image's lateral axis (the tilt that turns "
+            "the beam along the elevation): ± this instead of rotation_deg (null: "
+            "rotation_deg). A wire's echo fades with this tilt as a mirror's does (an "
+            "N-wire phantom: a few degrees).",
+            "ge": 0,
+            "le": 45,
+        },
     )
     translation_mm: float = field(
         default=3.0,
@@ -149,13 +161,19 @@ class ProtocolConfig:
     )
 
 
-def orientation_offsets(rotation_deg: float) -> Array:
+def default_poses(cfg: ProtocolConfig) -> list[SweepPose]:
+    """The protocol's sweeps about a target without a plan file: the paper's 9
+    orientations × 5 positions at its rotation, tilt and translation."""
+    return paper_poses(cfg.rotation_deg, cfg.translation_mm, cfg.tilt_deg)
+
+
+def orientation_offsets(rotation_deg: float, tilt_deg: float | None = None) -> Array:
     """The nine orientations of the plan as rotations about the probe axes, (9, 3, 3).
 
     Index 0 is the nominal orientation; 1–8 the (±r, ±r, ±r) corners as extrinsic x-y-z
-    Euler angles in the image frame.
+    Euler angles in the image frame (about x at ± ``tilt_deg`` when given).
     """
-    r = np.radians(rotation_deg)
+    r = np.radians([rotation_deg if tilt_deg is None else tilt_deg, rotation_deg, rotation_deg])
     corners = [np.zeros(3)] + [np.array(s) * r for s in itertools.product((-1, 1), repeat=3)]
     return se3.matrix_from_euler(np.array(corners))
 
@@ -281,7 +299,7 @@ def plan_sweeps(
     probe in its image plane, and each sweep runs along the estimated elevational axis.
     """
     if poses is None:
-        poses = paper_poses(cfg.rotation_deg, cfg.translation_mm)
+        poses = default_poses(cfg)
     depth = cfg.target_depth_mm * 1e-3
     half = cfg.sweep_half_length_mm * 1e-3
     plan = []
@@ -400,7 +418,7 @@ def clear_sweeps(
     which half the sweeps or more would be left out does not suit the session: the first
     sweep's error is raised, with the count, before anything moves."""
     if poses is None:
-        poses = paper_poses(cfg.rotation_deg, cfg.translation_mm)
+        poses = default_poses(cfg)
     here = np.asarray(T_base_ee_taught, dtype=float)
     unused = list(enumerate(spares))
     out: list[PlannedSweep] = []

@@ -82,7 +82,9 @@ MATERIALS: dict[str, Material] = {
     "acrylic": Material("acrylic", 2750.0, 1190.0, 0.8, 1.0, None, 0.02),
     "steel": Material("steel", 5900.0, 7850.0, 0.05, 1.0, None, 0.0),
     # Nylon monofilament (fishing line, the usual calibration wire): polyamide 6.
-    "nylon": Material("nylon", 2620.0, 1140.0, 3.0, 1.0, None, 0.0),
+    # Diffuse share 0.05: an extruded line is smoother than a print (0.1), not a polished
+    # mirror (steel, 0); a wire tilted well off the beam stays faintly visible.
+    "nylon": Material("nylon", 2620.0, 1140.0, 3.0, 1.0, None, 0.05),
 }
 
 

@@ -16,7 +16,8 @@ beam's width. Each wire is therefore a line target the beam crosses:
   zone, ``√(λ a')`` wide, of the focal spot ``λ F#`` a flat mirror must fill (capped at
   one); along the wire it is a straight mirror strip, tilted in elevation by the angle of
   its axis to the beam, so its echo follows the probe's elevation mirror lobe
-  (:class:`sim_us.transducer.MirrorTables`, as a tilted plane's); and the two-way loss of
+  (:class:`sim_us.transducer.MirrorTables`, as a tilted plane's), with the material's
+  diffuse share returned at any tilt; and the two-way loss of
   the broadband echo in the medium. Each sub-plane adds its share of the elevation beam
   (the simulator's sub-plane weights), so a wire crossing the slice obliquely draws the
   smear the slice thickness gives it.
@@ -121,7 +122,8 @@ def wire_echoes(
         across = np.minimum(np.sqrt(wavelength_m * a_eff) / focal_spot_m, 1.0)
         # Along: a straight strip tilted in elevation by its axis' angle to the beam.
         tilt = np.arctan2(dd[:, 1], np.abs(dd[:, 2]) + 1e-12)
-        along = elevation_lobe(depth, tilt)
+        # The wire's diffuse share (its surface's fine roughness) returns at any tilt.
+        along = np.sqrt(elevation_lobe(depth, tilt) ** 2 + mat.diffuse**2)
         amp = R * across * along * 10.0 ** (-loss_db(depth) / 20.0)
         col = (P[:, 0] - offset[0]) / sx + (width_px - 1) / 2.0
         row = (depth - offset[1]) / sy

@@ -11,10 +11,12 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
+from calib import se3
 from calib.records import UsFrame
 from sim_us import MediumConfig, ProbeConfig
 from sim_us.raycast import AcousticScene, ScenePart
 from sim_us.simulator import BmodeSimulator
+from sim_us.wires import Wire
 
 from .robot import SimRobot
 from .scene import Scene
@@ -23,7 +25,8 @@ __all__ = ["SimImager", "acoustic_scene"]
 
 
 def acoustic_scene(scene: Scene) -> AcousticScene:
-    """The twin's true phantom and tank as meshes in the base frame, with materials."""
+    """The twin's true phantom and tank as meshes in the base frame, with materials, and
+    the phantom's wires (an N-wire phantom) as line targets."""
     parts = []
     for phantom, T in ((scene.phantom, scene.T_base_phantom), (scene.tank, scene.T_base_tank)):
         for part in phantom.parts:
@@ -44,7 +47,12 @@ def acoustic_scene(scene: Scene) -> AcousticScene:
                     build_axis=T[:3, 2].copy(),  # the CAD's z: the build direction
                 )
             )
-    return AcousticScene(tuple(parts))
+    T = scene.T_base_phantom
+    wires = tuple(
+        Wire(w.name, se3.apply(T, w.front), se3.apply(T, w.back), w.diameter_m, w.material)
+        for w in scene.phantom.wires
+    )
+    return AcousticScene(tuple(parts), wires)
 
 
 class SimImager:

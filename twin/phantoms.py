@@ -42,11 +42,14 @@ from calib import se3
 from .printing import PrintSettings, printed_cone, printed_prism, printed_sphere
 
 __all__ = [
+    "FCAL2_NWIRES",
     "Phantom",
     "PhantomConfig",
     "PhantomPart",
+    "PhantomWire",
     "build_phantom",
     "build_tank",
+    "nwire_patterns",
     "phantom_pair",
 ]
 
@@ -61,9 +64,13 @@ _HULL_VERTICES = 20_000  # vertices of a printed part's collision hull at most
 class PhantomConfig:
     """The phantom in the tank: which one, where (truth), its CAD and its tolerance."""
 
-    kind: Literal["spheres", "cone", "prism"] = field(
+    kind: Literal["spheres", "cone", "prism", "nwire"] = field(
         default="spheres",
-        metadata={"doc": "Phantom in the tank: four-sphere calibration phantom, cone or prism."},
+        metadata={
+            "doc": "Phantom in the tank: four-sphere calibration phantom, cone, prism, or "
+            "the N-wire phantom (PLUS's fCal 2.0 geometry: three N patterns of wires "
+            "between two printed end plates)."
+        },
     )
     position_mm: tuple[float, float, float] = field(
         default=(300.0, 0.0, 0.0),
@@ -106,6 +113,21 @@ class PhantomConfig:
     )
     plate_thickness_mm: float = field(
         default=5.0, metadata={"doc": "Base plate thickness.", "gt": 0.5, "le": 50}
+    )
+    wire_diameter_mm: float = field(
+        default=0.3,
+        metadata={
+            "doc": "N-wire phantom: the wires' diameter (nylon fishing line 0.2-0.5 mm).",
+            "gt": 0.02,
+            "le": 2,
+        },
+    )
+    wire_material: Literal["nylon", "steel"] = field(
+        default="nylon",
+        metadata={
+            "doc": "N-wire phantom: the wires' material (steel rings: a comet tail under "
+            "each wire)."
+        },
     )
     cone_base_diameter_mm: float = field(
         default=60.0, metadata={"doc": "Cone phantom base diameter.", "gt": 1, "le": 300}
@@ -314,13 +336,27 @@ class PhantomPart:
 
 
 @dataclass(frozen=True, eq=False)
+class PhantomWire:
+    """A wire of a phantom, between two points of its CAD frame (metres)."""
+
+    name: str
+    front: Array
+    back: Array
+    diameter_m: float
+    material: str
+
+
+@dataclass(frozen=True, eq=False)
 class Phantom:
-    """A phantom: convex parts and named landmarks (``name -> (3,)`` metres, own frame)."""
+    """A phantom: convex parts and named landmarks (``name -> (3,)`` metres, own frame),
+    and its wires (an N-wire phantom; thinner than the beam, they are imaged as line
+    targets, not ray-cast, and are no collision bodies: the plates holding them are)."""
 
     name: str
     parts: tuple[PhantomPart, ...]
     landmarks: dict[str, Array]
     sphere_radii: dict[str, float] = field(default_factory=dict)
+    wires: tuple[PhantomWire, ...] = ()
 
     def mesh(self) -> trimesh.Trimesh:
         """All parts concatenated into one mesh (for ray casting and display)."""
@@ -423,6 +459,76 @@ def _build_prism(width: float, length: float, height: float) -> Phantom:
     return Phantom("prism", (PhantomPart("prism", prism, "pla"),), landmarks)
 
 
+#: PLUS's fCal 2.0 phantom (its device set's PhantomDefinition, mm, its phantom frame):
+#: three N patterns, (name, front, back) per wire, outer wires along y.
+FCAL2_NWIRES: tuple[tuple[tuple[str, tuple[float, ...], tuple[float, ...]], ...], ...] = (
+    (("7:G1_g1", (30, 0, 20), (30, 40, 20)), ("8:L1_h1", (55, 0, 20), (35, 40, 20)),
+     ("9:M1_m1", (60, 0, 20), (60, 40, 20))),
+    (("4:G3_g3", (30, 0, 10), (30, 40, 10)), ("5:H3_l3", (35, 0, 10), (55, 40, 10)),
+     ("6:M3_m3", (60, 0, 10), (60, 40, 10))),
+    (("1:H5_h5", (35, 0, 0), (35, 40, 0)), ("2:L5_i5", (55, 0, 0), (40, 40, 0)),
+     ("3:M5_m5", (60, 0, 0), (60, 40, 0))),
+)  # fmt: skip
+#: Where fCal's phantom frame sits in the twin's CAD frame (origin at the bottom face's
+#: centre, z up): the patterns centred over the base, the lowest wires 15 mm above it.
+_FCAL2_SHIFT_MM = np.array([-45.0, -20.0, 15.0])
+_NWIRE_PLATE_MM = 5.0  # end plates' thickness (the wires pass through them)
+
+
+def nwire_patterns(cfg: PhantomConfig | None = None) -> tuple[tuple[str, Array, Array], ...]:
+    """The N-wire phantom's wires as (name, front, back), CAD frame, metres, pattern by
+    pattern in fCal's order (three wires each)."""
+    del cfg  # one geometry: fCal 2.0's
+    return tuple(
+        (name, (np.array(f) + _FCAL2_SHIFT_MM) * 1e-3, (np.array(b) + _FCAL2_SHIFT_MM) * 1e-3)
+        for pattern in FCAL2_NWIRES
+        for name, f, b in pattern
+    )
+
+
+def _build_nwire(cfg: PhantomConfig, wires: tuple[tuple[str, Array, Array], ...]) -> Phantom:
+    """Two end plates the wires pass between, on a base plate; landmarks ``nwire`` (the
+    patterns' centre, where the probe is taught) and each wire's ends."""
+    ends = np.array([p for _, f, b in wires for p in (f, b)])
+    lo, hi = ends.min(axis=0), ends.max(axis=0)
+    t = _NWIRE_PLATE_MM * 1e-3
+    base_t = cfg.plate_thickness_mm * 1e-3
+    margin = 0.01
+    x0, x1 = lo[0] - margin, hi[0] + margin
+    z1 = hi[2] + 0.003  # the plates stop just above the top wires: the probe sweeps over them
+    parts = [
+        PhantomPart(
+            "plate",
+            _placed(
+                trimesh.creation.box(extents=[x1 - x0, hi[1] - lo[1] + 2 * t, base_t]),
+                np.array([(x0 + x1) / 2, (lo[1] + hi[1]) / 2, base_t / 2]),
+            ),
+            "pla",
+        )
+    ]
+    for name, y0 in (("end_plate_front", lo[1] - t), ("end_plate_back", hi[1])):
+        parts.append(
+            PhantomPart(
+                name,
+                _placed(
+                    trimesh.creation.box(extents=[x1 - x0, t, z1 - base_t]),
+                    np.array([(x0 + x1) / 2, y0 + t / 2, (base_t + z1) / 2]),
+                ),
+                "pla",
+            )
+        )
+    landmarks = {"nwire": (lo + hi) / 2}
+    for name, f, b in wires:
+        landmarks[f"{name}_front"], landmarks[f"{name}_back"] = f.copy(), b.copy()
+    d = cfg.wire_diameter_mm * 1e-3
+    return Phantom(
+        "nwire",
+        tuple(parts),
+        landmarks,
+        wires=tuple(PhantomWire(n, f, b, d, cfg.wire_material) for n, f, b in wires),
+    )
+
+
 def _printed_part(name: str, mesh: trimesh.Trimesh) -> PhantomPart:
     """A printed part and its collision hull (of at most ≈ 20 000 of its vertices)."""
     hull = mesh.metadata.get("collision_hull")  # printed meshes are cached: so is this
@@ -478,6 +584,11 @@ def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) ->
             for i, (c, r) in enumerate(zip(g.centres, g.radii, strict=True))
         ]
         return _build_spheres(g, printed)
+    if cfg.kind == "nwire":
+        # The wires' ends where the plates' holes put them (the print's position
+        # tolerance); the plates themselves are not imaged.
+        wires = tuple((n, jitter(f, tol_p), jitter(b, tol_p)) for n, f, b in nwire_patterns(cfg))
+        return _build_nwire(cfg, wires)
     on = rng is not None and (prints.surface or prints.shape)
     if cfg.kind == "cone":
         d, h = jitter(np.array([cfg.cone_base_diameter_mm, cfg.cone_height_mm]) * 1e-3, tol_r)

@@ -42,8 +42,17 @@ def _targets(s: World) -> dict[str, np.ndarray]:
     """Imaging targets of the phantom in base (CAD at the true pose)."""
     phantom = build_phantom(s.phantom)
     marks = phantom.landmarks_in(s.phantom.T_base_phantom)
-    keep = {"spheres": "sphere_", "cone": "apex", "prism": "ridge_"}[s.phantom.kind]
-    return {k: v for k, v in marks.items() if k.startswith(keep)}
+    keep = {"spheres": "sphere_", "cone": "apex", "prism": "ridge_", "nwire": "nwire"}
+    return {k: v for k, v in marks.items() if k.startswith(keep[s.phantom.kind]) and (
+        s.phantom.kind != "nwire" or k == "nwire")}  # fmt: skip
+
+
+def lateral_axis(phantom: PhantomConfig) -> np.ndarray:
+    """The image's lateral axis (base frame) the probe is taught with: across the wires of
+    an N-wire phantom (its x: the image plane cuts every wire), base y otherwise."""
+    if phantom.kind == "nwire":
+        return phantom.T_base_phantom[:3, 0].copy()
+    return np.array([0.0, 1.0, 0.0])
 
 
 def check_geometry(s: World) -> None:
@@ -83,8 +92,8 @@ def check_geometry(s: World) -> None:
     q_home = np.radians(s.robot.home_deg)
     T_ee_us_inv = se3.invert(s.tools.T_ee_us)
     for name, target in _targets(s).items():
-        T_face = facing_pose(target, depth)
-        for k, R in enumerate(orientation_offsets(s.protocol.rotation_deg)):
+        T_face = facing_pose(target, depth, lateral_axis=lateral_axis(p))
+        for k, R in enumerate(orientation_offsets(s.protocol.rotation_deg, s.protocol.tilt_deg)):
             T_base_ee = rotated_about_target(T_face, R, depth) @ T_ee_us_inv
             label = f"facing {name} (orientation {k})"
             try:

@@ -37,12 +37,11 @@ from calib.planning import (
     SweepPose,
     bias_covariance,
     image_metric,
-    paper_poses,
     predict,
     select_sweeps,
     sweep_scores,
 )
-from calib.protocol import PlannedSweep, check_plan, plan_sweeps
+from calib.protocol import PlannedSweep, check_plan, default_poses, plan_sweeps
 from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
@@ -264,14 +263,14 @@ def optimize_plan(
 
     paper, _ = candidate_sweeps(
         scenario, twin, spheres, coarse,
-        lambda s: paper_poses(proto.rotation_deg, proto.translation_mm), check=False,
+        lambda s: default_poses(proto), check=False,
     )  # fmt: skip
     paper_pred = predict(
         observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias=bias
     )
     paper_plan = [p for s in spheres for p in plan_sweeps(s.name, s.taught, coarse, proto)]
     paper_choice = PlanChoice(
-        {s.name: tuple(paper_poses(proto.rotation_deg, proto.translation_mm)) for s in spheres},
+        {s.name: tuple(default_poses(proto)) for s in spheres},
         paper_pred,
         plan_time_s(paper_plan, scenario.robot, start),
     )
