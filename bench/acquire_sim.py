@@ -262,6 +262,11 @@ def dataset_meta(scenario: Scenario) -> dict[str, float]:
 def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> AcquisitionInfo:
     """What a twin acquisition's dataset records besides its sweeps: what the pipeline
     knows (CAD landmarks, coarse mount, settings), never the truth."""
+    nwire = None
+    if scenario.phantom.kind == "nwire":
+        from .jobs.nwire import twin_nwire_phantom
+
+        nwire = twin_nwire_phantom(twin)
     return AcquisitionInfo(
         T_ee_us_coarse=np.asarray(T_ee_us_coarse, dtype=float),
         landmarks={k: np.asarray(v, dtype=float) for k, v in twin.phantom_cad.landmarks.items()},
@@ -274,6 +279,7 @@ def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> Acquisi
         source="twin",
         target_depth_mm=scenario.protocol.target_depth_mm,
         extra={"scenario": scenario.source, "seed": scenario.seed},
+        nwire=nwire,
     )
 
 

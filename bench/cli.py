@@ -31,7 +31,7 @@ from .acquire_rig import acquire_dataset, console_operator, dashboard_operator
 from .cli_parser import parser
 from .config.docs import scenarios_markdown
 from .config.hw import load_hw_config
-from .config.method import requirements
+from .config.method import requirements, scenario_uncertainty
 from .config.plan_file import write_plan
 from .config.scenario import load_scenario
 from .console import (
@@ -171,6 +171,8 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     out = Path(args.out or scenario.output.dir)
     if args.save_dataset:
         check_new_directory(args.save_dataset, "--save-dataset")
+    if scenario.phantom.kind == "nwire":
+        return _run_nwire(args, scenario, out, console)
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
             say = lambda msg: bars.console.print(f"[dim]{msg}[/dim]")  # noqa: E731
@@ -189,6 +191,43 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     if args.spawn and directory.recording_path is not None:
         spawn_viewer(directory.recording_path, console)
     return _gate(scenario, summary.calibrations, console)
+
+
+def _run_nwire(args: argparse.Namespace, scenario, out: Path, console: Console) -> int:
+    """``uscal run`` of an N-wire scenario: the acquisition, the N-wire calibration and
+    its errors against the twin's truth (:func:`bench.jobs.nwire.run_nwire`); no rerun
+    recording yet."""
+    if _until(args) is not None:
+        raise UscalError(
+            "--until-rotation-deg / --until-translation-mm: the sequential acquisition "
+            "plans sphere sweeps; an N-wire scenario (phantom.kind: nwire) runs its protocol"
+        )
+    with atomic_output_dir(out, force=args.force) as tmp:
+        with progress_bars(console) as bars, reporting(bars.update):
+            result = run(scenario, None, None, args.save_dataset)
+        written = write_nwire(tmp, result.nwire)
+    print_nwire(result.nwire, console)
+    e = result.metrics["calibration"]["nwire"]["true_error"]
+    covers = result.metrics["calibration"]["nwire"]["bound_covers"]
+    outside = [k for k, v in covers.items() if not v]
+    console.print(
+        f"against the twin's truth: {e['rotation_deg']:.3f}°, {e['translation_mm']:.3f} mm, "
+        f"{e['image_mm']:.3f} mm over the image; inside the 95 % bounds: "
+        + ", ".join(k for k, v in covers.items() if v)
+        + ("" if all(covers.values()) else "; OUTSIDE: " + ", ".join(outside)),
+        highlight=False,
+    )
+    print_written(out, written, console)
+    if args.save_dataset:
+        console.print(f"wrote the dataset {args.save_dataset} (uscal calibrate reads it)")
+    if requirements(scenario).any and result.nwire.verdict.status != "accepted":
+        console.print(
+            f"the N-wire calibration is {result.nwire.verdict.status}, not accepted within "
+            f"the requirements: exit code {EXIT_NOT_ACCEPTED}",
+            highlight=False,
+        )
+        return EXIT_NOT_ACCEPTED
+    return 0
 
 
 def _until(args: argparse.Namespace) -> StopRule | None:
@@ -305,6 +344,8 @@ def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console)
                 dataset,
                 requirements(settings),
                 estimate_scale=not args.fixed_pixel_scale,
+                wire_tolerance_m=settings.phantom.tolerance_position_mm * 1e-3,
+                axial_bias_m=scenario_uncertainty(settings).axial_bias_m,
             )
         written = write_nwire(tmp, result)
     print_nwire(result, console)

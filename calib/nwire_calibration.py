@@ -95,6 +95,9 @@ _OUTLIER_P = 1e-3
 #: The Cauchy loss's scale in the data's own σ: points within a few σ count fully (the
 #: noise), those far beyond fade (glitches).
 _GLITCH_SIGMAS = 3.0
+#: ... and beyond this many millimetres: a wire point off by less is no glitch, whatever
+#: the scatter (the sphere method's centres: 2 mm; a wire point is read more finely).
+OUTLIER_FLOOR_MM = 1.0
 #: PLUS's ErrorConfidenceLevel: its 3-D error is stated below this percentile.
 PLUS_CONFIDENCE = 95.0
 
@@ -182,7 +185,8 @@ class NWireCalibration:
     its translation, m; the two scale factors) — zero rows for what was not estimated;
     ``bound95`` rotation (deg), translation (mm) and mean error over the image (mm);
     ``converged`` and the solver's ``message``; ``blocks`` the jackknife's groups;
-    ``outliers`` the points beyond the χ² quantile of the fit's own scale."""
+    ``outliers`` the points beyond the χ² quantile of the fit's own scale and a
+    millimetre."""
 
     T_ee_us: Array
     spacing_m: tuple[float, float]
@@ -456,7 +460,8 @@ def calibrate_nwire(
     T_X, T_P, scale = model.unpack(fit.x)
     r = fit.fun.reshape(-1, 3)
     errors = np.linalg.norm(r, axis=1)
-    outliers = int(np.sum((errors / sigma) ** 2 > chi2.isf(_OUTLIER_P, 3)))
+    limit = max(sigma * float(np.sqrt(chi2.isf(_OUTLIER_P, 3))), OUTLIER_FLOOR_MM)
+    outliers = int(np.sum(errors > limit))
 
     # First-order covariance of the parameters (robust scale) and the block jackknife.
     # fit.jac is the Jacobian the robust loss weighted (inliers ≈ 1, outliers less).
@@ -607,7 +612,8 @@ def judge_nwire(cal: NWireCalibration, requirements: Requirements | None = None)
         suspect.append(
             f"{cal.outliers} of {len(cal.errors_mm)} wire points disagree with the rest "
             f"beyond their own scatter ({cal.terms['sigma_mm']:.2f} mm per axis): "
-            "segmentation or tracking errors; check the frames and the tracker"
+            "wrong dots, tracking glitches or wires off the phantom's definition; check the "
+            "frames, the tracker and the phantom"
         )
     if requirements.any:
         over = []

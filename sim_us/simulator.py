@@ -55,8 +55,8 @@ from .probe import MediumConfig, ProbeConfig
 from .propagation import Echoes, trace
 from .raycast import AcousticScene, RayCaster
 from .speckle import ScattererField, _smooth_values
-from .wires import wire_echoes
 from .transducer import band_loss, transducer
+from .wires import wire_echoes
 
 __all__ = ["BmodeSimulator", "Timings"]
 

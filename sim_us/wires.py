@@ -26,6 +26,8 @@ beam's width. Each wire is therefore a line target the beam crosses:
   wall's reflection coefficient) less the wire's own attenuation, until they fall below
   the display's range: a long tail under a steel wire (R ≈ 0.94), two or three faint
   echoes under nylon (R ≈ 0.3).
+- **Drawn** at the depth its time of flight gives at the scanner's assumed speed of
+  sound (the medium's own speed is what the sound travels at).
 - **Hidden** where the scanline has already entered a solid part (the ray-cast scene's
   medium end): a wire inside or behind a solid is not seen.
 
@@ -109,7 +111,9 @@ def wire_echoes(
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         dz = B[:, 2] - A[:, 2]
         ok = np.abs(dz) > 1e-9
-        u = np.where(ok[:, None], (z_planes[None, :] - A[:, 2:3]) / np.where(ok, dz, 1.0)[:, None], -1)
+        u = np.where(
+            ok[:, None], (z_planes[None, :] - A[:, 2:3]) / np.where(ok, dz, 1.0)[:, None], -1
+        )
         inside = (u >= 0.0) & (u <= 1.0)  # (n, K)
         f, k = np.nonzero(inside)
         if not len(f):
@@ -126,7 +130,8 @@ def wire_echoes(
         along = np.sqrt(elevation_lobe(depth, tilt) ** 2 + mat.diffuse**2)
         amp = R * across * along * 10.0 ** (-loss_db(depth) / 20.0)
         col = (P[:, 0] - offset[0]) / sx + (width_px - 1) / 2.0
-        row = (depth - offset[1]) / sy
+        # Drawn where the echo's time of flight puts it at the scanner's assumed speed.
+        row = (depth * assumed_speed_m_s / medium.speed_m_s - offset[1]) / sy
         out.append((f, k, col, row, amp**2))
         # The comet tail: reverberation between the wire's walls.
         step = 2.0 * a * assumed_speed_m_s / mat.speed_m_s / sy  # rows per round trip

@@ -9,24 +9,27 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from calib import se3
 from calib.dataset_files import AcquisitionInfo
+from calib.image import pixel_to_us
 from calib.nwire_calibration import (
     NWireCalibration,
     NWireObservations,
     NWireVerdict,
-    calibrate_nwire,
+    calibrate_either_side,
     judge_nwire,
     observe_nwires,
     plus_error_mm,
 )
 from calib.pipeline import axial_scale
+from calib.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.records import Dataset
 from calib.verdict import Requirements
 
@@ -38,6 +41,8 @@ __all__ = [
     "calibrate_nwire_dataset",
     "nwire_frames",
     "plus_coordinate_definition",
+    "run_nwire",
+    "twin_nwire_phantom",
     "write_nwire",
 ]
 
@@ -78,23 +83,32 @@ def calibrate_nwire_dataset(
     requirements: Requirements,
     *,
     estimate_scale: bool = True,
+    wire_tolerance_m: float = 0.0,
+    axial_bias_m: float = 0.0,
 ) -> NWireRun:
-    """Detect, calibrate and judge (see the module doc)."""
+    """Detect, calibrate and judge (see the module doc). ``wire_tolerance_m`` and
+    ``axial_bias_m``: the declared errors of the bounds (the phantom's build tolerance,
+    the echoes' depth bias; :func:`calib.nwire_calibration.calibrate_nwire`)."""
     assert info.nwire is not None
     t0 = time.perf_counter()
     images, poses = nwire_frames(dataset)
     spacing = nwire_spacing_m(dataset, info)
-    obs = observe_nwires(images, info.nwire.patterns, (spacing[0] * _MM, spacing[1] * _MM))
+    spacing_mm = (spacing[0] * _MM, spacing[1] * _MM)
+    obs = observe_nwires(images, info.nwire.patterns, spacing_mm)
     t_detect = time.perf_counter() - t0
     H, W = images.shape[1:]
-    cal = calibrate_nwire(
+    cal, obs, mirrored = calibrate_either_side(
         obs,
+        info.nwire.patterns,
+        spacing_mm,
         poses,
         width_px=W,
         height_px=H,
         spacing_m=spacing,
         T_base_phantom=info.nwire.T_base_phantom,
         estimate_scale=estimate_scale,
+        wire_tolerance_m=wire_tolerance_m,
+        axial_bias_m=axial_bias_m,
     )
     verdict = judge_nwire(cal, requirements)
     mean, sd = plus_error_mm(cal.errors_mm)
@@ -118,6 +132,7 @@ def calibrate_nwire_dataset(
             "frames_found": obs.frames_used,
             "points": len(obs.frame),
             "refused": dict(obs.refusals().most_common()),
+            "marked_side": "last wire first" if mirrored else "first wire first",
             "ms_per_frame": t_detect / max(len(images), 1) * 1e3,
         },
         "calibration": {
@@ -314,3 +329,78 @@ def write_nwire(directory: Path, run: NWireRun) -> list[str]:
         "report.html",
         "figures/reprojection.png",
     ]
+
+
+# ---------------------------------------------------------------- the twin's N-wire run
+
+
+def twin_nwire_phantom(twin) -> NWirePhantom:
+    """What the pipeline knows of the twin's N-wire phantom: its CAD patterns (three
+    wires each, in the phantom's order), its pose unknown (a robot rig)."""
+    wires = twin.phantom_cad.wires
+    patterns = tuple(
+        NWirePattern(tuple(NWire(w.name, w.front, w.back) for w in wires[k : k + 3]))  # type: ignore[arg-type]
+        for k in range(0, len(wires), 3)
+    )
+    return NWirePhantom(patterns, None)
+
+
+def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
+    """``uscal run`` of an N-wire scenario: the acquisition's frames calibrated as
+    ``uscal calibrate`` would (phantom pose estimated), then scored against the twin's
+    truth — rotation, translation and mean image error of ``T_ee_us`` with the fitted
+    pixel scale, and whether the 95 % bounds cover them."""
+    from sim_us.materials import medium_material
+
+    from ..acquire_sim import acquisition_info
+    from ..config.method import requirements, scenario_uncertainty
+    from ..truth import transform_difference
+    from .single import equivalent_mount
+
+    info = acquisition_info(scenario, twin, acq.T_ee_us_coarse)
+    inputs = scenario_uncertainty(scenario)
+    t_sim = time.perf_counter() - t_start
+    result = calibrate_nwire_dataset(
+        acq.dataset,
+        info,
+        "(twin acquisition)",
+        requirements(scenario),
+        wire_tolerance_m=scenario.phantom.tolerance_position_mm / _MM,
+        axial_bias_m=inputs.axial_bias_m,
+    )
+    truth = twin.truth
+    X_equiv = equivalent_mount(scenario, acq, truth)
+    T_true = truth.T_ee_us if X_equiv is None else X_equiv
+    cal = result.calibration
+    # The image's pixels as each maps them: the fit with its spacing, the truth with the
+    # scanner's true one (its scale error; depth drawn at the assumed speed of sound).
+    im = scenario.imaging
+    H, W = im.image_shape
+    rows, cols = np.meshgrid(np.linspace(0, H - 1, 21), np.linspace(0, W - 1, 21))
+    ex, ey = im.pixel_scale_error_pct
+    c = medium_material(scenario.medium.kind, scenario.medium.temperature_c).speed_m_s
+    sx, sy = im.spacing_m
+    true_spacing = (sx / (1 + ex / 100), sy / (1 + ey / 100) * c / im.assumed_speed_m_s)
+    est = se3.apply(cal.T_ee_us, pixel_to_us(rows, cols, W, cal.spacing_m).reshape(-1, 3))
+    true = se3.apply(T_true, pixel_to_us(rows, cols, W, true_spacing).reshape(-1, 3))
+    error = transform_difference(cal.T_ee_us, T_true) | {
+        "image_mm": float(np.linalg.norm(est - true, axis=1).mean() * _MM)
+    }
+    b = cal.bound95
+    covered = {k: bool(error[k] <= b[k]) for k in ("rotation_deg", "translation_mm", "image_mm")}
+    m = result.metrics
+    m["scenario"] = {"name": scenario.source, "seed": scenario.seed}
+    m["acquisition"] = {
+        "sweeps": len(acq.dataset.sweeps),
+        "frames": int(sum(s.n_frames for s in acq.dataset.sweeps)),
+        "robot_time_s": acq.robot_time_s,
+        "replaced": [r.line() for r in acq.replaced],
+    }
+    m["calibration"]["nwire"]["true_error"] = error
+    m["calibration"]["nwire"]["bound_covers"] = covered
+    m["calibration"]["nwire"]["coarse_error"] = transform_difference(
+        acq.T_ee_us_coarse, truth.T_ee_us
+    )
+    m["timing_s"]["simulate"] = t_sim
+    m["timing_s"]["total"] = time.perf_counter() - t_start
+    return replace(result, path=Path(scenario.output.dir), metrics=m)

@@ -47,6 +47,7 @@ from ..results import RunResult, calibration_entry
 from ..sequential import StopRule, acquire_until
 from ..sessions import dataset_rngs
 from ..truth import localization_errors, mount_error, snapshot_of, transform_difference
+from .nwire import run_nwire
 from .paper import run_evaluation
 
 __all__ = ["equivalent_mount", "run"]
@@ -208,6 +209,11 @@ def run(
         acq = simulate_acquisition(scenario, twin, imager, progress="acquire sweeps")
     else:
         acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
+    if scenario.phantom.kind == "nwire":
+        nwire = run_nwire(scenario, twin, acq, t_start)
+        if save_dataset is not None:
+            save_dataset_files(save_dataset, scenario, twin, acq)
+        return RunResult(nwire.metrics, acq, nwire=nwire)
     refinement = None
     if scenario.evaluation.touches_one_dataset:
         acq, refinement = refine_from_touches(scenario, acq, twin)

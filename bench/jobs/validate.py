@@ -35,7 +35,12 @@ from calib import se3
 from calib.dataset_files import read_dataset
 from calib.errors import DatasetError
 from calib.localize import localize_sphere
-from calib.nwire_calibration import observe_nwires, plus_error_mm, reprojection_errors_mm
+from calib.nwire_calibration import (
+    observations_of,
+    observe_nwires,
+    plus_error_mm,
+    reprojection_errors_mm,
+)
 from calib.pipeline import axial_scale
 from calib.plus_config import read_plus_config, read_plus_results, us_of_image_to_probe
 
@@ -116,7 +121,8 @@ def validate_dataset(
 def _validate_nwire(dataset, info, calibration: GivenCalibration) -> Validation:
     images, poses = nwire_frames(dataset)
     spacing = nwire_spacing_m(dataset, info)
-    obs = observe_nwires(images, info.nwire.patterns, (spacing[0] * _MM, spacing[1] * _MM))
+    spacing_mm = (spacing[0] * _MM, spacing[1] * _MM)
+    obs = observe_nwires(images, info.nwire.patterns, spacing_mm)
     if obs.frames_used == 0:
         why = obs.refusals().most_common(1)
         raise DatasetError(
@@ -124,15 +130,16 @@ def _validate_nwire(dataset, info, calibration: GivenCalibration) -> Validation:
             + (f" (most frames: {why[0][0]})" if why else "")
         )
     A = calibration.image_to_probe_mm
-    T_phantom = info.nwire.T_base_phantom
-    fitted = T_phantom is None
-    if fitted:  # the phantom's pose fitted to this dataset, the calibration held
-        uv = np.column_stack([obs.pixel, np.zeros(len(obs.pixel)), np.ones(len(obs.pixel))])
-        P_ee = (uv @ A.T)[:, :3] / _MM
-        T_k = poses[obs.frame]
-        P_base = np.einsum("nij,nj->ni", T_k[:, :3, :3], P_ee) + T_k[:, :3, 3]
-        T_phantom = se3.kabsch(obs.phantom_point, P_base)
-    errors = reprojection_errors_mm(obs, poses, A, T_phantom)
+    # Either side of the image may be the marked one: the reading the calibration
+    # agrees with is kept (:func:`calib.nwire_calibration.calibrate_either_side`).
+    best = None
+    for mirrored in (False, True):
+        o = observations_of(obs.detections, info.nwire.patterns, spacing_mm, mirrored=mirrored)
+        errors, fitted = _nwire_errors(o, poses, A, info.nwire.T_base_phantom)
+        if best is None or np.median(errors) < np.median(best[0]):
+            best = (errors, fitted, o)
+    assert best is not None
+    errors, fitted, obs = best
     mean, sd = plus_error_mm(errors)
     metrics = {
         "dataset": dataset.name,
@@ -159,6 +166,25 @@ def _validate_nwire(dataset, info, calibration: GivenCalibration) -> Validation:
         f"reprojection_mm={mean:.4f} sd_mm={sd:.4f}",
     ]
     return Validation(metrics, lines)
+
+
+def _nwire_errors(obs, poses, A, T_phantom):
+    """The 3-D errors of the observations under ``A`` (ImageToProbe, mm) and whether the
+    phantom's pose was fitted (no tracked pose: Kabsch, the calibration held)."""
+    fitted = T_phantom is None
+    if fitted:
+        uv = np.column_stack([obs.pixel, np.zeros(len(obs.pixel)), np.ones(len(obs.pixel))])
+        P_ee = (uv @ A.T)[:, :3] / _MM
+        T_k = poses[obs.frame]
+        P_base = np.einsum("nij,nj->ni", T_k[:, :3, :3], P_ee) + T_k[:, :3, 3]
+        # Kabsch, refitted without the points far beyond the rest (a wrong dot must not
+        # move the phantom for every other point).
+        keep = np.ones(len(P_base), dtype=bool)
+        for _ in range(3):
+            T_phantom = se3.kabsch(obs.phantom_point[keep], P_base[keep])
+            d = np.linalg.norm(se3.apply(T_phantom, obs.phantom_point) - P_base, axis=1)
+            keep = d <= 3.0 * 1.4826 * np.median(d) + 1e-9
+    return reprojection_errors_mm(obs, poses, A, T_phantom), fitted
 
 
 def _validate_spheres(dataset, info, calibration: GivenCalibration, settings) -> Validation:
