@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from calib import se3
 from calib.calibrate import CalibrationConfig
 from calib.dataset_files import AcquisitionInfo, DatasetWriter
+from calib.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.protocol import (
     PlannedSweep,
     PlannedTouch,
@@ -42,6 +43,7 @@ from .sessions import stage_rngs
 __all__ = [
     "SimulatedAcquisition",
     "acquisition_info",
+    "acquisition_targets",
     "coarse_estimate",
     "dataset_meta",
     "image_meta",
@@ -51,6 +53,7 @@ __all__ = [
     "simulate_acquisition",
     "simulate_touches",
     "teach_at",
+    "twin_nwire_phantom",
 ]
 
 Array = NDArray[np.float64]
@@ -259,14 +262,21 @@ def dataset_meta(scenario: Scenario) -> dict[str, float]:
     }
 
 
+def twin_nwire_phantom(twin) -> NWirePhantom:
+    """What the pipeline knows of the twin's N-wire phantom: its CAD patterns (three
+    wires each, in the phantom's order), its pose unknown (a robot rig)."""
+    wires = twin.phantom_cad.wires
+    patterns = tuple(
+        NWirePattern(tuple(NWire(w.name, w.front, w.back) for w in wires[k : k + 3]))  # type: ignore[arg-type]
+        for k in range(0, len(wires), 3)
+    )
+    return NWirePhantom(patterns, None)
+
+
 def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> AcquisitionInfo:
     """What a twin acquisition's dataset records besides its sweeps: what the pipeline
     knows (CAD landmarks, coarse mount, settings), never the truth."""
-    nwire = None
-    if scenario.phantom.kind == "nwire":
-        from .jobs.nwire import twin_nwire_phantom
-
-        nwire = twin_nwire_phantom(twin)
+    nwire = twin_nwire_phantom(twin) if scenario.phantom.kind == "nwire" else None
     return AcquisitionInfo(
         T_ee_us_coarse=np.asarray(T_ee_us_coarse, dtype=float),
         landmarks={k: np.asarray(v, dtype=float) for k, v in twin.phantom_cad.landmarks.items()},

@@ -54,7 +54,7 @@ from .console import (
 from .files import atomic_output_dir, check_new_directory, write_text_atomic
 from .jobs.budget import plan_budget, run_budget
 from .jobs.gallery import write_gallery
-from .jobs.nwire import calibrate_nwire_dataset, write_nwire
+from .jobs.nwire import calibrate_nwire_dataset
 from .jobs.plan import plan_report
 from .jobs.plan_optimize import optimize_plan, plan_about
 from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
@@ -63,6 +63,7 @@ from .jobs.sweep import load_sweep, run_sweep
 from .jobs.twin_serve import export_twin, landmarks_mm, serve_twin
 from .jobs.validate import read_calibration, validate_dataset
 from .outputs.budget_report import write_budget
+from .outputs.nwire_files import write_nwire
 from .outputs.run_files import run_directory
 from .outputs.sweep_report import write_sweep
 from .progress import reporting

@@ -13,6 +13,8 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.alternation import AlternationResult
+from calib.dh import DHTable
+from calib.kinematics import kinematic_gauge
 from calib.localize import SweepLocalization
 from calib.records import Sweep
 
@@ -111,3 +113,18 @@ def localization_errors(
             p_true = true_centre_in_sweep(acq, truth, target, sweep)
             errors.append(float(np.linalg.norm(loc.centre - p_true)) * 1e3)
     return np.array(errors), n, rejected
+
+
+def equivalent_mount(
+    scenario: Scenario, acq: SimulatedAcquisition, truth, model: DHTable | None = None
+) -> Array | None:
+    """Truth: the ``T_ee_us`` that best maps the image through the kinematic model the
+    poses were computed with (``model``; default the controller's) when the twin's arm is
+    not that model (the evaluation's kinematic gauge: a flange-side error of the model is
+    indistinguishable from, and equivalent to, a mount error); None when it is."""
+    model = scenario.robot.nominal_table if model is None else model
+    if np.array_equal(model.as_array(), truth.dh_table.as_array()):
+        return None
+    q = np.concatenate([s.q[::10] for s in acq.dataset.sweeps])
+    tool_points = se3.apply(truth.T_ee_us, image_points(scenario, 3))
+    return kinematic_gauge(model, truth.dh_table, q, tool_points).G @ truth.T_ee_us

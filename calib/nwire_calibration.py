@@ -50,10 +50,13 @@ from scipy.special import ndtri, stdtrit
 from scipy.stats import chi2
 
 from . import se3
+from .dataset_files import AcquisitionInfo
 from .errors import CalibrationError
 from .image import pixel_axes
 from .nwire import NWireDetection, detect_nwires, middle_wire_point
+from .pipeline import axial_scale
 from .plus_config import NWirePattern, image_to_probe_mm
+from .records import Dataset
 from .uncertainty import _dominating, image_grid
 from .verdict import (
     DEFAULT_IMAGE_MM,
@@ -71,6 +74,8 @@ __all__ = [
     "calibrate_either_side",
     "calibrate_nwire",
     "correlation_frames",
+    "dataset_frames",
+    "dataset_spacing_m",
     "judge_nwire",
     "observations_of",
     "observe_nwires",
@@ -479,11 +484,21 @@ def calibrate_nwire(
     cov = _dominating(cov1, cov_jack)
     widen = (float(stdtrit(g - 1, 0.975)) / float(ndtri(0.975))) ** 2
     cov = cov * widen
+    # The information about the mount (θ = rotation rad, translation mm) with the
+    # nuisances (phantom pose, scale) profiled out: its conditioning, as
+    # calib.observability states a sphere plan's.
+    J_raw = _jacobian(lambda x: model.residuals(x), fit.x)
+    J_raw[:, 3:6] *= 1e-3
+    H = J_raw.T @ J_raw
+    Hm, Hn, Hmn = H[:6, :6], H[6:, 6:], H[:6, 6:]
+    info = Hm - Hmn @ np.linalg.pinv(Hn) @ Hmn.T if len(Hn) else Hm
+    eig = np.sort(np.linalg.eigvalsh(0.5 * (info + info.T)))[::-1]
     declared = _declared_columns(
         model, fit.x, obs, patterns, spacing_m, wire_tolerance_m, axial_bias_m
     )
     if declared is not None:
-        J = _jacobian(lambda x: model.residuals(x), fit.x)
+        J = J_raw.copy()
+        J[:, 3:6] *= 1e3
         w = 1.0 / (1.0 + (fit.fun / (_GLITCH_SIGMAS * sigma)) ** 2)  # the Cauchy weights
         A = np.linalg.pinv(J.T @ (w[:, None] * J)) @ (J.T * w) @ declared
         cov = cov + A @ A.T
@@ -526,8 +541,26 @@ def calibrate_nwire(
         estimate_scale,
         T_base_phantom is None,
         time.perf_counter() - t0,
-        {"scale": (float(scale[0]), float(scale[1])), "sigma_mm": sigma},
+        {
+            "scale": (float(scale[0]), float(scale[1])),
+            "sigma_mm": sigma,
+            "information_eigenvalues": eig.tolist(),
+        },
     )
+
+
+def dataset_frames(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """Every frame of the dataset's sequences, in order, and its pose ``T_base_ee``."""
+    images = np.concatenate([s.images for s in dataset.sweeps])
+    poses = np.concatenate([s.T_base_ee for s in dataset.sweeps])
+    return images, poses
+
+
+def dataset_spacing_m(dataset: Dataset, info: AcquisitionInfo) -> tuple[float, float]:
+    """The images' pixel spacing (columns, rows; m), the axial one corrected for the
+    medium's speed of sound when the dataset asks for it."""
+    sx, sy = dataset.sweeps[0].spacing
+    return float(sx), float(sy) * axial_scale(info)
 
 
 def calibrate_either_side(

@@ -279,7 +279,17 @@ def test_layer_check_catches_an_upward_import(tmp_path):
 #: the paper's experiment (``paper``, its datasets and metrics, the re-calibration and
 #: Table III); ``uscal plan`` checks a plan or, with ``--optimize``, chooses one.
 BENCH_JOBS = {
-    "run": ("single", "paper", "paper_dataset", "paper_metrics", "recalibration", "table3"),
+    # nwire: `uscal calibrate` of an N-wire dataset, which `uscal run` of an N-wire
+    # scenario also runs on the twin's acquisition.
+    "run": (
+        "single",
+        "paper",
+        "paper_dataset",
+        "paper_metrics",
+        "recalibration",
+        "table3",
+        "nwire",
+    ),
     "plan": ("plan", "plan_optimize"),
 }
 

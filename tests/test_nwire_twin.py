@@ -15,6 +15,8 @@ import pytest
 
 from .test_cli import uscal, uscal_here
 
+# Three twin runs and a calibration of 800 frames (≈ 45 s): the slow tier.
+pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
 NWIRE = ROOT / "scenarios" / "nwire.yaml"
 
@@ -59,7 +61,6 @@ def test_its_dataset_calibrates_and_validates_as_the_run_did(nwire_run, capsys):
     assert float(last.group(1)) == pytest.approx(again["reprojection_3d_mm"]["plus_mean"], abs=0.01)
 
 
-@pytest.mark.slow
 def test_with_every_error_source_off_the_wires_give_the_mount(tmp_path):
     r = uscal(
         "run", str(NWIRE), "--out", str(tmp_path / "run"),

@@ -50,7 +50,7 @@ def acoustic_scene(scene: Scene) -> AcousticScene:
     T = scene.T_base_phantom
     wires = tuple(
         Wire(w.name, se3.apply(T, w.front), se3.apply(T, w.back), w.diameter_m, w.material)
-        for w in scene.phantom.wires
+        for w in getattr(scene.phantom, "wires", ())
     )
     return AcousticScene(tuple(parts), wires)
 

@@ -1,16 +1,14 @@
 """``uscal calibrate`` of an N-wire dataset (``uscal import plus --config``, or a robot
 rig's N-wire acquisition): uscal's own wire detection on every frame, ``T_ee_us`` (PLUS's
 ``ImageToProbe``) with the pixel scale and, without a tracked phantom, the phantom's pose
-(:mod:`calib.nwire_calibration`), its bounds and verdict; written as ``uscal calibrate``
-writes a sphere dataset's (``calibration.yaml``, ``metrics.json``, ``report.md``) plus
-the ``CoordinateDefinitions`` entry a PLUS configuration takes."""
+(:mod:`calib.nwire_calibration`), its bounds and verdict; and ``uscal run`` of an N-wire
+scenario, the same on the twin's acquisition scored against its truth. Written by
+:mod:`bench.outputs.nwire_files`."""
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, replace
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -24,26 +22,24 @@ from calib.nwire_calibration import (
     NWireObservations,
     NWireVerdict,
     calibrate_either_side,
+    dataset_frames,
+    dataset_spacing_m,
     judge_nwire,
     observe_nwires,
     plus_error_mm,
 )
-from calib.pipeline import axial_scale
-from calib.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.records import Dataset
 from calib.verdict import Requirements
+from sim_us.materials import medium_material
 
-from ..outputs.calibration_doc import _Dumper, _pose_doc
-from ..outputs.report import report_html
+from ..acquire_sim import acquisition_info
+from ..config.method import requirements, scenario_uncertainty
+from ..truth import equivalent_mount, transform_difference
 
 __all__ = [
     "NWireRun",
     "calibrate_nwire_dataset",
-    "nwire_frames",
-    "plus_coordinate_definition",
     "run_nwire",
-    "twin_nwire_phantom",
-    "write_nwire",
 ]
 
 _MM = 1e3
@@ -62,18 +58,8 @@ class NWireRun:
     metrics: dict[str, Any]
 
 
-def nwire_frames(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """Every frame of the dataset's sequences, in order, and its pose ``T_base_ee``."""
-    images = np.concatenate([s.images for s in dataset.sweeps])
-    poses = np.concatenate([s.T_base_ee for s in dataset.sweeps])
-    return images, poses
-
-
-def nwire_spacing_m(dataset: Dataset, info: AcquisitionInfo) -> tuple[float, float]:
-    """The images' pixel spacing (columns, rows; m), the axial one corrected for the
-    medium's speed of sound when the dataset asks for it."""
-    sx, sy = dataset.sweeps[0].spacing
-    return float(sx), float(sy) * axial_scale(info)
+def _condition(eigenvalues) -> float:
+    return float(eigenvalues[0] / eigenvalues[-1]) if eigenvalues[-1] > 0 else float("inf")
 
 
 def calibrate_nwire_dataset(
@@ -91,8 +77,8 @@ def calibrate_nwire_dataset(
     the echoes' depth bias; :func:`calib.nwire_calibration.calibrate_nwire`)."""
     assert info.nwire is not None
     t0 = time.perf_counter()
-    images, poses = nwire_frames(dataset)
-    spacing = nwire_spacing_m(dataset, info)
+    images, poses = dataset_frames(dataset)
+    spacing = dataset_spacing_m(dataset, info)
     spacing_mm = (spacing[0] * _MM, spacing[1] * _MM)
     obs = observe_nwires(images, info.nwire.patterns, spacing_mm)
     t_detect = time.perf_counter() - t0
@@ -154,6 +140,12 @@ def calibrate_nwire_dataset(
                 "bound95": cal.bound95,
                 "covariance_rotvec_rad_translation_m_scale": cal.covariance.tolist(),
                 "jackknife_blocks": cal.blocks,
+                "information": {
+                    "eigenvalues": cal.terms["information_eigenvalues"],
+                    "condition_number": _condition(cal.terms["information_eigenvalues"]),
+                    "note": "about the mount (rotation rad, translation mm), the phantom "
+                    "pose and scale profiled out",
+                },
                 "outliers": cal.outliers,
                 "converged": cal.converged,
                 "solver": cal.message,
@@ -166,183 +158,7 @@ def calibrate_nwire_dataset(
     return NWireRun(dataset, info, Path(path), obs, cal, verdict, metrics)
 
 
-def plus_coordinate_definition(cal: NWireCalibration, error_mm: float) -> str:
-    """The ``<Transform From="Image" To="Probe" …/>`` element of a PLUS device set's
-    ``CoordinateDefinitions`` (row-major, millimetres, pixel spacing included)."""
-    A = cal.image_to_probe_mm()
-    matrix = "\n        ".join(" ".join(f"{v:.9g}" for v in row) for row in A)
-    date = datetime.now(UTC).strftime("%m%d%Y_%H%M%S")
-    return (
-        '<Transform From="Image" To="Probe"\n'
-        f'      Matrix="\n        {matrix}"\n'
-        f'      Error="{error_mm:.4g}" Date="{date}" />'
-    )
-
-
-def _document(run: NWireRun) -> dict[str, Any]:
-    cal, m = run.calibration, run.metrics["calibration"]["nwire"]
-    mean, sd = m["reprojection_3d_mm"]["plus_mean"], m["reprojection_3d_mm"]["plus_sd"]
-    std = np.sqrt(np.clip(np.diag(cal.covariance), 0.0, None))
-    return {
-        "description": (
-            "T_ee_us maps points of the ultrasound image frame (us: origin at the centre "
-            "of the image's top row, x lateral along increasing columns, y axial = depth, "
-            "z = x × y) to the probe's tracked body or the robot flange (ee); T_dst_src "
-            "convention. The pixel spacing it holds with is image.pixel_spacing_mm."
-        ),
-        "dataset": str(run.path),
-        "method": "N-wire phantom: threshold-free wire detection, closed form and robust "
-        "least squares of the 3-D wire-point distances",
-        "verdict": run.verdict.as_dict(),
-        "T_ee_us": _pose_doc(cal.T_ee_us),
-        "uncertainty_1sigma": {
-            "rotation_deg": np.round(np.degrees(std[:3]), 5).tolist(),
-            "translation_mm": np.round(std[3:6] * _MM, 5).tolist(),
-            "scale": np.round(std[6:8], 6).tolist(),
-        },
-        "bound95": {
-            **{k: round(v, 5) for k, v in cal.bound95.items()},
-            "note": (
-                "95 % error bounds of T_ee_us and the pixel scale: rotation angle, origin "
-                "distance and mean error over the image; from a jackknife over "
-                f"{cal.blocks} blocks of consecutive frames against the first-order "
-                "covariance, Student-t widened. Not included: the error of the phantom's "
-                "registration to its tracked body (Phantom→Reference), which every frame "
-                "shares and no residual shows."
-                if not cal.phantom_estimated
-                else "95 % error bounds of T_ee_us and the pixel scale (the phantom's "
-                f"pose estimated with it); jackknife over {cal.blocks} blocks of frames."
-            ),
-        },
-        "reprojection_3d_mm": {
-            "mean": round(mean, 4),
-            "sd": round(sd, 4),
-            "note": "PLUS's definition: distance between each diagonal-wire point and "
-            "its image point mapped through the calibration and the pose; mean and SD "
-            "of the errors below their 95th percentile",
-        },
-        "image": {
-            "width_px": cal.width_px,
-            "height_px": cal.height_px,
-            "pixel_spacing_mm": [round(float(s) * _MM, 7) for s in cal.spacing_m],
-            "note": "as fitted (scale estimated)"
-            if cal.scale_estimated
-            else "as the dataset gives it",
-        },
-        "plus_ImageToProbe": {
-            "matrix": np.round(cal.image_to_probe_mm(), 9).tolist(),
-            "note": (
-                "PLUS / 3D Slicer: image pixel (i, j) → probe mm, pixel spacing included; "
-                "the CoordinateDefinitions entry below carries it."
-            ),
-        },
-        "plus_coordinate_definitions": plus_coordinate_definition(cal, mean),
-        **({"T_base_phantom": _pose_doc(cal.T_base_phantom)} if cal.phantom_estimated else {}),
-    }
-
-
-def _report(run: NWireRun, figure: str | None) -> str:
-    cal, m = run.calibration, run.metrics
-    e = m["calibration"]["nwire"]["reprojection_3d_mm"]
-    det = m["detection"]
-    lines = [
-        f"# uscal calibration of {run.dataset.name} (N-wire phantom)",
-        "",
-        f"**Verdict: {run.verdict.line()}**",
-        "",
-        f"- frames: {m['dataset']['n_frames']}, every pattern found in "
-        f"{det['frames_found']} ({det['points']} wire points; "
-        f"{det['ms_per_frame']:.1f} ms per frame)",
-    ]
-    for reason, n in det["refused"].items():
-        lines.append(f"  - not used ({n}×): {reason}")
-    sx, sy = (v * _MM for v in cal.spacing_m)
-    lines += [
-        f"- phantom pose: {m['dataset']['phantom_pose']}",
-        f"- pixel spacing: {sx:.5f} × {sy:.5f} mm"
-        + (f" (fitted; × {cal.scale[0]:.4f}, {cal.scale[1]:.4f})" if cal.scale_estimated else ""),
-        f"- 3-D reprojection error (PLUS's definition): {e['plus_mean']:.3f} ± "
-        f"{e['plus_sd']:.3f} mm (median {e['median']:.3f}, 95th percentile {e['p95']:.3f})",
-        f"- 95 % bounds: {cal.bound95['rotation_deg']:.3f}°, "
-        f"{cal.bound95['translation_mm']:.3f} mm, {cal.bound95['image_mm']:.3f} mm over the "
-        "image",
-        "",
-        "## ImageToProbe (PLUS, mm per pixel)",
-        "",
-        "```",
-        *(" ".join(f"{v:12.6f}" for v in row) for row in cal.image_to_probe_mm()),
-        "```",
-        "",
-        "PLUS device set (`CoordinateDefinitions`):",
-        "",
-        "```xml",
-        plus_coordinate_definition(cal, e["plus_mean"]),
-        "```",
-    ]
-    if figure:
-        lines += ["", f"![3-D reprojection error per frame]({figure})", ""]
-    return "\n".join(lines) + "\n"
-
-
-def _figure(run: NWireRun, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    obs, cal = run.observations, run.calibration
-    fig, ax = plt.subplots(figsize=(7, 3))
-    for j in np.unique(obs.pattern):
-        rows = obs.pattern == j
-        ax.plot(obs.frame[rows], cal.errors_mm[rows], ".", ms=4, label=f"pattern {j + 1}")
-    ax.set_xlabel("frame")
-    ax.set_ylabel("3-D error (mm)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-def write_nwire(directory: Path, run: NWireRun) -> list[str]:
-    """``metrics.json``, ``calibration.yaml``, ``report.md`` and its figure into
-    ``directory``; the names written."""
-    import yaml
-
-    (directory / "metrics.json").write_text(json.dumps(run.metrics, indent=2) + "\n")
-    header = (
-        "# uscal calibration (N-wire phantom). T_ee_us: image (us) → probe / flange (ee).\n"
-        "# Lengths in metres unless the key says mm; rotations in radians unless deg.\n"
-    )
-    doc = yaml.dump(_document(run), Dumper=_Dumper, sort_keys=False, allow_unicode=True)
-    (directory / "calibration.yaml").write_text(header + doc, encoding="utf-8")
-    (directory / "figures").mkdir(exist_ok=True)
-    _figure(run, directory / "figures" / "reprojection.png")
-    markdown = _report(run, "figures/reprojection.png")
-    (directory / "report.md").write_text(markdown, encoding="utf-8")
-    (directory / "report.html").write_text(
-        report_html(markdown, f"uscal N-wire calibration of {run.dataset.name}"), encoding="utf-8"
-    )
-    return [
-        "metrics.json",
-        "calibration.yaml",
-        "report.md",
-        "report.html",
-        "figures/reprojection.png",
-    ]
-
-
 # ---------------------------------------------------------------- the twin's N-wire run
-
-
-def twin_nwire_phantom(twin) -> NWirePhantom:
-    """What the pipeline knows of the twin's N-wire phantom: its CAD patterns (three
-    wires each, in the phantom's order), its pose unknown (a robot rig)."""
-    wires = twin.phantom_cad.wires
-    patterns = tuple(
-        NWirePattern(tuple(NWire(w.name, w.front, w.back) for w in wires[k : k + 3]))  # type: ignore[arg-type]
-        for k in range(0, len(wires), 3)
-    )
-    return NWirePhantom(patterns, None)
 
 
 def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
@@ -350,12 +166,6 @@ def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
     ``uscal calibrate`` would (phantom pose estimated), then scored against the twin's
     truth — rotation, translation and mean image error of ``T_ee_us`` with the fitted
     pixel scale, and whether the 95 % bounds cover them."""
-    from sim_us.materials import medium_material
-
-    from ..acquire_sim import acquisition_info
-    from ..config.method import requirements, scenario_uncertainty
-    from ..truth import transform_difference
-    from .single import equivalent_mount
 
     info = acquisition_info(scenario, twin, acq.T_ee_us_coarse)
     inputs = scenario_uncertainty(scenario)

@@ -15,9 +15,8 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.alternation import AlternationResult
-from calib.dh import DHTable
 from calib.errors import UscalError
-from calib.kinematics import DHRefinement, kinematic_gauge, with_kinematics
+from calib.kinematics import DHRefinement, with_kinematics
 from calib.localize import localize_sphere
 from calib.pipeline import calibrate_markers, residual_rms_mm, touch_kinematics
 from calib.uncertainty import UncertaintyInputs, alternation_bound
@@ -46,32 +45,23 @@ from ..recording.recorder import Recorder
 from ..results import RunResult, calibration_entry
 from ..sequential import StopRule, acquire_until
 from ..sessions import dataset_rngs
-from ..truth import localization_errors, mount_error, snapshot_of, transform_difference
+from ..truth import (
+    equivalent_mount,
+    localization_errors,
+    mount_error,
+    snapshot_of,
+    transform_difference,
+)
 from .nwire import run_nwire
 from .paper import run_evaluation
 
-__all__ = ["equivalent_mount", "run"]
+__all__ = ["run"]
 
 Array = NDArray[np.float64]
 
 
 def _true_errors(scenario, T_est, T_true) -> dict[str, float]:
     return mount_error(scenario, T_est, T_true)
-
-
-def equivalent_mount(
-    scenario: Scenario, acq: SimulatedAcquisition, truth, model: DHTable | None = None
-) -> Array | None:
-    """Truth: the ``T_ee_us`` that best maps the image through the kinematic model the
-    poses were computed with (``model``; default the controller's) when the twin's arm is
-    not that model (the evaluation's kinematic gauge: a flange-side error of the model is
-    indistinguishable from, and equivalent to, a mount error); None when it is."""
-    model = scenario.robot.nominal_table if model is None else model
-    if np.array_equal(model.as_array(), truth.dh_table.as_array()):
-        return None
-    q = np.concatenate([s.q[::10] for s in acq.dataset.sweeps])
-    tool_points = se3.apply(truth.T_ee_us, image_points(scenario, 3))
-    return kinematic_gauge(model, truth.dh_table, q, tool_points).G @ truth.T_ee_us
 
 
 def refine_from_touches(

@@ -36,6 +36,8 @@ from calib.dataset_files import read_dataset
 from calib.errors import DatasetError
 from calib.localize import localize_sphere
 from calib.nwire_calibration import (
+    dataset_frames,
+    dataset_spacing_m,
     observations_of,
     observe_nwires,
     plus_error_mm,
@@ -45,7 +47,6 @@ from calib.pipeline import axial_scale
 from calib.plus_config import read_plus_config, read_plus_results, us_of_image_to_probe
 
 from ..config.scenario import Scenario
-from .nwire import nwire_frames, nwire_spacing_m
 
 __all__ = ["GivenCalibration", "Validation", "read_calibration", "validate_dataset"]
 
@@ -119,8 +120,8 @@ def validate_dataset(
 
 
 def _validate_nwire(dataset, info, calibration: GivenCalibration) -> Validation:
-    images, poses = nwire_frames(dataset)
-    spacing = nwire_spacing_m(dataset, info)
+    images, poses = dataset_frames(dataset)
+    spacing = dataset_spacing_m(dataset, info)
     spacing_mm = (spacing[0] * _MM, spacing[1] * _MM)
     obs = observe_nwires(images, info.nwire.patterns, spacing_mm)
     if obs.frames_used == 0:
