@@ -1,7 +1,7 @@
 """Which phantom should I print? The paper's comparison of calibration targets as an
 experiment (issue "N-wire and wire targets", item 5): a printed sphere and the field's
 N-wire phantom (PLUS's fCal 2.0 geometry, nylon wire) on the same twin rig — the same
-arm, probe (a 50 × 40 mm image), water, and the same error sources drawn at random for
+arm, probe (a 50 × 50 mm image), water, and the same error sources drawn at random for
 each run: gain, water temperature, teaching error, the phantom's print tolerance, the
 scenario's seed (arm noise, coarse mount, speckle). Each target runs its own protocol
 for the same number of sweeps and frames (the paper's 45 sweeps of 21 frames; the
@@ -47,7 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SPHERE = ROOT / "scenarios" / "quick.yaml"
 NWIRE = ROOT / "scenarios" / "nwire.yaml"
 #: The same probe for both targets: wide enough for the N-wire patterns.
-PROBE = {"imaging.width_mm": 50.0, "imaging.depth_mm": 40.0, "imaging.pixel_spacing_mm": [0.2, 0.2]}
+PROBE = {"imaging.width_mm": 50.0, "imaging.depth_mm": 50.0, "imaging.pixel_spacing_mm": [0.2, 0.2]}
 NOT_YET = ("single wire", "cone tip")
 
 

@@ -9,8 +9,9 @@ and no per-machine parameter.
 
 1. **Candidates.** The frame smoothed at the dots' scale (a Gaussian of σ = 0.15 mm,
    about a wire's diameter), its local maxima within a dot's reach (1 mm), ranked by
-   their smoothed grey level, those that are dots (fallen to half their height 2 mm away
-   on at least one side in every direction: not a plate's or the tank's line); the
+   their smoothed grey level, those that are dots (smoothed at a whole echo's scale,
+   fallen to half their height 2 mm away on at least one side in every direction: not a
+   plate's or the tank's line, granular as a printed surface draws it); the
    brightest ``4 × wires`` are kept (the rest of a frame's maxima are speckle and
    reverberation, far below them).
 2. **Triples.** Every three candidates on one line (the middle one within
@@ -91,7 +92,10 @@ def _candidates(frame: NDArray[np.uint8], spacing_mm: tuple[float, float], n: in
         if all(np.hypot((rows[i] - rows[j]) * sy, (cols[i] - cols[j]) * sx) > 1.0 for j in keep):
             keep.append(i)
     rows, cols = rows[keep], cols[keep]
-    dot = _is_dot(smooth, rows[: 4 * n], cols[: 4 * n], spacing_mm)
+    # The dot test at the scale of a whole echo (σ = 0.5 mm), where a surface's granular
+    # echo is one continuous line and a wire's echo still one compact spot.
+    coarse = ndimage.gaussian_filter(frame.astype(float), (0.5 / sy, 0.5 / sx))
+    dot = _is_dot(coarse, rows[: 4 * n], cols[: 4 * n], spacing_mm)
     rows, cols = rows[: 4 * n][dot][:n], cols[: 4 * n][dot][:n]
     return np.column_stack([cols, rows, smooth[rows, cols]])
 

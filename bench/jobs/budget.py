@@ -141,6 +141,11 @@ def plan_budget(
     if seeds < 1:
         raise BudgetError(f"--seeds {seeds}: a budget needs at least one seed")
     scenario = load_scenario(path, overrides)
+    if scenario.phantom.kind == "nwire":
+        raise BudgetError(
+            "an N-wire scenario (phantom.kind: nwire): the error budget is measured on the "
+            "sphere method; run the N-wire scenario with `uscal run` (and benchmarks/targets.py)"
+        )
     known = {s.name: s for s in ERROR_SOURCES}
     if sources is None:
         chosen = ERROR_SOURCES

@@ -22,6 +22,7 @@ from calib.image import pixel_to_us
 from calib.protocol import rotated_about_target
 
 from ..acquire_sim import make_imager, make_twin, teach_at
+from ..config.geometry import lateral_axis
 from ..config.scenario import Scenario
 
 __all__ = ["GalleryPose", "gallery_poses", "write_gallery"]
@@ -50,7 +51,9 @@ def gallery_poses() -> list[GalleryPose]:
 
 
 def _target(scenario: Scenario, landmarks: dict[str, np.ndarray]) -> tuple[str, np.ndarray]:
-    name = {"spheres": "sphere_1", "cone": "apex", "prism": "ridge_start"}[scenario.phantom.kind]
+    name = {"spheres": "sphere_1", "cone": "apex", "prism": "ridge_start", "nwire": "nwire"}[
+        scenario.phantom.kind
+    ]
     point = landmarks[name]
     if scenario.phantom.kind == "prism":  # the middle of the ridge
         point = (landmarks["ridge_start"] + landmarks["ridge_end"]) / 2
@@ -68,7 +71,9 @@ def write_gallery(scenario: Scenario, outdir: Path) -> list[str]:
     # kinematic error shows as it would on a real robot.
     T_ee_us = twin.truth.T_ee_us
     target_name, target = _target(scenario, twin.truth.landmarks_base)
-    taught = teach_at(twin, target, depth, "taught pose")
+    taught = teach_at(
+        twin, target, depth, "taught pose", lateral_axis=lateral_axis(scenario.phantom)
+    )
     T_face = taught.T_base_ee @ T_ee_us
     written, frames, records = [], [], {}
     for pose in gallery_poses():

@@ -22,7 +22,8 @@ from calib.observability import (
 )
 from calib.protocol import check_plan, plan_sweeps
 
-from ..acquire_sim import coarse_estimate, make_twin, teach_at
+from ..acquire_sim import acquisition_targets, coarse_estimate, make_twin, teach_at
+from ..config.geometry import lateral_axis
 from ..config.scenario import Scenario
 from ..sessions import stage_rngs
 
@@ -49,9 +50,14 @@ def plan_report(scenario: Scenario, noise_mm: float = 0.1) -> list[PlanReport]:
     coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
     depth = proto.target_depth_mm * 1e-3
     out = []
-    for index in proto.spheres:
-        name = f"sphere_{index}"
-        taught = teach_at(twin, twin.truth.landmarks_base[name], depth, f"taught at {name}")
+    for name in acquisition_targets(scenario):
+        taught = teach_at(
+            twin,
+            twin.truth.landmarks_base[name],
+            depth,
+            f"taught at {name}",
+            lateral_axis=lateral_axis(scenario.phantom),
+        )
         plan = plan_sweeps(name, taught.T_base_ee, coarse, proto)
         check_plan(twin.robot, plan)
         # The plan as the pipeline sees it: the sphere where the coarse estimate puts it.

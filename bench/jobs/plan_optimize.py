@@ -236,6 +236,12 @@ def optimize_plan(
     3 when the protocol scans three or more spheres) and score the paper's plan beside
     them (see the module docstring)."""
     proto = scenario.protocol
+    if scenario.phantom.kind == "nwire":
+        raise UscalError(
+            "--optimize: the planner chooses sphere sweeps by what they tell of the mount; "
+            "an N-wire scenario (phantom.kind: nwire) runs its protocol's sweeps as they "
+            "are (`uscal plan` without --optimize checks them)"
+        )
     if markers is None:
         markers = 3 if len(proto.spheres) >= 3 else 1
     if markers == 3 and n_sweeps < 3 * MIN_SWEEPS_PER_SPHERE:

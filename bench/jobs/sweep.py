@@ -176,7 +176,13 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     # allowed): the base whole, each grid value by its keys and values (the file read
     # once, ≈ 1 ms a value). Reach and collisions depend on the whole point: a point that
     # cannot be reached fails alone in the sweep, with its reason.
-    load_scenario(base)
+    if load_scenario(base).phantom.kind == "nwire" or any(
+        k == "phantom.kind" and "nwire" in v for k, v in grid.items()
+    ):
+        raise _fail(
+            source, "base", "a sphere scenario: sweeps grid the sphere localizer; an N-wire "
+            "scenario runs with `uscal run` (and benchmarks/targets.py)",
+        )  # fmt: skip
     validate_overrides(
         base,
         (
