@@ -31,6 +31,17 @@ def _add_set(p: argparse.ArgumentParser, what: str, example: str) -> None:
     )
 
 
+def _add_settings(p: argparse.ArgumentParser, which: str, example: str) -> None:
+    """``--settings SCENARIO`` and its ``--set`` overrides: the method's settings of a
+    command on recorded data."""
+    p.add_argument(
+        "--settings",
+        metavar="SCENARIO",
+        help=f"scenario whose {which} settings to use (default: built-in)",
+    )
+    _add_set(p, "settings", example)
+
+
 def _add_output(p: argparse.ArgumentParser, out_help: str, required: bool = False) -> None:
     p.add_argument("--out", required=required, help=out_help)
     p.add_argument("--force", action="store_true", help="replace an existing directory")
@@ -245,12 +256,7 @@ def parser() -> argparse.ArgumentParser:
         help="N-wire datasets: hold the dataset's pixel spacing instead of fitting it "
         "with the calibration (PLUS fits it; a robot rig with a trusted spacing may not)",
     )
-    calibrate.add_argument(
-        "--settings",
-        metavar="SCENARIO",
-        help="scenario whose localization and calibration settings to use (default: built-in)",
-    )
-    _add_set(calibrate, "settings", "localization.min_score=0.2")
+    _add_settings(calibrate, "localization and calibration", "localization.min_score=0.2")
     _add_requirements(calibrate)
     _add_recording(
         calibrate, "B-mode frames recorded at most, as whole sweeps spread over the dataset"
@@ -450,12 +456,7 @@ def parser() -> argparse.ArgumentParser:
         help="uscal's calibration.yaml, a PLUS calibration result (.xml) or a PLUS device "
         "set configuration holding Image→Probe",
     )
-    validate.add_argument(
-        "--settings",
-        metavar="SCENARIO",
-        help="scenario whose localization settings to use for spheres (default: built-in)",
-    )
-    _add_set(validate, "settings", "localization.method=paper")
+    _add_settings(validate, "localization (spheres)", "localization.method=paper")
     validate.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
 
     image = sub.add_parser(

@@ -22,24 +22,16 @@ from calib.nwire_calibration import (
 )
 from calib.plus_config import NWire, NWirePattern, image_to_probe_mm, us_of_image_to_probe
 from calib.verdict import Requirements
+from twin.phantoms import FCAL2_NWIRES
 
 MM = 1e-3
 W, H = 820, 616
 SPACING = (0.08 * MM, 0.075 * MM)
 # fCal 2.0's three N patterns (PLUS's PhantomDefinition, mm): outer wires along y.
 FCAL2 = tuple(
-    NWirePattern(
-        tuple(NWire(n, np.array(f) * MM, np.array(b) * MM) for n, f, b in wires)  # type: ignore[arg-type]
-    )
-    for wires in (
-        (("7:G1_g1", (30, 0, 20), (30, 40, 20)), ("8:L1_h1", (55, 0, 20), (35, 40, 20)),
-         ("9:M1_m1", (60, 0, 20), (60, 40, 20))),
-        (("4:G3_g3", (30, 0, 10), (30, 40, 10)), ("5:H3_l3", (35, 0, 10), (55, 40, 10)),
-         ("6:M3_m3", (60, 0, 10), (60, 40, 10))),
-        (("1:H5_h5", (35, 0, 0), (35, 40, 0)), ("2:L5_i5", (55, 0, 0), (40, 40, 0)),
-         ("3:M5_m5", (60, 0, 0), (60, 40, 0))),
-    )
-)  # fmt: skip
+    NWirePattern(tuple(NWire(n, np.array(f) * MM, np.array(b) * MM) for n, f, b in wires))  # type: ignore[arg-type]
+    for wires in FCAL2_NWIRES
+)
 T_EE_US = se3.make(se3.matrix_from_rotvec([0.02, -0.03, -1.57]), [0.011, 0.0155, 0.0004])
 T_BASE_PHANTOM = se3.make(se3.matrix_from_rotvec([0.3, -0.2, 1.1]), [0.40, -0.10, 0.05])
 
