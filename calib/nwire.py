@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -69,11 +69,13 @@ _MAX_TRIPLES = 40
 @dataclass(frozen=True)
 class NWireDetection:
     """One frame's result: ``ok``, the wire dots (wire name → (column, row), pixels) and,
-    when not found, why."""
+    when not found, why; ``skew`` how far each dot's centre lies below its echo's peak
+    (rows: a comet tail or a pulse's ring-down pulls the centre down)."""
 
     ok: bool
     points: dict[str, tuple[float, float]]
     reason: str = ""
+    skew: dict[str, float] = field(default_factory=dict)  # centre − peak, rows
 
 
 def _candidates(frame: NDArray[np.uint8], spacing_mm: tuple[float, float], n: int) -> Array:
@@ -127,13 +129,14 @@ def _is_dot(smooth: Array, rows, cols, spacing_mm) -> NDArray[np.bool_]:
 
 def _centroid(
     frame: NDArray[np.uint8], col: float, row: float, spacing_mm, reach_mm: float
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     """The dot's grey-weighted centroid over its whole echo: the connected region about
     its maximum where the (lightly smoothed) frame stands out of the local background by
     more than the background's own spread (median and 1.4826 × MAD of the window within
     ``reach_mm``). No level is chosen: measured on PLUS's frames the result does not move
     for 1–3 spreads, while a fixed window cut at the core (0.5 mm) biases the dot toward
-    its brightest pixels (3-D error 0.517 against 0.475 mm)."""
+    its brightest pixels (3-D error 0.517 against 0.475 mm). Also returns how far the
+    centre lies below the echo's peak (rows)."""
     sx, sy = spacing_mm
     hx, hy = max(2, round(reach_mm / sx)), max(2, round(reach_mm / sy))
     r0, r1 = max(int(row) - hy, 0), min(int(row) + hy + 1, frame.shape[0])
@@ -148,9 +151,18 @@ def _centroid(
     if here > 0:
         w = w * (labels == here)
     if w.sum() <= 0:
-        return float(col), float(row)
+        return float(col), float(row), 0.0
     rr, cc = np.mgrid[r0:r1, c0:c1]
-    return float((w * cc).sum() / w.sum()), float((w * rr).sum() / w.sum())
+    centre_row = float((w * rr).sum() / w.sum())
+    # The echo's peak depth (sub-pixel: a parabola through the smoothed profile's top).
+    profile = (smooth * (w > 0)).sum(axis=1)
+    i = int(np.argmax(profile))
+    peak = float(i)
+    if 0 < i < len(profile) - 1:
+        a, b, c = profile[i - 1], profile[i], profile[i + 1]
+        if a - 2 * b + c < 0:
+            peak += float(np.clip(0.5 * (a - c) / (a - 2 * b + c), -1.0, 1.0))
+    return float((w * cc).sum() / w.sum()), centre_row, centre_row - (r0 + peak)
 
 
 def detect_nwires(
@@ -221,7 +233,7 @@ def detect_nwires(
         )
     # Shallowest line first; along each line from the marked side (high column) over.
     chosen = sorted(best, key=lambda t: float(np.mean(cand[list(triples[t][:3]), 1])))
-    points = {}
+    points, skew = {}, {}
     used = [c for t in chosen for c in triples[t][:3]]
     for pattern, t in zip(patterns, chosen, strict=True):
         dots = sorted(triples[t][:3], key=lambda c: -cand[c, 0])
@@ -229,8 +241,9 @@ def detect_nwires(
             # Half the way to the nearest other dot at most: one dot's echo only.
             nearest = min(float(np.hypot(*(xy[c] - xy[o]))) for o in used if o != c)
             reach = min(_DOT_REACH_MM, nearest / 2)
-            points[wire.name] = _centroid(frame, cand[c, 0], cand[c, 1], spacing_mm, reach)
-    return NWireDetection(True, points)
+            x, y, skew[wire.name] = _centroid(frame, cand[c, 0], cand[c, 1], spacing_mm, reach)
+            points[wire.name] = (x, y)
+    return NWireDetection(True, points, skew=skew)
 
 
 def middle_wire_point(pattern: NWirePattern, pa: ArrayLike, pm: ArrayLike, pb: ArrayLike) -> Array:

@@ -123,6 +123,7 @@ class NWireObservations:
     phantom_point: Array
     detections: tuple[NWireDetection, ...]
     outer: Array | None = None  # (n, 2, 2): the outer dots (first, last) as read, pixels
+    skew: Array | None = None  # (n,): the diagonal dot's centre below its peak, rows
 
     @property
     def frames_used(self) -> int:
@@ -156,7 +157,7 @@ def observations_of(
     first: a probe turned half a turn about its axis)."""
     sx, sy = spacing_mm
     mm = np.array([sx, sy])
-    rows_f, rows_p, pix, pts, outer = [], [], [], [], []
+    rows_f, rows_p, pix, pts, outer, skew = [], [], [], [], [], []
     for k, det in enumerate(detections):
         if not det.ok:
             continue
@@ -168,6 +169,7 @@ def observations_of(
             rows_p.append(j)
             pix.append(m)
             outer.append((a, b))
+            skew.append(det.skew.get(pattern.wires[1].name, 0.0))
             pts.append(middle_wire_point(pattern, a * mm, m * mm, b * mm))
     return NWireObservations(
         np.array(rows_f, dtype=int),
@@ -176,6 +178,7 @@ def observations_of(
         np.array(pts, dtype=float).reshape(-1, 3),
         tuple(detections),
         np.array(outer, dtype=float).reshape(-1, 2, 2),
+        np.array(skew, dtype=float),
     )
 
 
@@ -435,7 +438,9 @@ def calibrate_nwire(
     the phantom's build tolerance (``wire_tolerance_m``, 1 σ per axis of each wire's
     ends, with the ``patterns`` the points were read with) and a bias of the echoes'
     depth (``axial_bias_m``, 1 σ: the echo comes from the wire's front surface, drawn by
-    a pulse), each propagated to first order through the fit."""
+    a pulse; at least the rms distance between the dots' centres and their echoes'
+    peaks, which a comet tail lengthens), each propagated to first order through the
+    fit."""
     import time
 
     t0 = time.perf_counter()
@@ -493,6 +498,10 @@ def calibrate_nwire(
     Hm, Hn, Hmn = H[:6, :6], H[6:, 6:], H[:6, 6:]
     info = Hm - Hmn @ np.linalg.pinv(Hn) @ Hmn.T if len(Hn) else Hm
     eig = np.sort(np.linalg.eigvalsh(0.5 * (info + info.T)))[::-1]
+    # The echoes' depth is uncertain at least by how far their centres lie from their
+    # peaks (a comet tail or a pulse's ring-down pulls a centre down): measured here.
+    if obs.skew is not None and len(obs.skew):
+        axial_bias_m = max(axial_bias_m, float(np.sqrt(np.mean(obs.skew**2))) * spacing_m[1])
     declared = _declared_columns(
         model, fit.x, obs, patterns, spacing_m, wire_tolerance_m, axial_bias_m
     )
