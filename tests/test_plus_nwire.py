@@ -92,6 +92,7 @@ def test_calibration_yaml_carries_the_plus_coordinate_definition(fcal):
     assert (fcal[1] / "report.html").is_file() and (fcal[1] / "figures").is_dir()
 
 
+@pytest.mark.slow  # two detections of 190 frames (≈ 15 s)
 def test_validate_measures_any_calibration_with_the_same_detection(fcal, capsys, tmp_path):
     dataset, out, _ = fcal
     last = re.compile(r"^reprojection_mm=(\d+\.\d+) sd_mm=(\d+\.\d+)$")
