@@ -103,6 +103,7 @@ def test_a_configuration_that_is_not_one_or_defines_no_n_is_one_line(tmp_path, b
 
 
 @needs_plus_data
+@pytest.mark.slow  # detection on 190 real frames (≈ 5 s)
 def test_n_wires_are_found_where_plus_finds_them_without_a_threshold():
     """uscal's threshold-free N-wire detection (calib/nwire.py) on fCal 2.0's 190 real
     calibration frames, against PLUS's own segmentation of them: found in at least as

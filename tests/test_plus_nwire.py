@@ -50,6 +50,7 @@ def _rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(RA.T @ RB) - 1) / 2, -1, 1))))
 
 
+@pytest.mark.slow  # the import and calibration of 190 frames (≈ 15 s, once)
 def test_the_import_keeps_the_phantom_and_its_tracked_pose(fcal):
     dataset, info = read_dataset(fcal[0])
     assert info.nwire is not None and len(info.nwire.patterns) == 3
@@ -64,6 +65,7 @@ def test_the_import_keeps_the_phantom_and_its_tracked_pose(fcal):
     assert np.isfinite(sequence.T_base_ee).all()
 
 
+@pytest.mark.slow  # the import and calibration of 190 frames (≈ 15 s, once)
 def test_fcal_2_calibrates_as_well_as_plus_with_uscal_s_own_detection(fcal):
     _, out, stdout = fcal
     m = json.loads((out / "metrics.json").read_text())
@@ -81,6 +83,7 @@ def test_fcal_2_calibrates_as_well_as_plus_with_uscal_s_own_detection(fcal):
     assert "3-D reprojection error" in stdout and "verdict:" in stdout
 
 
+@pytest.mark.slow  # the import and calibration of 190 frames (≈ 15 s, once)
 def test_calibration_yaml_carries_the_plus_coordinate_definition(fcal):
     doc = yaml.safe_load((fcal[1] / "calibration.yaml").read_text())
     element = ET.fromstring(doc["plus_coordinate_definitions"])

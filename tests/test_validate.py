@@ -8,6 +8,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import pytest
 import yaml
 
 from calib import se3
@@ -21,6 +22,7 @@ def _write(path, A):
     return path
 
 
+@pytest.mark.slow  # localizes the run's 45 sweeps twice
 def test_a_calibration_is_checked_by_the_scatter_it_gives(quick_run, capsys, tmp_path):
     out = quick_run[0]
     dataset = out.parent / "dataset"
