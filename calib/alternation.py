@@ -135,9 +135,7 @@ def _consensus_seeds(
 def _mean_pose(Ts: Sequence[Array]) -> Array:
     """The mean of nearby poses: the rotation nearest the mean of their matrices (its
     polar factor), the mean translation."""
-    R = np.mean([T[:3, :3] for T in Ts], axis=0)
-    U, _, Vt = np.linalg.svd(R)
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    R = se3.nearest_rotation(np.mean([T[:3, :3] for T in Ts], axis=0))
     return se3.make(R, np.mean([T[:3, 3] for T in Ts], axis=0))
 
 

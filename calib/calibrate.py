@@ -197,8 +197,7 @@ def linear_initialisation(obs: Sequence[Observation]) -> Array:
         A[rows, 12 + 3 * s : 15 + 3 * s] = -np.eye(3)
         b[rows] = -t
     sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-    U, _, Vt = np.linalg.svd(sol[:9].reshape(3, 3))
-    R_X = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    R_X = se3.nearest_rotation(sol[:9].reshape(3, 3))
     # Translation and centres again with the rotation fixed.
     b2 = b - A[:, 0:9] @ R_X.ravel()
     sol2, *_ = np.linalg.lstsq(A[:, 9:], b2, rcond=None)

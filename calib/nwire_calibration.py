@@ -237,15 +237,6 @@ def _nominal_xy(pixel: Array, width_px: int, spacing_m: tuple[float, float]) -> 
     return np.column_stack([x, y])
 
 
-def _nearest_rotation(A: Array) -> Array:
-    U, _, Vt = np.linalg.svd(A)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    return R
-
-
 def _closed_form(
     xy: Array, T_k: Array, p: Array, T_base_phantom: Array | None
 ) -> tuple[Array, tuple[float, float], Array]:
@@ -274,11 +265,11 @@ def _closed_form(
                 "the frames' probe orientations are too alike to estimate the phantom's "
                 "pose with the calibration: tilt and turn the probe between frames"
             )
-        T_P = se3.make(_nearest_rotation(sol[:9].reshape(3, 3)), sol[9:12])
+        T_P = se3.make(se3.nearest_rotation(sol[:9].reshape(3, 3)), sol[9:12])
         M = sol[12:].reshape(3, 3)
     kx, ky = float(np.linalg.norm(M[:, 0])), float(np.linalg.norm(M[:, 1]))
     r1, r2 = M[:, 0] / kx, M[:, 1] / ky
-    R = _nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
+    R = se3.nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
     return se3.make(R, M[:, 2]), (kx, ky), T_P
 
 

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from . import se3
 from .errors import DatasetError
 
 __all__ = [
@@ -426,8 +427,7 @@ def us_of_image_to_probe(
     if not (sx > 0 and sy > 0):
         raise DatasetError("ImageToProbe has a zero column: not an image-to-probe transform")
     x, y = A[:3, 0] / sx, A[:3, 1] / sy
-    U, _, Vt = np.linalg.svd(np.column_stack([x, y, np.cross(x, y)]))
-    R = U @ Vt
+    R = se3.nearest_rotation(np.column_stack([x, y, np.cross(x, y)]))
     origin = (A @ np.array([(width_px - 1) / 2, 0.0, 0.0, 1.0]))[:3]
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, origin * _MM

@@ -31,6 +31,7 @@ __all__ = [
     "matrix_from_euler",
     "matrix_from_pose6",
     "matrix_from_rotvec",
+    "nearest_rotation",
     "pose6_from_matrix",
     "rotation_angle",
     "rotvec_from_matrix",
@@ -300,6 +301,13 @@ def translation_distance(T_a: ArrayLike, T_b: ArrayLike) -> Array | float:
     T_b = np.asarray(T_b, dtype=float)
     dist = np.linalg.norm(T_a[..., :3, 3] - T_b[..., :3, 3], axis=-1)
     return float(dist) if dist.ndim == 0 else dist
+
+
+def nearest_rotation(A: ArrayLike) -> Array:
+    """The rotation nearest a 3 × 3 matrix in the Frobenius norm (its polar factor, by
+    SVD, reflection excluded): what a linear estimate of a rotation stands for."""
+    U, _, Vt = np.linalg.svd(np.asarray(A, dtype=float))
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
 
 def kabsch(P: ArrayLike, Q: ArrayLike) -> Array:
