@@ -95,9 +95,14 @@ def _gate(scenario, calibrations: Calibrations, console: Console) -> int:
         return 0
     chosen = calibrations.chosen if calibrations.single or calibrations.three else None
     status = "not judged" if chosen is None or chosen.verdict is None else chosen.verdict.status
-    if status == "accepted":
-        return 0
     what = "no calibration" if chosen is None else f"the {chosen.method}-marker calibration"
+    return _gate_status(scenario, what, status, console)
+
+
+def _gate_status(scenario, what: str, status: str, console: Console) -> int:
+    """:func:`_gate` of one calibration's verdict status, named ``what``."""
+    if not requirements(scenario).any or status == "accepted":
+        return 0
     console.print(
         f"{what} is {status}, not accepted within the requirements: exit code {EXIT_NOT_ACCEPTED}",
         highlight=False,
@@ -221,14 +226,7 @@ def _run_nwire(args: argparse.Namespace, scenario, out: Path, console: Console) 
     print_written(out, written, console)
     if args.save_dataset:
         console.print(f"wrote the dataset {args.save_dataset} (uscal calibrate reads it)")
-    if requirements(scenario).any and result.nwire.verdict.status != "accepted":
-        console.print(
-            f"the N-wire calibration is {result.nwire.verdict.status}, not accepted within "
-            f"the requirements: exit code {EXIT_NOT_ACCEPTED}",
-            highlight=False,
-        )
-        return EXIT_NOT_ACCEPTED
-    return 0
+    return _gate_status(scenario, "the N-wire calibration", result.nwire.verdict.status, console)
 
 
 def _until(args: argparse.Namespace) -> StopRule | None:
@@ -351,14 +349,7 @@ def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console)
         written = write_nwire(tmp, result)
     print_nwire(result, console)
     print_written(out, written, console)
-    if requirements(settings).any and result.verdict.status != "accepted":
-        console.print(
-            f"the N-wire calibration is {result.verdict.status}, not accepted within the "
-            f"requirements: exit code {EXIT_NOT_ACCEPTED}",
-            highlight=False,
-        )
-        return EXIT_NOT_ACCEPTED
-    return 0
+    return _gate_status(settings, "the N-wire calibration", result.verdict.status, console)
 
 
 def _cmd_validate(args: argparse.Namespace, console: Console) -> int:

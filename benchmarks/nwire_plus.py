@@ -33,11 +33,12 @@ sys.path.insert(0, str(ROOT))
 
 from calib.errors import CalibrationError  # noqa: E402
 from calib.metafile import read_metafile  # noqa: E402
-from calib.nwire import detect_nwires, middle_wire_point  # noqa: E402
+from calib.nwire import NWireDetection, detect_nwires  # noqa: E402
 from calib.nwire_calibration import (  # noqa: E402
     NWireObservations,
     calibrate_nwire,
     judge_nwire,
+    observations_of,
     observe_nwires,
     plus_error_mm,
     reprojection_errors_mm,
@@ -110,24 +111,11 @@ def main() -> None:
     )
 
 
-def _plus_observations(config, frames, spacing, key=lambda f: f.index):
-    """PLUS's segmented points as uscal's observations (the diagonal-wire point of each
-    pattern from PLUS's three dots)."""
-    rows, pix, pts = [], [], []
-    for f in frames:
-        for pattern in config.patterns:
-            pa, pm, pb = (np.array(f.points[w.name]) for w in pattern.wires)
-            rows.append(key(f))
-            pix.append(pm)
-            pts.append(middle_wire_point(pattern, pa * spacing, pm * spacing, pb * spacing))
-    n = len(rows)
-    return NWireObservations(np.array(rows), np.zeros(n, int), np.array(pix), np.array(pts), ())
-
-
-def _subset(obs: NWireObservations, keep) -> NWireObservations:
-    return NWireObservations(
-        obs.frame[keep], obs.pattern[keep], obs.pixel[keep], obs.phantom_point[keep], ()
-    )
+def _plus_observations(config, frames, spacing) -> NWireObservations:
+    """PLUS's segmentation of ``frames`` (in frame order) read as uscal reads its own
+    detections: the diagonal-wire point of each pattern from PLUS's three dots."""
+    detections = [NWireDetection(f.ok, f.points) for f in frames]
+    return observations_of(detections, config.patterns, tuple(spacing))
 
 
 def calibrate_against_plus(data: Path, config, results, frames) -> dict[str, float]:
@@ -147,9 +135,10 @@ def calibrate_against_plus(data: Path, config, results, frames) -> dict[str, flo
     ours = cal.image_to_probe_mm()
     theirs = results.image_to_probe.copy()
     theirs[:3, :] *= 1e3
-    plus_points = _plus_observations(config, [f for f in results.calibration if f.ok], spacing)
+    assert [f.index for f in results.calibration] == list(range(len(tracked)))
+    plus_points = _plus_observations(config, results.calibration, spacing)
     valid = [f for f in results.validation if f.ok]
-    valid_points = _plus_observations(config, valid, spacing, key=valid.index)
+    valid_points = _plus_observations(config, valid, spacing)
     valid_poses = np.array([f.transform("ProbeToReference") for f in valid])
     stated = results.reprojection_3d_mm
     print(f"\nImageToProbe from uscal's own points ({len(obs.frame)} diagonal-wire points):")
@@ -188,10 +177,10 @@ def calibrate_against_plus(data: Path, config, results, frames) -> dict[str, flo
         (obs.frame >= half, obs.frame < half),
     ):
         part = calibrate_nwire(
-            _subset(obs, train), tracked, width_px=W, height_px=H,
+            obs.subset(train), tracked, width_px=W, height_px=H,
             spacing_m=tuple(spacing * 1e-3), T_base_phantom=T_phantom, n_draws=500,
         )  # fmt: skip
-        e = reprojection_errors_mm(_subset(obs, test), tracked, part.image_to_probe_mm(), T_phantom)
+        e = reprojection_errors_mm(obs.subset(test), tracked, part.image_to_probe_mm(), T_phantom)
         m, sd = plus_error_mm(e)
         moved = np.linalg.norm(
             (corners @ part.image_to_probe_mm().T - corners @ ours.T)[:, :3], axis=1

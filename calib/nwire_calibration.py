@@ -38,9 +38,10 @@ estimates the layout's; a tracker measures it, PLUS's ``Phantom`` → ``Referenc
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -76,6 +77,7 @@ __all__ = [
     "correlation_frames",
     "dataset_frames",
     "dataset_spacing_m",
+    "image_points_in_base",
     "judge_nwire",
     "observations_of",
     "observe_nwires",
@@ -128,6 +130,18 @@ class NWireObservations:
     @property
     def frames_used(self) -> int:
         return len(np.unique(self.frame))
+
+    def subset(self, keep: NDArray[np.bool_]) -> NWireObservations:
+        """The points where ``keep`` holds (frame indices unchanged)."""
+        return NWireObservations(
+            self.frame[keep],
+            self.pattern[keep],
+            self.pixel[keep],
+            self.phantom_point[keep],
+            self.detections,
+            None if self.outer is None else self.outer[keep],
+            None if self.skew is None else self.skew[keep],
+        )
 
     def refusals(self) -> Counter[str]:
         """Why frames were not used: reason → count."""
@@ -194,7 +208,10 @@ class NWireCalibration:
     ``bound95`` rotation (deg), translation (mm) and mean error over the image (mm);
     ``converged`` and the solver's ``message``; ``blocks`` the jackknife's groups;
     ``outliers`` the points beyond the χ² quantile of the fit's own scale and a
-    millimetre."""
+    millimetre; ``scale`` the fitted spacing over the nominal one (1, 1 when held);
+    ``sigma_mm`` the residuals' robust scale per axis; ``information_eigenvalues`` (6,)
+    of the information about the mount (rotation rad, translation mm), the phantom's pose
+    and the scale profiled out, descending."""
 
     T_ee_us: Array
     spacing_m: tuple[float, float]
@@ -210,13 +227,10 @@ class NWireCalibration:
     height_px: int
     scale_estimated: bool
     phantom_estimated: bool
+    scale: tuple[float, float]
+    sigma_mm: float
+    information_eigenvalues: Array
     seconds: float = 0.0
-    terms: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def scale(self) -> tuple[float, float]:
-        """The fitted spacing over the nominal one (1, 1 when not estimated)."""
-        return tuple(self.terms.get("scale", (1.0, 1.0)))  # type: ignore[return-value]
 
     def image_to_probe_mm(self) -> Array:
         """PLUS's ``ImageToProbe``: pixel (column, row, 0, 1) → probe (ee) millimetres,
@@ -432,8 +446,6 @@ def calibrate_nwire(
     a pulse; at least the rms distance between the dots' centres and their echoes'
     peaks, which a comet tail lengthens), each propagated to first order through the
     fit."""
-    import time
-
     t0 = time.perf_counter()
     if obs.frames_used < MIN_FRAMES:
         why = obs.refusals().most_common(1)
@@ -540,12 +552,10 @@ def calibrate_nwire(
         int(height_px),
         estimate_scale,
         T_base_phantom is None,
+        (float(scale[0]), float(scale[1])),
+        sigma,
+        eig,
         time.perf_counter() - t0,
-        {
-            "scale": (float(scale[0]), float(scale[1])),
-            "sigma_mm": sigma,
-            "information_eigenvalues": eig.tolist(),
-        },
     )
 
 
@@ -585,7 +595,7 @@ def calibrate_either_side(
             if mirrored and best is None:
                 raise
             continue
-        if best is None or cal.terms["sigma_mm"] < best[0].terms["sigma_mm"]:
+        if best is None or cal.sigma_mm < best[0].sigma_mm:
             best = (cal, o, mirrored)
     assert best is not None
     return best
@@ -600,13 +610,21 @@ def reprojection_errors_mm(
     """Each point's 3-D reprojection error (mm) under a calibration given as PLUS's
     ``ImageToProbe`` (pixel → probe mm, its pixel spacing included): uscal's own, or any
     other tool's."""
+    image = image_points_in_base(obs, T_base_ee, image_to_probe_mm)
+    wire = se3.apply(T_base_phantom, obs.phantom_point)
+    return np.linalg.norm(image - wire, axis=1) * _MM
+
+
+def image_points_in_base(
+    obs: NWireObservations, T_base_ee: Array, image_to_probe_mm: Array
+) -> Array:
+    """The diagonal dots (n, 3) mapped to the base frame (metres) through a calibration
+    given as PLUS's ``ImageToProbe`` and each frame's pose."""
     A = np.asarray(image_to_probe_mm, dtype=float)
     uv = np.column_stack([obs.pixel, np.zeros(len(obs.pixel)), np.ones(len(obs.pixel))])
     P_ee = (uv @ A.T)[:, :3] * 1e-3
     T_k = np.asarray(T_base_ee, dtype=float)[obs.frame]
-    image = np.einsum("nij,nj->ni", T_k[:, :3, :3], P_ee) + T_k[:, :3, 3]
-    wire = se3.apply(T_base_phantom, obs.phantom_point)
-    return np.linalg.norm(image - wire, axis=1) * _MM
+    return np.einsum("nij,nj->ni", T_k[:, :3, :3], P_ee) + T_k[:, :3, 3]
 
 
 @dataclass(frozen=True)
@@ -644,7 +662,7 @@ def judge_nwire(cal: NWireCalibration, requirements: Requirements | None = None)
     if share > MAX_DROPPED_SHARE:
         suspect.append(
             f"{cal.outliers} of {len(cal.errors_mm)} wire points disagree with the rest "
-            f"beyond their own scatter ({cal.terms['sigma_mm']:.2f} mm per axis): "
+            f"beyond their own scatter ({cal.sigma_mm:.2f} mm per axis): "
             "wrong dots, tracking glitches or wires off the phantom's definition; check the "
             "frames, the tracker and the phantom"
         )

@@ -5,18 +5,20 @@ files in ../shared/data/plus; broken files are one line."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from calib.errors import DatasetError
 from calib.plus_config import read_plus_config, read_plus_results
 
-PLUS_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
-CONFIG = PLUS_DATA / "PlusDeviceSet_fCal_Sim_SpatialCalibration_2.0.xml"
-RESULTS = PLUS_DATA / "FreehandCalibration3NWires_fCal2.0.results.xml"
-needs_plus_data = pytest.mark.skipif(not PLUS_DATA.is_dir(), reason="no ../shared/data/plus")
+from .plus_data import (
+    FCAL_CONFIG,
+    FCAL_RESULTS,
+    PLUS_DATA,
+    needs_plus_data,
+)
+
+CONFIG, RESULTS = FCAL_CONFIG, FCAL_RESULTS
 MM = 1e-3
 
 

@@ -24,17 +24,21 @@ from calib.plus_import import plus_frames
 from calib.records import Sweep
 
 from .conftest import QUICK
+from .plus_data import (
+    FCAL_SEQUENCE,
+    NWIRE_CROPPED,
+    PLUS_DATA,
+    needs_plus_data,
+)
 from .plus_writer import ORIENTATION_FLIPS, write_plus_sequence
 from .test_cli import uscal, uscal_here
 
 sitk = pytest.importorskip("SimpleITK")
 
-PLUS_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
-NWIRE = PLUS_DATA / "NwirePhantomFreehandCropped.igs.mha"
+NWIRE = NWIRE_CROPPED
 SYNTHETIC = PLUS_DATA / "SyntheticVideoBuffer20.igs.mha"
 TRACKING = PLUS_DATA / "SlidingProbeTrackingData.igs.mha"
-FCAL = PLUS_DATA / "fCal_Test_Calibration_3NWires_fCal2.0.igs.mha"
-needs_plus_data = pytest.mark.skipif(not PLUS_DATA.is_dir(), reason="no ../shared/data/plus")
+FCAL = FCAL_SEQUENCE
 
 
 def _itk_frames(path: Path) -> np.ndarray:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import re
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,14 +18,17 @@ import yaml
 from calib.dataset_files import read_dataset
 from calib.plus_config import read_plus_results
 
+from .plus_data import (
+    FCAL_CONFIG,
+    FCAL_RESULTS,
+    FCAL_SEQUENCE,
+    NWIRE_CROPPED,
+    needs_plus_data,
+)
 from .test_cli import uscal, uscal_here
 
-PLUS_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
-SEQUENCE = PLUS_DATA / "fCal_Test_Calibration_3NWires_fCal2.0.igs.mha"
-CONFIG = PLUS_DATA / "PlusDeviceSet_fCal_Sim_SpatialCalibration_2.0.xml"
-RESULTS = PLUS_DATA / "FreehandCalibration3NWires_fCal2.0.results.xml"
-CROPPED = PLUS_DATA / "NwirePhantomFreehandCropped.igs.mha"
-pytestmark = pytest.mark.skipif(not PLUS_DATA.is_dir(), reason="no ../shared/data/plus")
+SEQUENCE, CONFIG, RESULTS, CROPPED = FCAL_SEQUENCE, FCAL_CONFIG, FCAL_RESULTS, NWIRE_CROPPED
+pytestmark = needs_plus_data
 
 
 @pytest.fixture(scope="module")
@@ -156,3 +158,18 @@ def test_a_missing_link_of_the_pose_chain_is_one_line(capsys, tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1
     assert "nor a chain of them from Probe to Phantom" in r.stderr
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow  # one more calibration of 190 frames
+def test_a_requirement_the_bound_misses_exits_3(fcal, capsys, tmp_path):
+    """The recording's bound (≈ 2 mm over the image) against a 0.5 mm requirement: the
+    verdict rejects it and the command exits 3, writing its files all the same."""
+    r = uscal_here(
+        capsys, "calibrate", str(fcal[0]), "--out", str(tmp_path / "c"),
+        "--require-image-mm", "0.5",
+    )  # fmt: skip
+    assert r.returncode == 3, r.stderr
+    assert "the N-wire calibration is rejected" in r.stdout
+    doc = yaml.safe_load((tmp_path / "c" / "calibration.yaml").read_text())
+    assert doc["verdict"]["status"] == "rejected"
+    assert any("above the requirement" in reason for reason in doc["verdict"]["reasons"])

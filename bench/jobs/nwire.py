@@ -141,8 +141,8 @@ def calibrate_nwire_dataset(
                 "covariance_rotvec_rad_translation_m_scale": cal.covariance.tolist(),
                 "jackknife_blocks": cal.blocks,
                 "information": {
-                    "eigenvalues": cal.terms["information_eigenvalues"],
-                    "condition_number": _condition(cal.terms["information_eigenvalues"]),
+                    "eigenvalues": cal.information_eigenvalues.tolist(),
+                    "condition_number": _condition(cal.information_eigenvalues),
                     "note": "about the mount (rotation rad, translation mm), the phantom "
                     "pose and scale profiled out",
                 },

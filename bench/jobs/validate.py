@@ -38,6 +38,7 @@ from calib.localize import localize_sphere
 from calib.nwire_calibration import (
     dataset_frames,
     dataset_spacing_m,
+    image_points_in_base,
     observations_of,
     observe_nwires,
     plus_error_mm,
@@ -174,10 +175,7 @@ def _nwire_errors(obs, poses, A, T_phantom):
     phantom's pose was fitted (no tracked pose: Kabsch, the calibration held)."""
     fitted = T_phantom is None
     if fitted:
-        uv = np.column_stack([obs.pixel, np.zeros(len(obs.pixel)), np.ones(len(obs.pixel))])
-        P_ee = (uv @ A.T)[:, :3] / _MM
-        T_k = poses[obs.frame]
-        P_base = np.einsum("nij,nj->ni", T_k[:, :3, :3], P_ee) + T_k[:, :3, 3]
+        P_base = image_points_in_base(obs, poses, A)
         # Kabsch, refitted without the points far beyond the rest (a wrong dot must not
         # move the phantom for every other point).
         keep = np.ones(len(P_base), dtype=bool)
