@@ -1,8 +1,8 @@
 """``uscal acquire``: the sphere protocol on a real rig (a UR through RTDE and a frame
-grabber), recorded sweep by sweep into a dataset (:mod:`calib.dataset_files`).
+grabber), recorded sweep by sweep into a dataset (:mod:`calib.files.dataset`).
 
-The same protocol code as the twin's (:func:`calib.protocol.plan_sweeps`,
-:func:`calib.protocol.acquire`) drives :class:`hw.robot.URRobot` and
+The same protocol code as the twin's (:func:`calib.acquisition.protocol.plan_sweeps`,
+:func:`calib.acquisition.protocol.acquire`) drives :class:`hw.robot.URRobot` and
 :class:`hw.grabber.FrameGrabber`. Before anything moves the whole plan is checked
 (workspace box, step between consecutive poses; a sweep that does not pass is
 replaced by a spare of the plan file, one line saying which), ``--dry-run`` stops
@@ -23,19 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from calib.dataset_files import DatasetWriter
-from calib.dh import NOMINAL_TABLES, forward_kinematics
-from calib.errors import (
-    FrameGrabberError,
-    RobotConnectionError,
-    RobotSetupError,
-    RobotStoppedError,
-    UscalError,
-)
-from calib.localize import LocalizerConfig, localize_sphere
-from calib.pipeline import axial_scale as axial_scale_of
-from calib.planning import Candidates, bias_covariance
-from calib.protocol import (
+from calib.acquisition.planning import Candidates, bias_covariance
+from calib.acquisition.protocol import (
     PlannedSweep,
     Replacement,
     acquire,
@@ -45,6 +34,17 @@ from calib.protocol import (
     touch_plan,
     transit,
 )
+from calib.dh import NOMINAL_TABLES, forward_kinematics
+from calib.errors import (
+    FrameGrabberError,
+    RobotConnectionError,
+    RobotSetupError,
+    RobotStoppedError,
+    UscalError,
+)
+from calib.files.dataset import DatasetWriter
+from calib.localize import LocalizerConfig, localize_sphere
+from calib.pipeline import axial_scale as axial_scale_of
 from calib.records import Touch
 
 from .config.hw import HwConfig
@@ -79,7 +79,7 @@ def _plans(
     """The sweeps as they will be visited, every pose checked (workspace box, step from
     the pose before it; each sphere's sweeps start from its taught pose, transits
     included); a sweep that does not pass is replaced by a spare of the plan file
-    (:func:`calib.protocol.clear_sweeps`)."""
+    (:func:`calib.acquisition.protocol.clear_sweeps`)."""
 
     def check(sweep: PlannedSweep, here: np.ndarray) -> None:
         previous = here
@@ -118,7 +118,7 @@ class Operator:
         self.tell = tell
 
     def place(self, vertex: str, index: int, R_base_ee: np.ndarray) -> None:
-        """calib.protocol.TouchGuide: the stylus tip onto a vertex, at about the planned
+        """calib.acquisition.protocol.TouchGuide: the stylus tip onto a vertex, at about the planned
         orientation (the record is whatever the controller then reports)."""
         axis = R_base_ee[:3, 2]  # the stylus runs along the flange z axis
         tilt = np.degrees(np.arccos(np.clip(-axis[2], -1.0, 1.0)))

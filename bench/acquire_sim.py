@@ -12,10 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.calibrate import CalibrationConfig
-from calib.dataset_files import AcquisitionInfo, DatasetWriter
-from calib.plus_config import NWire, NWirePattern, NWirePhantom
-from calib.protocol import (
+from calib.acquisition.protocol import (
     PlannedSweep,
     PlannedTouch,
     Replacement,
@@ -26,6 +23,9 @@ from calib.protocol import (
     facing_pose,
     touch_plan,
 )
+from calib.calibration.markers import CalibrationConfig
+from calib.files.dataset import AcquisitionInfo, DatasetWriter
+from calib.files.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.records import Dataset, Sweep, Touch
 from twin.arm_errors import robot_stream
 from twin.imager import SimImager
@@ -93,7 +93,7 @@ class SimulatedAcquisition:
 
     ``T_base_ee_true[(target, pose_id)]`` holds the true flange pose of every frame;
     ``replaced`` the planned sweeps that did not clear in this session and what took
-    their place (:func:`calib.protocol.clear_sweeps`).
+    their place (:func:`calib.acquisition.protocol.clear_sweeps`).
     """
 
     dataset: Dataset
@@ -310,7 +310,7 @@ def image_meta(scenario: Scenario) -> dict[str, Any]:
 def save_dataset(
     directory: str | os.PathLike[str], scenario: Scenario, twin, acq: SimulatedAcquisition
 ) -> Path:
-    """Write a twin acquisition in the dataset format (:mod:`calib.dataset_files`).
+    """Write a twin acquisition in the dataset format (:mod:`calib.files.dataset`).
 
     The twin has no acquisition clock; each frame's timestamp is its index in the
     dataset times a nominal frame period, so timestamps increase through the dataset.

@@ -2,7 +2,7 @@
 sweep poses about each taught pose (``planning`` settings), kept where the sphere stays
 inside the image by the margin (as the coarse mount predicts it) and where the arm
 reaches the sweep's first, middle and last frames with the clearance from the tank and
-the phantom; and their information about ``T_ee_us`` (:class:`calib.planning.
+the phantom; and their information about ``T_ee_us`` (:class:`calib.acquisition.planning.
 Candidates`). Used by ``uscal plan --optimize`` and by the sequential acquisition."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.planning import (
+from calib.acquisition.planning import (
     Candidates,
     SweepPose,
     sweep_commands,

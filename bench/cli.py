@@ -21,10 +21,10 @@ import numpy as np
 from rich.console import Console
 from rich.logging import RichHandler
 
-from calib.dataset_files import dataset_kind, read_dataset
 from calib.errors import UscalError
-from calib.plus_config import read_plus_config
-from calib.plus_import import import_plus
+from calib.files.dataset import dataset_kind, read_dataset
+from calib.files.plus_config import read_plus_config
+from calib.files.plus_import import import_plus
 from twin.ur_controller import ControllerFaults
 
 from .acquire_rig import acquire_dataset, console_operator, dashboard_operator

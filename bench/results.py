@@ -15,15 +15,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.alternation import AlternationResult
-from calib.dataset_files import AcquisitionInfo
+from calib.calibration.alternation import AlternationResult
+from calib.calibration.uncertainty import Bound95, UncertaintyInputs
+from calib.calibration.verdict import Requirements, Verdict, judge
 from calib.dh import DHTable
-from calib.evaluate import FoldResult, training_precision
+from calib.evaluation.cross_validation import FoldResult, training_precision
+from calib.files.dataset import AcquisitionInfo
 from calib.kinematics import DHRefinement, TouchReference
 from calib.localize import SweepLocalization
 from calib.records import Dataset, Sweep
-from calib.uncertainty import Bound95, UncertaintyInputs
-from calib.verdict import Requirements, Verdict, judge
 
 from .files import with_frames
 
@@ -221,7 +221,7 @@ def calibration_entry(
 ) -> dict[str, Any]:
     """What ``metrics.json`` keeps of one calibration, truth aside (``bound``: its 95 %
     error bounds and the declared terms they include), with its verdict
-    (:func:`calib.verdict.judge` against ``requirements``, or ``verdict`` when it was
+    (:func:`calib.calibration.verdict.judge` against ``requirements``, or ``verdict`` when it was
     made already, e.g. from a bound the paper's dataset tasks computed). Its precision is
     the mean over the training spheres of the spread of their reconstructed centres."""
     precision = training_precision(alt)

@@ -1,8 +1,9 @@
 """The sequential acquisition on the twin (``uscal run --until-rotation-deg X
 --until-translation-mm Y``): each next sweep is the candidate that adds most to the
-sweeps localized so far (:func:`calib.planning.next_sweep`), and a sphere's scan stops as
-soon as its predicted 1 σ of ``T_ee_us`` (:func:`calib.planning.predict`, with the
-session's shared offset) is within both limits — or at ``max_sweeps``.
+sweeps localized so far (:func:`calib.acquisition.planning.next_sweep`), and a sphere's
+scan stops as soon as its predicted 1 σ of ``T_ee_us``
+(:func:`calib.acquisition.planning.predict`, with the session's shared offset) is within
+both limits — or at ``max_sweeps``.
 
 Every sweep is localized as soon as it is acquired (with the sweeps of its sphere so
 far, whose agreement the localizer checks); a rejected sweep adds nothing and its pose
@@ -18,8 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.localize import localize_sphere
-from calib.planning import (
+from calib.acquisition.planning import (
     Candidates,
     SweepPose,
     bias_covariance,
@@ -27,7 +27,8 @@ from calib.planning import (
     next_sweep,
     predict,
 )
-from calib.protocol import PlannedSweep, acquire, check_plan, plan_sweeps
+from calib.acquisition.protocol import PlannedSweep, acquire, check_plan, plan_sweeps
+from calib.localize import localize_sphere
 from calib.records import Dataset, Sweep
 from twin.imager import SimImager
 from twin.world import Twin

@@ -3,8 +3,8 @@ rows of cell texts and notes, rendered alike to Markdown (the reports), CSV and 
 console renders the same object with rich (:func:`bench.console.tables.rich_table`).
 What a table shows comes from the typed read of ``metrics.json``
 (:mod:`bench.summaries`); the paper's Tables I–III keep their own model,
-:class:`calib.evaluate.PaperTable`, which :meth:`Table.from_paper` takes over for the
-console.
+:class:`calib.evaluation.cross_validation.PaperTable`, which :meth:`Table.from_paper`
+takes over for the console.
 
 The renderings leave the title to the document around the table (a heading, a sentence
 before it): Markdown and CSV write the columns and rows, HTML adds the title as the
@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-from calib.evaluate import PaperTable
+from calib.evaluation.cross_validation import PaperTable
 
 __all__ = ["Column", "Table", "left", "right"]
 
@@ -71,8 +71,8 @@ class Table:
 
     @classmethod
     def from_paper(cls, t: PaperTable, columns: Sequence[str] | None = None) -> Table:
-        """One of the paper's tables (:class:`calib.evaluate.PaperTable`): its two label
-        columns left and unwrapped, the figures right; ``columns`` replaces its column
+        """One of the paper's tables (:class:`calib.evaluation.cross_validation.PaperTable`):
+        its two label columns left and unwrapped, the figures right; ``columns`` replaces its column
         names (shorter ones for a narrow terminal)."""
         names = tuple(columns or t.columns)
         cols = tuple(

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.alternation import AlternationResult
+from calib.calibration.alternation import AlternationResult
 from calib.dh import DHTable
 from calib.kinematics import kinematic_gauge
 from calib.localize import SweepLocalization

@@ -1,10 +1,10 @@
-"""uscal's threshold-free N-wire detection (calib/nwire.py) against PLUS's own
+"""uscal's threshold-free N-wire detection (calib/localize/nwire.py) against PLUS's own
 segmentation, on PLUS's real fCal 2.0 calibration sweep (``../shared/data/plus``):
 frames found by each, the distance from uscal's points to PLUS's (pixels, same wire
 name), the time per frame; and a figure of the frames where the two disagree most (PLUS's
 points as circles, uscal's as crosses), written to ``docs/figures/nwire_vs_plus.png``.
 
-Then the calibration (issue 37, item 3; :func:`calib.nwire_calibration.calibrate_nwire`
+Then the calibration (issue 37, item 3; :func:`calib.calibration.nwire.calibrate_nwire`
 from uscal's own detection, as ``uscal calibrate`` runs it) beside PLUS's answer: the
 3-D reprojection error as PLUS states it (mean and SD below the 95th percentile, as its
 source computes it) of each transform on uscal's points, on PLUS's points, and on PLUS's
@@ -31,10 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calib.errors import CalibrationError  # noqa: E402
-from calib.metafile import read_metafile  # noqa: E402
-from calib.nwire import NWireDetection, detect_nwires  # noqa: E402
-from calib.nwire_calibration import (  # noqa: E402
+from calib.calibration.nwire import (  # noqa: E402
     NWireObservations,
     calibrate_nwire,
     judge_nwire,
@@ -43,8 +40,11 @@ from calib.nwire_calibration import (  # noqa: E402
     plus_error_mm,
     reprojection_errors_mm,
 )
-from calib.plus_config import read_plus_config, read_plus_results  # noqa: E402
-from calib.plus_import import plus_frames  # noqa: E402
+from calib.errors import CalibrationError  # noqa: E402
+from calib.files.metafile import read_metafile  # noqa: E402
+from calib.files.plus_config import read_plus_config, read_plus_results  # noqa: E402
+from calib.files.plus_import import plus_frames  # noqa: E402
+from calib.localize.nwire import NWireDetection, detect_nwires  # noqa: E402
 
 CONFIG = "PlusDeviceSet_fCal_Sim_SpatialCalibration_2.0.xml"
 RESULTS = "FreehandCalibration3NWires_fCal2.0.results.xml"
@@ -119,7 +119,7 @@ def _plus_observations(config, frames, spacing) -> NWireObservations:
 
 
 def calibrate_against_plus(data: Path, config, results, frames) -> dict[str, float]:
-    """uscal's calibration (calib.nwire_calibration, from uscal's own detection) beside
+    """uscal's calibration (calib.calibration.nwire, from uscal's own detection) beside
     PLUS's answer, each measured by PLUS's 3-D error on both sets of points, on PLUS's
     separate validation sweep (its segmented points and tracked poses: the images are not
     published), and half against half."""

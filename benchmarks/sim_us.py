@@ -25,8 +25,8 @@ sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 import numpy as np  # noqa: E402
 
 from calib import se3  # noqa: E402
+from calib.acquisition.protocol import facing_pose, orientation_offsets, rotated_about_target  # noqa: E402
 from calib.dh import NOMINAL_TABLES  # noqa: E402
-from calib.protocol import facing_pose, orientation_offsets, rotated_about_target  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
 from sim_us.beam import scanline_step  # noqa: E402
 from sim_us.simulator import BmodeSimulator, Timings  # noqa: E402

@@ -1,4 +1,4 @@
-"""Does the verdict (calib/verdict.py) let a wrong calibration through? Runs of
+"""Does the verdict (calib/calibration/verdict.py) let a wrong calibration through? Runs of
 ``scenarios/quick.yaml`` on conditions drawn at random (a fresh draw for each
 ``--seed``): gain, target depth, sphere radius, water temperature with and without the
 speed-of-sound correction, coarse-mount error, print tolerance, a small kinematic error

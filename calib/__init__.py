@@ -11,34 +11,40 @@ The method's public API is importable from the package itself (``calib.Localizer
 ``calib.localize_sphere``, ``calib.alternate``, ``calib.calibrate_dataset``, ...), one
 module per section of the paper (§III Methods, §IV Experiments):
 
-==========================  ==============================================================
-module                      paper section
-==========================  ==============================================================
-``calib.pipeline``          the method end to end: its settings, the stages in order
-``calib.protocol``          §III-C multi-pose sphere acquisition (45 sweeps), touches
-``calib.localize``          §III-E threshold-free sphere localization, a module per stage:
-                            ``settings`` (the localizer's settings, per-sweep result),
-                            ``volume`` (§III-E-1/2 adaptive brightness, the sweep
-                            volume), ``search`` (§III-E-3), ``refine`` (§III-E-4),
-                            ``consensus`` (the siblings, the reasons a sweep is
-                            rejected), ``sphere`` (the stages in order), ``baseline``
-                            (the fixed-threshold localizer the paper argues against)
-``calib.calibrate``         §III-F-1/2 single- and three-marker calibration (the fit)
-``calib.alternation``       §III-F the alternation of localization and calibration
-``calib.kinematics``        §III-D touch-based DH refinement and the touch reference
-``calib.evaluate``          §III-F-3 cross-validation folds, Tables I–III (§IV)
-``calib.reconstruct``       §IV-B cone and prism reconstruction, ICP (Table III)
-``calib.observability``     §III-B the information matrix of a plan (sphere vs wire)
-``calib.planning``          which sweeps to acquire (beyond the paper)
-``calib.uncertainty``       95 % error bounds of a calibration (beyond the paper)
-``calib.sound``             the speed of sound, the images' axial scale (beyond the paper)
-``calib.se3`` ``image``     shared maths: transforms, the one pixel ↔ image mapping,
-``dh`` ``robust``           the DH table, robust statistics
-``calib.records``           the frozen records (frames, sweeps, touches, datasets)
-``calib.dataset_files``     dataset directories (manifest); ``metafile`` PLUS sequence
-                            files; ``plus_import`` PLUS recordings as datasets
-``calib.errors``            the error hierarchy; ``progress`` stages' progress counts
-==========================  ==============================================================
+================================  ========================================================
+package / module                  paper section
+================================  ========================================================
+``calib.pipeline``                the method end to end: its settings, the stages in order
+``calib.acquisition``             §III-B/C what the robot does: ``protocol`` (the 45-sweep
+                                  protocol, touches), ``planning`` (which sweeps, beyond
+                                  the paper), ``observability`` (§III-B the information a
+                                  plan gives, per kind of target)
+``calib.targets``                 §III-B the kinds of target (sphere, wire, N-wire pattern,
+                                  cone tip) and the residual each observation contributes
+``calib.localize``                §III-E finding the targets in the images: the
+                                  threshold-free sphere localizer, a module per stage
+                                  (``settings`` ``volume`` ``search`` ``refine``
+                                  ``consensus`` ``sphere``; ``baseline`` the fixed-threshold
+                                  localizer the paper argues against), ``nwire`` (wires)
+``calib.calibration``             §III-F ``T_ee_us`` from the targets: ``markers``
+                                  (§III-F-1/2 single- and three-marker fit),
+                                  ``alternation`` (§III-F), ``nwire`` (N-wire patterns),
+                                  ``targets`` (any mix of kinds in one fit),
+                                  ``uncertainty`` (95 % bounds) and ``verdict`` (beyond
+                                  the paper)
+``calib.kinematics`` ``dh``       §III-D touch-based DH refinement, the touch reference;
+                                  the DH table
+``calib.evaluation``              §III-F-3/§IV ``cross_validation`` (folds, Tables I–II),
+                                  ``reconstruct`` (cone and prism, ICP, Table III)
+``calib.files``                   ``dataset`` (dataset directories, the manifest),
+                                  ``metafile`` (PLUS sequence files), ``plus_import``
+                                  (PLUS recordings as datasets), ``plus_config`` (PLUS's
+                                  device-set XML)
+``calib.se3`` ``image``           shared maths: transforms, the one pixel ↔ image mapping,
+``robust`` ``sound``              robust statistics, the speed of sound (beyond the paper)
+``calib.records``                 the frozen records (frames, sweeps, touches, datasets)
+``calib.errors`` ``progress``     the error hierarchy; stages' progress counts
+================================  ========================================================
 
 The names load lazily (PEP 562): ``from calib import se3`` stays as light as that module,
 so the twin and the hardware adapter, which use only the shared maths, do not load the
@@ -60,19 +66,19 @@ _EXPORTS = {
     "localize_sphere": "localize.sphere",
     "sphere_profile": "localize.sphere",
     "localize_sphere_fixed_threshold": "localize.baseline",
-    "AlternationResult": "alternation",
-    "AlternationSettings": "alternation",
-    "alternate": "alternation",
-    "CalibrationResult": "calibrate",
-    "Observation": "calibrate",
+    "AlternationResult": "calibration.alternation",
+    "AlternationSettings": "calibration.alternation",
+    "alternate": "calibration.alternation",
+    "CalibrationResult": "calibration.markers",
+    "Observation": "calibration.markers",
     "MethodInputs": "pipeline",
     "MethodSettings": "pipeline",
     "calibrate_dataset": "pipeline",
     "calibrate_markers": "pipeline",
     "run_folds": "pipeline",
-    "Bound95": "uncertainty",
-    "UncertaintyInputs": "uncertainty",
-    "bound95": "uncertainty",
+    "Bound95": "calibration.uncertainty",
+    "UncertaintyInputs": "calibration.uncertainty",
+    "bound95": "calibration.uncertainty",
     "Dataset": "records",
     "Sweep": "records",
     "Touch": "records",

@@ -12,9 +12,9 @@ stages, each also callable alone:
    tip and phantom pose with that model frozen; every frame's flange pose recomputed
    through the refined model;
 3. localize ↔ calibrate with one and with three markers (:func:`calibrate_markers`;
-   §III-E–F, the alternation of :func:`calib.alternation.alternate`);
+   §III-E–F, the alternation of :func:`calib.calibration.alternation.alternate`);
 4. each calibration's 95 % error bounds (:func:`declared_uncertainty` and
-   :func:`calib.uncertainty.alternation_bound`);
+   :func:`calib.calibration.uncertainty.alternation_bound`);
 5. with touches, the cross-validation folds (:func:`run_folds`; §III-F-3, "Evaluation
    protocol") and their summary.
 
@@ -24,7 +24,7 @@ live in ``bench.truth``.
 Examples
 --------
 >>> from calib.pipeline import MethodSettings, calibrate_dataset  # doctest: +SKIP
->>> from calib.dataset_files import read_dataset  # doctest: +SKIP
+>>> from calib.files.dataset import read_dataset  # doctest: +SKIP
 >>> dataset, info = read_dataset("my_dataset")  # doctest: +SKIP
 >>> result = calibrate_dataset(dataset, info, MethodSettings())  # doctest: +SKIP
 >>> result.calibrations.single.result.T_ee_us  # doctest: +SKIP
@@ -41,17 +41,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .alternation import AlternationResult, AlternationSettings, alternate
-from .dataset_files import AcquisitionInfo
+from .calibration.alternation import AlternationResult, AlternationSettings, alternate
+from .calibration.uncertainty import Bound95, UncertaintyInputs, alternation_bound, image_grid
 from .dh import DHTable
 from .errors import DatasetError
-from .evaluate import EvaluationConfig, FoldResult, evaluate_fold, folds
+from .evaluation.cross_validation import EvaluationConfig, FoldResult, evaluate_fold, folds
+from .files.dataset import AcquisitionInfo
 from .kinematics import DHRefinement, TouchReference, fit_reference, refine_dh, with_kinematics
 from .localize import LocalizerConfig, localize_sphere
 from .progress import report
 from .records import Dataset, Sweep, Touch
 from .sound import speed_ratio
-from .uncertainty import Bound95, UncertaintyInputs, alternation_bound, image_grid
 
 __all__ = [
     "THERMOMETER_UNCERTAINTY_C",
@@ -170,7 +170,7 @@ def calibrate_markers(
 ) -> MarkerCalibrations:
     """Localize ↔ calibrate (the paper's alternation) with one and/or three markers;
     the three-marker fit estimates the printed layout at
-    ``inputs.alternation.layout_sigma_mm`` (see :func:`calib.calibrate.calibrate`)."""
+    ``inputs.alternation.layout_sigma_mm`` (see :func:`calib.calibration.markers.calibrate`)."""
     targets = dataset.targets()
     by_target = {t: dataset.of(t) for t in targets}
     cad_centres = inputs.cad_centres
@@ -340,7 +340,7 @@ def declared_uncertainty(
     radius_tolerance_mm: float = 0.0,
     axial_fwhm_mm: float = 0.0,
 ) -> UncertaintyInputs:
-    """The systematic terms the pipeline knows of (:class:`calib.uncertainty.
+    """The systematic terms the pipeline knows of (:class:`calib.calibration.uncertainty.
     UncertaintyInputs`): the phantom's print specification (1 σ per axis of a sphere
     centre, 1 σ of a sphere's radius), the axial scale's uncertainty — with the
     speed-of-sound correction, the thermometer's; without, the whole difference
@@ -430,7 +430,7 @@ def calibrate_dataset(
     reference, and the paper's folds (each sphere trained alone and tested on the others,
     then leave-one-out) scored by precision and accuracy against the touch reference.
     ``info``: the acquisition's facts (CAD radius and landmarks, medium, coarse mount;
-    :class:`calib.dataset_files.AcquisitionInfo`).
+    :class:`calib.files.dataset.AcquisitionInfo`).
 
     Raises
     ------

@@ -1,4 +1,4 @@
-"""A frame grabber behind the :class:`calib.protocol.Imager` protocol: OpenCV
+"""A frame grabber behind the :class:`calib.acquisition.protocol.Imager` protocol: OpenCV
 ``VideoCapture`` of the scanner's video output (a capture device), a stream URL, a video
 file, or a still image the scanner keeps overwriting with its current frame.
 

@@ -1,4 +1,4 @@
-"""The real UR3 behind the :class:`calib.protocol.Robot` protocol, through ``ur_rtde``.
+"""The real UR3 behind the :class:`calib.acquisition.protocol.Robot` protocol, through ``ur_rtde``.
 
 Poses cross this boundary as UR controllers speak them ([x, y, z, rx, ry, rz]: metres and
 a rotation vector) and become (4, 4) ``T_base_ee`` here. The controller reports and moves

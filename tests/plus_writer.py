@@ -7,7 +7,7 @@ all frames (``CompressedDataSize``), ``ElementSpacing = 1 1 1`` (PLUS keeps the 
 spacing in ``ImageToProbe``), the per-frame fields in alphabetical order with
 ``ImageStatus`` last, transforms as 16 numbers at precision 16, each followed by a
 space, in millimetres. Used by the tests only: uscal's own writer is
-:func:`calib.metafile.write_sequence`.
+:func:`calib.files.metafile.write_sequence`.
 """
 
 from __future__ import annotations

@@ -12,8 +12,8 @@ import pytest
 from bench.acquire_sim import make_twin
 from bench.config.scenario import load_scenario
 from calib import se3
+from calib.acquisition.protocol import acquire, facing_pose, plan_sweeps
 from calib.dh import forward_kinematics
-from calib.protocol import acquire, facing_pose, plan_sweeps
 from calib.records import UsFrame
 from twin.arm_errors import (
     ALUMINIUM_EXPANSION_PER_K,

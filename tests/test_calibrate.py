@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.calibrate import (
+from calib.acquisition.protocol import ProtocolConfig, plan_sweeps
+from calib.calibration.markers import (
     Observation,
     calibrate,
     centres_in_base,
@@ -14,7 +15,6 @@ from calib.calibrate import (
     linear_initialisation,
 )
 from calib.errors import CalibrationError
-from calib.protocol import ProtocolConfig, plan_sweeps
 
 MM = 1e-3
 T_EE_US_TRUE = se3.make(

@@ -1,4 +1,4 @@
-"""Dataset files (calib.dataset_files): PLUS sequence metafiles + manifest, round trip,
+"""Dataset files (calib.files.dataset): PLUS sequence metafiles + manifest, round trip,
 what a damaged or hostile file gives, resume; and `uscal calibrate` on the twin's
 dataset against `uscal run`'s result and the truth."""
 
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.dataset_files import AcquisitionInfo, DatasetWriter, read_dataset
 from calib.errors import DatasetError
-from calib.metafile import read_sequence, write_sequence
+from calib.files.dataset import AcquisitionInfo, DatasetWriter, read_dataset
+from calib.files.metafile import read_sequence, write_sequence
 from calib.records import Sweep, Touch
 
 from .conftest import QUICK

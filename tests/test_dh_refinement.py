@@ -12,6 +12,7 @@ from bench.config.error_sources import ERROR_SOURCES
 from bench.config.scenario import load_scenario
 from bench.sessions import dataset_rngs, dataset_scenario
 from calib import se3
+from calib.acquisition.protocol import touch_plan
 from calib.dh import NOMINAL_TABLES, forward_kinematics
 from calib.kinematics import (
     _set_jacobian,
@@ -24,7 +25,6 @@ from calib.kinematics import (
     refine_dh,
     tip_positions,
 )
-from calib.protocol import touch_plan
 from calib.records import Touch
 
 MM = 1e-3

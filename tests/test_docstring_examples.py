@@ -8,7 +8,7 @@ import importlib
 
 import pytest
 
-MODULES = ["calib.se3", "calib.image", "calib.localize.sphere", "calib.calibrate"]
+MODULES = ["calib.se3", "calib.image", "calib.localize.sphere", "calib.calibration.markers"]
 
 
 @pytest.mark.parametrize("name", MODULES)

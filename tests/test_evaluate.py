@@ -9,9 +9,9 @@ import re
 import numpy as np
 import pytest
 
-from calib.calibrate import robust_inliers
+from calib.calibration.markers import robust_inliers
 from calib.errors import CalibrationError
-from calib.evaluate import (
+from calib.evaluation.cross_validation import (
     folds,
     format_tables_csv,
     format_tables_markdown,
@@ -106,15 +106,15 @@ def test_robust_inliers_drop_false_detections(rng):
 
 
 def test_tables_i_to_iii_carry_the_same_figures_in_every_rendering():
-    """One model of the paper's tables (``calib.evaluate.PaperTable``) rendered to
-    Markdown (``tables.md``), HTML (the report), the console and CSV (``tables.csv``):
+    """One model of the paper's tables (``calib.evaluation.cross_validation.PaperTable``)
+    rendered to Markdown (``tables.md``), HTML (the report), the console and CSV (``tables.csv``):
     every rendering carries the figures as ``metrics.json`` holds them, in the paper's
     order (rounded to 0.01 mm where shown, exact in the CSV)."""
     from rich.console import Console
 
     from bench.console import paper_table
     from bench.outputs.report import report_html
-    from calib.evaluate import (
+    from calib.evaluation.cross_validation import (
         TABLE_ROWS,
         format_table_iii_csv,
         format_table_iii_markdown,

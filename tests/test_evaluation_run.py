@@ -14,7 +14,7 @@ import yaml
 
 from bench.config.scenario import load_scenario
 from bench.sessions import dataset_scenario, scan_scenario
-from calib.dataset_files import read_dataset
+from calib.files.dataset import read_dataset
 
 from .rrd import Recording
 from .test_cli import uscal

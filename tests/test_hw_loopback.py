@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.dataset_files import read_dataset
 from calib.errors import FrameGrabberError, RobotConnectionError, RobotSetupError
+from calib.files.dataset import read_dataset
 from hw.config import GrabberConfig, URRobotConfig
 from hw.grabber import FrameGrabber
 from hw.robot import URRobot
@@ -337,9 +337,9 @@ def test_a_sweep_the_rig_refuses_is_replaced_by_a_spare_not_the_acquisition(cont
     and acquires every sweep through the loopback controller."""
     from bench.config.hw import load_hw_config
     from bench.config.plan_file import write_plan
+    from calib.acquisition.planning import SweepPose
+    from calib.acquisition.protocol import plan_sweeps
     from calib.dh import NOMINAL_TABLES, forward_kinematics
-    from calib.planning import SweepPose
-    from calib.protocol import plan_sweeps
 
     sets = ["protocol.spheres=[1]", "protocol.frames_per_sweep=3"]
     cfg = load_hw_config(controller.hw, sets)

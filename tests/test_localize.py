@@ -94,7 +94,7 @@ def rendered_sweeps():
     """Three sweeps of sphere 1 rendered by the twin (no kinematic error), with truth."""
     from bench.acquire_sim import make_imager, make_twin
     from bench.config.scenario import load_scenario
-    from calib.protocol import facing_pose
+    from calib.acquisition.protocol import facing_pose
 
     s = load_scenario(
         None, ["robot.dh_error_scale=0", "imaging.pixel_spacing_mm=[0.1, 0.1]"], check_reach=False
@@ -283,7 +283,7 @@ def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deeper_wea
     their whole grid, so they come back instead of being dropped."""
     from bench.config.scenario import load_scenario
     from bench.truth import image_error_mm
-    from calib.alternation import AlternationSettings, alternate
+    from calib.calibration.alternation import AlternationSettings, alternate
 
     sweeps, _, T_true, scale, T_coarse = deeper_weak_scan
     settings = AlternationSettings(LocalizerConfig(), axial_scale=scale)
@@ -841,7 +841,7 @@ def test_a_sweep_off_the_image_normal_is_localized_between_the_pixels():
     printed sphere adds its own ±0.05 mm per sweep, whatever the phase."""
     from bench.acquire_sim import make_imager, make_twin
     from bench.config.scenario import load_scenario
-    from calib.protocol import facing_pose
+    from calib.acquisition.protocol import facing_pose
 
     s = load_scenario(
         None,

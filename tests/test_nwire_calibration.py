@@ -1,4 +1,4 @@
-"""Calibration from N-wire points (calib/nwire_calibration.py) against a known truth: the
+"""Calibration from N-wire points (calib/calibration/nwire.py) against a known truth: the
 fCal 2.0 phantom's geometry, an image plane at known poses cutting its wires, the points
 where it cuts them as the image would show them. Every error source off first (the
 answer exact), then pixel noise, a wrong nominal pixel spacing, an unknown phantom pose,
@@ -10,18 +10,18 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.errors import CalibrationError
-from calib.image import pixel_to_us, us_to_pixel
-from calib.nwire import middle_wire_point
-from calib.nwire_calibration import (
+from calib.calibration.nwire import (
     NWireObservations,
     calibrate_nwire,
     judge_nwire,
     plus_error_mm,
     reprojection_errors_mm,
 )
-from calib.plus_config import NWire, NWirePattern, image_to_probe_mm, us_of_image_to_probe
-from calib.verdict import Requirements
+from calib.calibration.verdict import Requirements
+from calib.errors import CalibrationError
+from calib.files.plus_config import NWire, NWirePattern, image_to_probe_mm, us_of_image_to_probe
+from calib.image import pixel_to_us, us_to_pixel
+from calib.localize.nwire import middle_wire_point
 from twin.phantoms import FCAL2_NWIRES
 
 MM = 1e-3

@@ -1,4 +1,4 @@
-"""Observability of pose plans (calib/observability.py)."""
+"""Observability of pose plans (calib/acquisition/observability.py)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,14 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.calibrate import Observation, calibrate
-from calib.observability import information, jacobians, observability, planned_observations
-from calib.protocol import ProtocolConfig, facing_pose, plan_sweeps
+from calib.acquisition.observability import (
+    information,
+    jacobians,
+    observability,
+    planned_observations,
+)
+from calib.acquisition.protocol import ProtocolConfig, facing_pose, plan_sweeps
+from calib.calibration.markers import Observation, calibrate
 
 MM = 1e-3
 X_TRUE = se3.make(se3.matrix_from_euler(np.radians([91.0, -0.8, 1.5])), [0.8e-3, -1.2e-3, 0.158])

@@ -116,7 +116,7 @@ def test_the_method_runs_from_calib_alone(two_spheres_with_touches, tmp_path):
     script = f"""
 import pickle, sys
 import numpy as np
-from calib.dataset_files import read_dataset
+from calib.files.dataset import read_dataset
 from calib.pipeline import calibrate_dataset
 settings = pickle.loads(open({str(settings_file)!r}, "rb").read())
 dataset, info = read_dataset({str(directory)!r})

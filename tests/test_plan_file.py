@@ -12,8 +12,8 @@ import yaml
 
 from bench.config.plan_file import read_plan, write_plan
 from bench.config.scenario import load_scenario, sweeps_per_target
+from calib.acquisition.planning import SweepPose
 from calib.errors import ScenarioError
-from calib.planning import SweepPose
 
 from .conftest import QUICK
 from .test_cli import uscal, uscal_here

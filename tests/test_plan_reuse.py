@@ -16,9 +16,9 @@ from bench.candidates import in_image, sweep_of, taught_sphere
 from bench.config.plan_file import read_plan, read_spares, spare_poses, sphere_poses, write_plan
 from bench.config.scenario import load_scenario
 from bench.sessions import stage_rngs
+from calib.acquisition.planning import SweepPose
+from calib.acquisition.protocol import check_plan, clear_sweeps
 from calib.errors import CollisionError, ScenarioError, UnreachablePoseError
-from calib.planning import SweepPose
-from calib.protocol import check_plan, clear_sweeps
 
 from .conftest import QUICK
 from .test_cli import uscal_here

@@ -1,4 +1,4 @@
-"""Pose planning (calib.planning): the paper's plan as sweep poses, the information of
+"""Pose planning (calib.acquisition.planning): the paper's plan as sweep poses, the information of
 T_ee_us with the target's position unknown, its prediction against a Monte Carlo of the
 least-squares fit, the shared offset, and the selection."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.observability import jacobians
-from calib.planning import (
+from calib.acquisition.observability import jacobians
+from calib.acquisition.planning import (
     Candidates,
     NoiseModel,
     PlanningConfig,
@@ -21,7 +21,7 @@ from calib.planning import (
     select_sweeps,
     sweep_commands,
 )
-from calib.protocol import ProtocolConfig, plan_sweeps
+from calib.acquisition.protocol import ProtocolConfig, plan_sweeps
 
 X = se3.make(se3.matrix_from_euler(np.radians([90.0, 3.0, -2.0])), [0.004, -0.002, 0.15])
 TAUGHT = se3.make(se3.matrix_from_euler(np.radians([180.0, 0.0, 30.0])), [0.3, 0.1, 0.35])
@@ -65,7 +65,7 @@ def test_the_papers_plan_is_its_sweep_poses_to_the_last_bit():
 
 
 def _monte_carlo(cands: Candidates, chosen, trials=400, seed=1):
-    """Sample covariance of θ from the linearized fit calib.calibrate makes: centres with
+    """Sample covariance of θ from the linearized fit calib.calibration.markers makes: centres with
     the candidates' anisotropic noise S, fitted (θ and the nuisance together) by least
     squares that weighs every axis alike."""
     assert cands.prior is None  # an exact layout, or free centres

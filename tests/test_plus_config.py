@@ -1,4 +1,4 @@
-"""PLUS's own calibration files read as PLUS means them (calib/plus_config.py): fCal 2.0's
+"""PLUS's own calibration files read as PLUS means them (calib/files/plus_config.py): fCal 2.0's
 device set configuration (its N-wire phantom and coordinate definitions) and fCal's
 results file (ImageToProbe, reprojection errors, per-frame segmentation), from the real
 files in ../shared/data/plus; broken files are one line."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from calib.errors import DatasetError
-from calib.plus_config import read_plus_config, read_plus_results
+from calib.files.plus_config import read_plus_config, read_plus_results
 
 from .plus_data import (
     FCAL_CONFIG,
@@ -107,11 +107,11 @@ def test_a_configuration_that_is_not_one_or_defines_no_n_is_one_line(tmp_path, b
 @needs_plus_data
 @pytest.mark.slow  # detection on 190 real frames (≈ 5 s)
 def test_n_wires_are_found_where_plus_finds_them_without_a_threshold():
-    """uscal's threshold-free N-wire detection (calib/nwire.py) on fCal 2.0's 190 real
+    """uscal's threshold-free N-wire detection (calib/localize/nwire.py) on fCal 2.0's 190 real
     calibration frames, against PLUS's own segmentation of them: found in at least as
     many frames (PLUS: 184), and within a pixel of PLUS's points in the median."""
-    from calib.metafile import read_metafile
-    from calib.nwire import detect_nwires
+    from calib.files.metafile import read_metafile
+    from calib.localize.nwire import detect_nwires
 
     config, results = read_plus_config(CONFIG), read_plus_results(RESULTS)
     frames = read_metafile(PLUS_DATA / config.sequence_file).images
@@ -135,8 +135,8 @@ def test_n_wires_are_found_where_plus_finds_them_without_a_threshold():
 def test_the_middle_wire_point_follows_from_the_ratio_of_the_dots():
     """A plane cutting fCal 2.0's first N obliquely: the dots' ratio along their line
     gives back the diagonal's true crossing point (the N-wire construction)."""
-    from calib.nwire import middle_wire_point
-    from calib.plus_config import NWire, NWirePattern
+    from calib.files.plus_config import NWire, NWirePattern
+    from calib.localize.nwire import middle_wire_point
 
     wires = (
         NWire("a", np.array([30.0, 0, 20]) * MM, np.array([30.0, 40, 20]) * MM),

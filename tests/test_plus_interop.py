@@ -17,10 +17,10 @@ from bench.acquire_sim import make_twin
 from bench.config.scenario import load_scenario
 from bench.truth import transform_difference
 from calib import se3
-from calib.dataset_files import read_dataset
 from calib.errors import DatasetError
-from calib.metafile import read_metafile, read_sequence, write_sequence
-from calib.plus_import import plus_frames
+from calib.files.dataset import read_dataset
+from calib.files.metafile import read_metafile, read_sequence, write_sequence
+from calib.files.plus_import import plus_frames
 from calib.records import Sweep
 
 from .conftest import QUICK

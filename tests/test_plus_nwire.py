@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import yaml
 
-from calib.dataset_files import read_dataset
-from calib.plus_config import read_plus_results
+from calib.files.dataset import read_dataset
+from calib.files.plus_config import read_plus_results
 
 from .plus_data import (
     FCAL_CONFIG,

@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.errors import CollisionError, UnreachablePoseError
-from calib.planning import SweepPose, paper_poses
-from calib.protocol import (
+from calib.acquisition.planning import SweepPose, paper_poses
+from calib.acquisition.protocol import (
     PlannedSweep,
     ProtocolConfig,
     acquire,
@@ -18,6 +17,7 @@ from calib.protocol import (
     facing_pose,
     plan_sweeps,
 )
+from calib.errors import CollisionError, UnreachablePoseError
 from twin.phantoms import PhantomConfig
 from twin.robot import RobotConfig
 from twin.tools import ToolsConfig
@@ -84,7 +84,12 @@ def test_check_plan_names_the_failing_pose():
 
 
 def test_parallel_sweeps_share_one_travel_direction():
-    from calib.protocol import ProtocolConfig, facing_pose, plan_parallel_sweeps, plan_sweeps
+    from calib.acquisition.protocol import (
+        ProtocolConfig,
+        facing_pose,
+        plan_parallel_sweeps,
+        plan_sweeps,
+    )
 
     cfg = ProtocolConfig()
     X = se3.make(se3.matrix_from_euler(np.radians([91.0, -0.8, 1.5])), [0.8e-3, -1.2e-3, 0.158])
@@ -110,7 +115,7 @@ def test_an_interrupted_sweep_leaves_a_deferred_imager_clean():
     """A deferred imager (the twin's) notes frames and forms them after the sweep; when a
     move fails mid-sweep, the frames noted so far are formed and dropped, so the next
     sweep holds only its own frames."""
-    from calib.protocol import DeferredImager
+    from calib.acquisition.protocol import DeferredImager
     from calib.records import UsFrame
 
     class Reading:
@@ -157,7 +162,7 @@ def test_an_interrupted_sweep_leaves_a_deferred_imager_clean():
 
 
 def test_a_large_turn_between_sweeps_passes_through_transits():
-    from calib.protocol import transit
+    from calib.acquisition.protocol import transit
 
     T0 = se3.make(np.eye(3), [0.3, 0.1, 0.2])
     T1 = se3.make(se3.matrix_from_euler(np.radians([70.0, 0.0, 60.0])), [0.32, 0.08, 0.25])

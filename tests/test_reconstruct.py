@@ -1,4 +1,4 @@
-"""Cone/prism reconstruction building blocks (calib/reconstruct.py): boundary extraction
+"""Cone/prism reconstruction building blocks (calib/evaluation/reconstruct.py): boundary extraction
 on synthetic frames with known lines, ICP on a sampled CAD surface, Table III statistics."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from calib import se3
-from calib.reconstruct import (
+from calib.evaluation.reconstruct import (
     closest_points,
     distance_stats,
     extract_boundaries,
@@ -157,7 +157,7 @@ def test_boundaries_of_a_rendered_cone_lie_on_its_surface():
     the true kinematics and probe mount, lie on the true (printed) cone surface."""
     from bench.acquire_sim import make_imager, make_twin
     from bench.config.scenario import load_scenario
-    from calib.protocol import facing_pose
+    from calib.acquisition.protocol import facing_pose
 
     s = load_scenario(None, ["robot.dh_error_scale=0", "phantom.kind=cone"], check_reach=False)
     twin = make_twin(s)

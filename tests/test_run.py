@@ -44,7 +44,7 @@ def test_quick_end_to_end_meets_the_regression_limits(quick_metrics):
     assert single["n_retained"] >= 40
     three = m["calibration"]["three"]
     assert three["true_error"]["image_mm"] <= 0.5
-    # Both calibrations are sound and say so (calib/verdict.py).
+    # Both calibrations are sound and say so (calib/calibration/verdict.py).
     assert single["verdict"]["status"] == three["verdict"]["status"] == "accepted"
     # The coarse estimate really was coarse: calibration did the work.
     assert m["calibration"]["coarse_error"]["rotation_deg"] > 2.0
@@ -103,7 +103,7 @@ def test_localizing_spheres_on_threads_changes_nothing():
     by side: the same estimate, bit for bit, as one after the other."""
     from bench.acquire_sim import make_imager, make_twin, simulate_acquisition
     from bench.config.method import axial_scale
-    from calib.alternation import AlternationSettings, alternate
+    from calib.calibration.alternation import AlternationSettings, alternate
 
     sc = load_scenario(
         QUICK,

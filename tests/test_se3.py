@@ -113,7 +113,7 @@ def test_check_passes_rigid_transforms_and_batches():
 def test_the_method_refuses_a_wrong_matrix_where_it_enters():
     """A scaled mount or a reflected flange pose is refused by name at the localizer's and
     the calibration's entry, not found by the error it causes later."""
-    from calib.calibrate import Observation, calibrate
+    from calib.calibration.markers import Observation, calibrate
     from calib.errors import TransformError
     from calib.localize import LocalizerConfig, localize_sphere
     from calib.records import Sweep

@@ -23,7 +23,7 @@ from bench.summaries import (
     read_metrics,
 )
 from bench.tables import Column, Table, left, right
-from calib.evaluate import TABLE_ROWS, PaperTable
+from calib.evaluation.cross_validation import TABLE_ROWS, PaperTable
 
 
 def _printed(print_fn, summary) -> str:
@@ -244,7 +244,7 @@ def test_a_recorded_datasets_metrics_give_its_tables(quick_run):
 
 def _paper_metrics(sets=("A", "B")) -> dict:
     """The paper experiment's metrics.json sections the summaries read, figures
-    made up (as calib.evaluate and bench.jobs.paper_metrics shape them)."""
+    made up (as calib.evaluation.cross_validation and bench.jobs.paper_metrics shape them)."""
     rng = np.random.default_rng(7)
     cols = [*sets, "overall"]
 

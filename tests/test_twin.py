@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from calib import se3
+from calib.acquisition.protocol import facing_pose
 from calib.dh import forward_kinematics
 from calib.errors import CollisionError
-from calib.protocol import facing_pose
 from twin.phantoms import PhantomConfig
 from twin.robot import RobotConfig
 from twin.tools import ToolsConfig
@@ -189,7 +189,7 @@ def _acquire_two_sweeps(overrides: list[str], one_by_one: bool):
     from bench.acquire_sim import make_twin as make_scenario_twin
     from bench.config.scenario import load_scenario
     from bench.sessions import dataset_rngs, stage_rngs
-    from calib.protocol import acquire, plan_sweeps
+    from calib.acquisition.protocol import acquire, plan_sweeps
 
     sc = load_scenario("scenarios/quick.yaml", overrides, check_reach=False)
     rngs = dataset_rngs(sc, 0)

@@ -1,4 +1,4 @@
-"""95 % error bounds of a calibration (calib.uncertainty): positive and finite, in
+"""95 % error bounds of a calibration (calib.calibration.uncertainty): positive and finite, in
 proportion to the localization noise, growing with the declared print tolerance, never
 below the first-order figure, and covering the truth of quick-scenario runs."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.calibrate import Observation, calibrate
-from calib.uncertainty import UncertaintyInputs, bound95, image_grid, orientation_groups
+from calib.calibration.markers import Observation, calibrate
+from calib.calibration.uncertainty import UncertaintyInputs, bound95, image_grid, orientation_groups
 
 from .test_calibrate import T_EE_US_TRUE, observations
 

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from calib import se3
-from calib.plus_config import image_to_probe_mm, us_of_image_to_probe
+from calib.files.plus_config import image_to_probe_mm, us_of_image_to_probe
 
 from .test_cli import uscal_here
 

@@ -1,4 +1,4 @@
-"""The verdict on a calibration (calib/verdict.py): accepted, suspect or rejected, with
+"""The verdict on a calibration (calib/calibration/verdict.py): accepted, suspect or rejected, with
 reasons, from the alternation's convergence, the centres' agreement across views, the
 centres the fit kept and the user's requirements; on synthetic observations with known
 error sources, then on the twin (a wrong arm model) and through `uscal run`'s exit code."""
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from calib import se3
-from calib.alternation import AlternationResult
-from calib.calibrate import CalibrationResult, Observation
-from calib.verdict import BoundFigures, Requirements, judge, pose_agreement
+from calib.calibration.alternation import AlternationResult
+from calib.calibration.markers import CalibrationResult, Observation
+from calib.calibration.verdict import BoundFigures, Requirements, judge, pose_agreement
 
 from .test_cli import uscal
 from .test_run import QUICK
@@ -217,7 +217,7 @@ def test_an_alternation_that_does_not_converge_returns_the_mean_of_its_estimates
     moves at the fifth calibration (the localizations follow it back and forth). Where
     it stopped is as good as chance: the calibration is the mean of the estimates after
     the first (which stacks at the robot-measured spacing), and the verdict says so."""
-    import calib.alternation as alternation
+    import calib.calibration.alternation as alternation
     from bench.acquire_sim import make_twin
     from bench.config.scenario import load_scenario
     from bench.jobs.single import run

@@ -23,7 +23,7 @@ Array = NDArray[np.float64]
 
 
 class SimTouchGuide:
-    """Implements ``calib.protocol.TouchGuide`` on the twin.
+    """Implements ``calib.acquisition.protocol.TouchGuide`` on the twin.
 
     Parameters
     ----------

@@ -10,8 +10,13 @@ from typing import Protocol
 import numpy as np
 
 from calib import se3
+from calib.acquisition.protocol import (
+    ProtocolConfig,
+    facing_pose,
+    orientation_offsets,
+    rotated_about_target,
+)
 from calib.errors import ScenarioError, UnreachablePoseError
-from calib.protocol import ProtocolConfig, facing_pose, orientation_offsets, rotated_about_target
 from twin import PhantomConfig, RobotConfig, ToolsConfig
 from twin.ik import solve_ik
 from twin.phantoms import build_phantom, build_tank

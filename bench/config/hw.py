@@ -23,10 +23,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.dataset_files import AcquisitionInfo
+from calib.acquisition.planning import PlanningConfig
+from calib.acquisition.protocol import ProtocolConfig
 from calib.errors import ScenarioError
-from calib.planning import PlanningConfig
-from calib.protocol import ProtocolConfig
+from calib.files.dataset import AcquisitionInfo
 from hw.config import GrabberConfig, URRobotConfig
 from twin.phantoms import PhantomConfig, build_phantom
 

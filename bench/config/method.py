@@ -8,10 +8,10 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import NDArray
 
+from calib.calibration.uncertainty import UncertaintyInputs, image_grid
+from calib.calibration.verdict import Requirements
 from calib.pipeline import MethodInputs, MethodSettings, declared_uncertainty
 from calib.sound import speed_ratio
-from calib.uncertainty import UncertaintyInputs, image_grid
-from calib.verdict import Requirements
 from sim_us.beam import axial_fwhm_m
 
 from .scenario import Scenario, layout_sigma_mm
@@ -49,7 +49,7 @@ def axial_scale(scenario: Scenario) -> float:
 
 def image_points(scenario: Scenario, n: int = 21) -> Array:
     """An n × n grid of points (n², 3) covering the scenario's image, metres in the
-    ``us`` frame (:func:`calib.uncertainty.image_grid`)."""
+    ``us`` frame (:func:`calib.calibration.uncertainty.image_grid`)."""
     return image_grid(scenario.imaging.width_mm * 1e-3, scenario.imaging.depth_mm * 1e-3, n=n)
 
 
@@ -86,7 +86,7 @@ def method_inputs(
 
 def requirements(scenario: Scenario) -> Requirements:
     """What the scenario asks of its calibrations' 95 % bounds (the verdict's last
-    question; :mod:`calib.verdict`)."""
+    question; :mod:`calib.calibration.verdict`)."""
     return Requirements(
         scenario.calibration.require_image_mm, scenario.calibration.require_rotation_deg
     )

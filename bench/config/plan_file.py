@@ -14,7 +14,7 @@ names::
 
 At acquisition a sweep that no longer clears (another session's taught pose or mount
 moves the arm by millimetres) is replaced by the first spare of its sphere that does
-(:func:`calib.protocol.clear_sweeps`). Everything else in the file (how it was chosen,
+(:func:`calib.acquisition.protocol.clear_sweeps`). Everything else in the file (how it was chosen,
 what it predicts) is for the reader.
 Problems give one :class:`~calib.errors.ScenarioError` naming the file and the entry.
 """
@@ -29,9 +29,9 @@ from typing import Any
 
 import yaml
 
+from calib.acquisition.planning import SweepPose, paper_poses
+from calib.acquisition.protocol import ProtocolConfig
 from calib.errors import ScenarioError
-from calib.planning import SweepPose, paper_poses
-from calib.protocol import ProtocolConfig
 
 from ..files import write_text_atomic
 from .schema import read_yaml

@@ -24,13 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from calib.calibrate import CalibrationConfig
+from calib.acquisition.planning import PlanningConfig
+from calib.acquisition.protocol import ProtocolConfig
+from calib.calibration.markers import CalibrationConfig
 from calib.errors import ScenarioError
-from calib.evaluate import EvaluationConfig
+from calib.evaluation.cross_validation import EvaluationConfig
+from calib.evaluation.reconstruct import ReconstructionConfig
 from calib.localize import LocalizerConfig
-from calib.planning import PlanningConfig
-from calib.protocol import ProtocolConfig
-from calib.reconstruct import ReconstructionConfig
 from sim_us import MediumConfig, ProbeConfig
 from twin import PhantomConfig, RobotConfig, ToolsConfig
 

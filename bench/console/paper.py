@@ -10,7 +10,7 @@ from dataclasses import replace
 from rich.console import Console
 from rich.table import Table as RichTable
 
-from calib.evaluate import PaperTable
+from calib.evaluation.cross_validation import PaperTable
 
 from ..summaries import PaperEvaluation, Reconstruction
 from ..tables import Table
@@ -20,8 +20,9 @@ __all__ = ["paper_table", "print_evaluation", "print_reconstruction"]
 
 
 def paper_table(t: PaperTable, columns: Sequence[str] | None = None) -> RichTable:
-    """One of the paper's tables (:class:`calib.evaluate.PaperTable`) for the console;
-    ``columns`` replaces its column names (shorter ones for a narrow terminal)."""
+    """One of the paper's tables (:class:`calib.evaluation.cross_validation.PaperTable`)
+    for the console; ``columns`` replaces its column names (shorter ones for a narrow
+    terminal)."""
     return rich_table(Table.from_paper(t, columns))
 
 

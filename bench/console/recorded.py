@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from rich.console import Console
 
-from calib.plus_import import ImportSummary
+from calib.files.plus_import import ImportSummary
 
 from ..jobs.nwire import NWireRun
 from ..summaries import RecordedSummary

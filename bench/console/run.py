@@ -19,7 +19,7 @@ _STYLE = {"accepted": "green", "suspect": "yellow", "rejected": "bold red"}
 
 
 def print_verdicts(calibrations: Iterable[CalibrationSummary], console: Console) -> None:
-    """Each calibration's verdict, one line with its reasons (:mod:`calib.verdict`)."""
+    """Each calibration's verdict, one line with its reasons (:mod:`calib.calibration.verdict`)."""
     for c in calibrations:
         if c.verdict is not None:
             v = c.verdict

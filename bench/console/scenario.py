@@ -124,7 +124,8 @@ def print_plan_comparison(c, scenario: Scenario, console: Console) -> None:
     table = Table(
         title="predicted for localization noise "
         f"{noise[0]:g} / {noise[1]:g} / {noise[2]:g} mm (lateral / axial / elevation, 1 σ) "
-        f"and the arm's {scenario.planning.pose_noise_mm:g} mm, fitted as calib.calibrate fits"
+        f"and the arm's {scenario.planning.pose_noise_mm:g} mm, "
+        "fitted as calib.calibration.markers fits"
     )
     for col in ("plan", "sweeps", "rot° 1σ", "mm 1σ", "image mm", "cond.", "robot time"):
         table.add_column(col, justify="left" if col == "plan" else "right")

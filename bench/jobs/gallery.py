@@ -18,8 +18,8 @@ from matplotlib.figure import Figure
 from skimage import io as skio
 
 from calib import se3
+from calib.acquisition.protocol import rotated_about_target
 from calib.image import pixel_to_us
-from calib.protocol import rotated_about_target
 
 from ..acquire_sim import make_imager, make_twin, teach_at
 from ..config.geometry import lateral_axis

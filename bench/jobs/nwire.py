@@ -1,7 +1,7 @@
 """``uscal calibrate`` of an N-wire dataset (``uscal import plus --config``, or a robot
 rig's N-wire acquisition): uscal's own wire detection on every frame, ``T_ee_us`` (PLUS's
 ``ImageToProbe``) with the pixel scale and, without a tracked phantom, the phantom's pose
-(:mod:`calib.nwire_calibration`), its bounds and verdict; and ``uscal run`` of an N-wire
+(:mod:`calib.calibration.nwire`), its bounds and verdict; and ``uscal run`` of an N-wire
 scenario, the same on the twin's acquisition scored against its truth. Written by
 :mod:`bench.outputs.nwire_files`."""
 
@@ -15,9 +15,7 @@ from typing import Any
 import numpy as np
 
 from calib import se3
-from calib.dataset_files import AcquisitionInfo
-from calib.image import pixel_to_us
-from calib.nwire_calibration import (
+from calib.calibration.nwire import (
     NWireCalibration,
     NWireObservations,
     NWireVerdict,
@@ -28,8 +26,10 @@ from calib.nwire_calibration import (
     observe_nwires,
     plus_error_mm,
 )
+from calib.calibration.verdict import Requirements
+from calib.files.dataset import AcquisitionInfo
+from calib.image import pixel_to_us
 from calib.records import Dataset
-from calib.verdict import Requirements
 from sim_us.materials import medium_material
 
 from ..acquire_sim import acquisition_info
@@ -74,7 +74,7 @@ def calibrate_nwire_dataset(
 ) -> NWireRun:
     """Detect, calibrate and judge (see the module doc). ``wire_tolerance_m`` and
     ``axial_bias_m``: the declared errors of the bounds (the phantom's build tolerance,
-    the echoes' depth bias; :func:`calib.nwire_calibration.calibrate_nwire`)."""
+    the echoes' depth bias; :func:`calib.calibration.nwire.calibrate_nwire`)."""
     assert info.nwire is not None
     t0 = time.perf_counter()
     images, poses = dataset_frames(dataset)

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.evaluate import (
+from calib.evaluation.cross_validation import (
     TABLE_III_METHODS,
     format_table_iii_csv,
     format_table_iii_markdown,
@@ -86,7 +86,7 @@ def run_evaluation(
     """The paper's experiment: touches, leave-one-out DH, folds, Tables I and II; the
     reconstruction (Table III). ``recording``: a rerun recording of it
     (:mod:`bench.recording`). ``save_dataset``: a directory that receives each dataset's
-    acquisition, touches included, as ``<dir>/<name>`` (:mod:`calib.dataset_files`)."""
+    acquisition, touches included, as ``<dir>/<name>`` (:mod:`calib.files.dataset`)."""
     say = progress or (lambda _msg: None)
     # The run's scratch directory: the printed parts its processes share (built once,
     # read by every worker), and the re-calibration scan's frames. Removed at the end.

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
+from calib.calibration.uncertainty import alternation_bound
 from calib.dh import DHTable
 from calib.kinematics import (
     TouchReference,
@@ -24,7 +25,6 @@ from calib.kinematics import (
 )
 from calib.pipeline import run_folds
 from calib.records import Touch
-from calib.uncertainty import alternation_bound
 from twin.imager import acoustic_scene
 from twin.world import GroundTruth
 

@@ -1,7 +1,7 @@
 """The paper experiment's ``metrics.json`` from its parts: the first dataset's
 localization and calibrations (with their errors against the truth), every fold, the
 leave-one-out kinematics and what of the DH model the touches can observe, and Tables I
-and II as summaries (:class:`calib.evaluate.Summary`)."""
+and II as summaries (:class:`calib.evaluation.cross_validation.Summary`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from calib.evaluate import (
+from calib.calibration.verdict import BoundFigures, judge
+from calib.evaluation.cross_validation import (
     FoldResult,
     Summary,
     summarize,
@@ -18,7 +19,6 @@ from calib.kinematics import (
     TouchReference,
     identifiability,
 )
-from calib.verdict import BoundFigures, judge
 
 from ..acquire_sim import coarse_estimate
 from ..config.method import requirements

@@ -13,14 +13,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib import se3
-from calib.observability import (
+from calib.acquisition.observability import (
     Observability,
     information,
     jacobians,
     observability,
     planned_observations,
 )
-from calib.protocol import check_plan, plan_sweeps
+from calib.acquisition.protocol import check_plan, plan_sweeps
 
 from ..acquire_sim import acquisition_targets, coarse_estimate, make_twin, teach_at
 from ..config.geometry import lateral_axis

@@ -1,5 +1,5 @@
 """``uscal plan --optimize``: choose the sweeps that determine ``T_ee_us`` best for the
-robot time (:mod:`calib.planning`), where the arm can actually put the probe.
+robot time (:mod:`calib.acquisition.planning`), where the arm can actually put the probe.
 
 For each sphere of the plan: teach the nominal pose (emulated as the session's
 acquisition teaches it, its teaching error included: a rig plans from its taught pose),
@@ -15,7 +15,7 @@ with the taught pose and the coarse mount another day may bring (the stated teac
 error and coarse-mount error, drawn as the twin draws a session's), and the plan keeps
 ``planning.spares`` spare sweeps per sphere (the next-best, clear in the same sessions)
 that an acquisition puts in place of a sweep that no longer clears
-(:func:`calib.protocol.clear_sweeps`). The paper's plan is scored the same way beside
+(:func:`calib.acquisition.protocol.clear_sweeps`). The paper's plan is scored the same way beside
 it, and both are timed as the twin's controller would move (trapezoidal profiles at the
 configured speeds, settle and grab per frame).
 """
@@ -29,8 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.errors import UscalError
-from calib.planning import (
+from calib.acquisition.planning import (
     Candidates,
     Criterion,
     PlanPrediction,
@@ -41,7 +40,8 @@ from calib.planning import (
     select_sweeps,
     sweep_scores,
 )
-from calib.protocol import PlannedSweep, check_plan, default_poses, plan_sweeps
+from calib.acquisition.protocol import PlannedSweep, check_plan, default_poses, plan_sweeps
+from calib.errors import UscalError
 from twin.arm_errors import trapezoid_time_s
 from twin.robot import RobotConfig
 
@@ -175,9 +175,10 @@ def _unclear_in(scenario, twin, sessions, s: PlanSphere, poses: Sequence[SweepPo
 
 
 def _clear_elsewhere(scenario, twin, sessions, found):
-    """``admissible(k)`` of :func:`calib.planning.select_sweeps`: candidate ``k``'s first,
-    middle and last frames keep the clearance in every other session (asked of the few
-    candidates the selection would take, not of all of them; remembered)."""
+    """``admissible(k)`` of :func:`calib.acquisition.planning.select_sweeps`: candidate
+    ``k``'s first, middle and last frames keep the clearance in every other session
+    (asked of the few candidates the selection would take, not of all of them;
+    remembered)."""
     need = scenario.planning.clearance_mm * 1e-3
     memo: dict[int, bool] = {}
 
@@ -202,7 +203,7 @@ def _spares(
     scenario, twin, spheres, sessions, found, cands: Candidates, chosen, criterion, M, admissible
 ) -> dict[str, tuple[SweepPose, ...]]:
     """Per sphere, ``planning.spares`` candidates best first: by what each adds to the
-    plan (:func:`calib.planning.sweep_scores`; a spare stands in for one sweep, not
+    plan (:func:`calib.acquisition.planning.sweep_scores`; a spare stands in for one sweep, not
     beside the others), every frame clear here and in the other sessions."""
     want = scenario.planning.spares
     out: dict[str, tuple[SweepPose, ...]] = {}
@@ -315,7 +316,7 @@ def optimize_plan(
                 "fewer sweeps"
             ) from None
         # Every frame from the taught joint angles, as the acquisition checks the plan
-        # before it moves (calib.protocol.check_plan) ...
+        # before it moves (calib.acquisition.protocol.check_plan) ...
         bad = {k for k in dict.fromkeys(chosen_idx) if not clear(scenario, twin, found[k][2])}
         if not bad:
             # ... and along the way it then moves: in acquisition order, with the

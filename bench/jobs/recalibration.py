@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from calib import se3
-from calib.alternation import AlternationSettings, alternate
+from calib.calibration.alternation import AlternationSettings, alternate
 from calib.dh import DHTable
-from calib.evaluate import TABLE_III_METHODS
+from calib.evaluation.cross_validation import TABLE_III_METHODS
 from calib.kinematics import kinematic_gauge, with_kinematics
 from calib.localize import localize_sphere
 

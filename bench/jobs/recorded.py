@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.dataset_files import read_dataset
+from calib.files.dataset import read_dataset
 from calib.pipeline import FoldRun, calibrate_dataset, fold_summary, residual_rms_mm
 
 from ..acquire_sim import make_twin

@@ -14,12 +14,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.alternation import AlternationResult
+from calib.calibration.alternation import AlternationResult
+from calib.calibration.uncertainty import UncertaintyInputs, alternation_bound
 from calib.errors import UscalError
 from calib.kinematics import DHRefinement, with_kinematics
 from calib.localize import localize_sphere
 from calib.pipeline import calibrate_markers, residual_rms_mm, touch_kinematics
-from calib.uncertainty import UncertaintyInputs, alternation_bound
 from twin.imager import acoustic_scene
 
 from ..acquire_sim import (
@@ -175,7 +175,7 @@ def run(
     leave-one-dataset-out DH refinement, folds, Tables I and II); otherwise one
     acquisition calibrated with the controller's kinematics. ``recording`` writes a
     rerun recording of it (:mod:`bench.recording`). ``save_dataset``: a directory to write
-    the acquisition to in the dataset format (:mod:`calib.dataset_files`), which
+    the acquisition to in the dataset format (:mod:`calib.files.dataset`), which
     ``uscal calibrate`` reads back (the paper's experiment: one per dataset,
     ``<dir>/<name>``, with its touches). ``until``: acquire sequentially, each next sweep
     the most informative, until the predicted bounds are reached (:mod:`bench.sequential`;

@@ -33,10 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from calib.alternation import AlternationSettings, alternate
+from calib.calibration.alternation import AlternationSettings, alternate
+from calib.calibration.verdict import judge
 from calib.errors import UscalError
 from calib.localize import localize_sphere
-from calib.verdict import judge
 
 from .. import progress as progress_report
 from ..acquire_sim import make_imager, make_twin, simulate_acquisition
@@ -342,7 +342,7 @@ class SweepRow:
     # centres it dropped as outliers.
     calibration_false_acceptances: int | None = None
     calibration_dropped: int | None = None
-    # The calibrate stage: the calibration's verdict (calib.verdict, without a bound).
+    # The calibrate stage: the calibration's verdict (calib.calibration.verdict, without a bound).
     calibration_verdict: str | None = None
 
     @classmethod

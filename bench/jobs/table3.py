@@ -35,17 +35,22 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.dh import DHTable, forward_kinematics
-from calib.evaluate import TABLE_III_METHODS
-from calib.image import pixel_to_us
-from calib.kinematics import kinematic_gauge
-from calib.protocol import (
+from calib.acquisition.protocol import (
     acquire,
     check_plan,
     plan_parallel_sweeps,
     plan_sweeps,
 )
-from calib.reconstruct import distance_stats, extract_boundaries, register_icp, surface_distances
+from calib.dh import DHTable, forward_kinematics
+from calib.evaluation.cross_validation import TABLE_III_METHODS
+from calib.evaluation.reconstruct import (
+    distance_stats,
+    extract_boundaries,
+    register_icp,
+    surface_distances,
+)
+from calib.image import pixel_to_us
+from calib.kinematics import kinematic_gauge
 from twin.imager import acoustic_scene
 from twin.phantoms import build_phantom
 

@@ -15,8 +15,8 @@ import numpy as np
 import yaml
 
 from calib import se3
+from calib.acquisition.protocol import touch_plan
 from calib.errors import ScenarioError
-from calib.protocol import touch_plan
 from twin.scene import export_scene
 from twin.touch import SimTouchGuide
 from twin.ur_controller import ControllerFaults, LoopbackController

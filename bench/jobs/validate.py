@@ -32,10 +32,7 @@ import numpy as np
 import yaml
 
 from calib import se3
-from calib.dataset_files import read_dataset
-from calib.errors import DatasetError
-from calib.localize import localize_sphere
-from calib.nwire_calibration import (
+from calib.calibration.nwire import (
     dataset_frames,
     dataset_spacing_m,
     image_points_in_base,
@@ -44,8 +41,11 @@ from calib.nwire_calibration import (
     plus_error_mm,
     reprojection_errors_mm,
 )
+from calib.errors import DatasetError
+from calib.files.dataset import read_dataset
+from calib.files.plus_config import read_plus_config, read_plus_results, us_of_image_to_probe
+from calib.localize import localize_sphere
 from calib.pipeline import axial_scale
-from calib.plus_config import read_plus_config, read_plus_results, us_of_image_to_probe
 
 from ..config.scenario import Scenario
 
@@ -133,7 +133,7 @@ def _validate_nwire(dataset, info, calibration: GivenCalibration) -> Validation:
         )
     A = calibration.image_to_probe_mm
     # Either side of the image may be the marked one: the reading the calibration
-    # agrees with is kept (:func:`calib.nwire_calibration.calibrate_either_side`).
+    # agrees with is kept (:func:`calib.calibration.nwire.calibrate_either_side`).
     best = None
     for mirrored in (False, True):
         o = observations_of(obs.detections, info.nwire.patterns, spacing_mm, mirrored=mirrored)

@@ -12,8 +12,8 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.dh import DHTable
-from calib.evaluate import METHOD_TITLES
-from calib.plus_config import image_to_probe_mm
+from calib.evaluation.cross_validation import METHOD_TITLES
+from calib.files.plus_config import image_to_probe_mm
 
 from ..config.scenario import Scenario
 from ..results import RunResult

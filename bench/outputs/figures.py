@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.alternation import AlternationResult
-from calib.evaluate import METHOD_TITLES, PHANTOM_TITLES, TABLE_III_METHODS
-from calib.observability import information, jacobians
+from calib.acquisition.observability import information, jacobians
+from calib.calibration.alternation import AlternationResult
+from calib.evaluation.cross_validation import METHOD_TITLES, PHANTOM_TITLES, TABLE_III_METHODS
 
 from ..results import PhantomReconstruction
 from ..snapshot import LocalizationSnapshot
@@ -127,7 +127,7 @@ def convergence_figure(alternations: Mapping[str, AlternationResult], path: str 
 
 def observability_eigenvalues(alt: AlternationResult) -> Array:
     """Eigenvalues (descending) of the information matrix of the retained observations
-    about the estimate: each sphere's point constraint, summed (calib.observability)."""
+    about the estimate: each sphere's point constraint, summed (calib.acquisition.observability)."""
     obs = [o for o, keep in zip(alt.observations, alt.result.retained, strict=True) if keep]
     H = np.zeros((6, 6))
     for target in sorted({o.target for o in obs}):

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.nwire_calibration import NWireCalibration
+from calib.calibration.nwire import NWireCalibration
 
 from ..jobs.nwire import NWireRun
 from .calibration_doc import _Dumper, _pose_doc

@@ -18,7 +18,7 @@ import numpy as np
 from markdown_it import MarkdownIt
 from numpy.typing import NDArray
 
-from calib.evaluate import METHOD_TITLES
+from calib.evaluation.cross_validation import METHOD_TITLES
 
 from ..config.scenario import Scenario
 from ..results import RunResult

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
 from calib import se3
-from calib.alternation import AlternationResult
+from calib.calibration.alternation import AlternationResult
 from calib.localize import LocalizerConfig, SweepLocalization, frame_offsets, sphere_profile
 from calib.records import Sweep
 

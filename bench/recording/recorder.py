@@ -44,7 +44,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from calib import se3
-from calib.alternation import AlternationResult
+from calib.calibration.alternation import AlternationResult
 from calib.image import pixel_to_us, sphere_section, us_to_pixel
 
 from .options import RecordingOptions

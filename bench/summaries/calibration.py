@@ -88,7 +88,7 @@ class Uncertainty:
 
     @classmethod
     def from_metrics(cls, d: Mapping[str, Any]) -> Uncertainty:
-        """A calibration's ``uncertainty`` (:meth:`calib.uncertainty.Bound95.details`
+        """A calibration's ``uncertainty`` (:meth:`calib.calibration.uncertainty.Bound95.details`
         and the declared terms), or ``{}``: each part may be missing."""
         views = d.get("views")
         return cls(
@@ -100,7 +100,7 @@ class Uncertainty:
 
 @dataclass(frozen=True)
 class VerdictSummary:
-    """A calibration's verdict (:mod:`calib.verdict`): ``accepted``, ``suspect`` or
+    """A calibration's verdict (:mod:`calib.calibration.verdict`): ``accepted``, ``suspect`` or
     ``rejected``, and why."""
 
     status: str
@@ -108,7 +108,7 @@ class VerdictSummary:
 
     @classmethod
     def from_metrics(cls, d: Mapping[str, Any]) -> VerdictSummary:
-        """A calibration's ``verdict`` (:meth:`calib.verdict.Verdict.as_dict`)."""
+        """A calibration's ``verdict`` (:meth:`calib.calibration.verdict.Verdict.as_dict`)."""
         return cls(str(d["status"]), tuple(str(r) for r in d.get("reasons", ())))
 
     def line(self) -> str:

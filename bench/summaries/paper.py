@@ -2,9 +2,9 @@
 the twin's ground truth with Tables I and II (:class:`PaperEvaluation`), and the
 reconstruction with Table III (:class:`Reconstruction`). Each is built from the metrics
 in one place, its ``from_metrics``, which says which keys are optional and why. The
-paper's tables themselves are :class:`calib.evaluate.PaperTable` (made by
-:func:`calib.evaluate.tables_i_ii` and :func:`calib.evaluate.table_iii` from the same
-figures)."""
+paper's tables themselves are :class:`calib.evaluation.cross_validation.PaperTable` (made by
+:func:`calib.evaluation.cross_validation.tables_i_ii` and
+:func:`calib.evaluation.cross_validation.table_iii` from the same figures)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.evaluate import PaperTable, table_iii, tables_i_ii
+from calib.evaluation.cross_validation import PaperTable, table_iii, tables_i_ii
 
 from ..tables import Table, left, right
 from .calibration import ErrorFigures
@@ -37,7 +37,7 @@ __all__ = [
 class FoldTruth:
     """One fold of the paper's cross-validation against the twin's truth: the mean
     error of its ``T_ee_us`` over the image and its accuracy against the true centres,
-    and the verdict the pipeline gave it (:mod:`calib.verdict`)."""
+    and the verdict the pipeline gave it (:mod:`calib.calibration.verdict`)."""
 
     fold: str
     dataset: str
@@ -185,7 +185,7 @@ class DistanceStats:
 
     @classmethod
     def from_metrics(cls, d: Mapping[str, Any]) -> DistanceStats:
-        """``{mae, sd, rmse, max[, without_icp]}`` (:func:`calib.reconstruct.
+        """``{mae, sd, rmse, max[, without_icp]}`` (:func:`calib.evaluation.reconstruct.
         distance_stats`); ``without_icp`` only where the true placement is known."""
         without = d.get("without_icp")
         return cls(

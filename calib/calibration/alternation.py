@@ -14,8 +14,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from . import se3
-from .calibrate import (
+from .. import se3
+from ..errors import CalibrationError
+from ..localize import (
+    LocalizerConfig,
+    SweepLocalization,
+    apparent_sphere_radius,
+    localize_sphere,
+)
+from ..records import Sweep
+from .markers import (
     CalibrationResult,
     Observation,
     calibrate,
@@ -23,14 +31,6 @@ from .calibrate import (
     centroid_distances_mm,
     consensus_initialisation,
 )
-from .errors import CalibrationError
-from .localize import (
-    LocalizerConfig,
-    SweepLocalization,
-    apparent_sphere_radius,
-    localize_sphere,
-)
-from .records import Sweep
 
 __all__ = ["AlternationResult", "AlternationSettings", "alternate"]
 
@@ -188,7 +188,7 @@ class AlternationSettings:
         The estimate has converged when it changes by less than both.
     layout_sigma_mm : float
         The phantom's print tolerance (1 σ per axis of a sphere centre; see
-        :func:`calib.calibrate.calibrate`); 0 takes the CAD layout as exact.
+        :func:`calib.calibration.markers.calibrate`); 0 takes the CAD layout as exact.
     threads : int
         Spheres localized side by side (the localizer's kernels release the GIL).
     """
@@ -224,7 +224,7 @@ def alternate(
     if the closed form lands far from it, a start from the coarse estimate is tried too
     and the lower loss wins. Each re-localization searches around the previous centres.
     ``cad_centres`` (sphere name → (3,) metres, phantom frame) are used with two or more
-    spheres (:func:`calib.calibrate.calibrate`).
+    spheres (:func:`calib.calibration.markers.calibrate`).
     """
     localizer = settings.localizer
     layout_sigma_mm = settings.layout_sigma_mm

@@ -29,12 +29,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from . import se3
-from .dataset_files import AcquisitionInfo, DatasetWriter
-from .errors import DatasetError
+from .. import se3
+from ..errors import DatasetError
+from ..records import Sweep
+from .dataset import AcquisitionInfo, DatasetWriter
 from .metafile import Metafile, read_metafile
 from .plus_config import NWirePhantom, PlusConfig
-from .records import Sweep
 
 __all__ = [
     "NWIRE_TARGET",

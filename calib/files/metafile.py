@@ -3,8 +3,8 @@ status, timestamp and joint angles, as PLUS and 3D Slicer read and write them.
 
 :func:`write_sequence` writes one sweep (atomically); :func:`read_metafile` is the one
 reader of a metafile's header and frames (B-mode orientations MF/MN/UF/UN, zlib), under
-:func:`read_sequence` (a sweep of a uscal dataset, :mod:`calib.dataset_files`) and the
-PLUS import (:mod:`calib.plus_import`). Reading never executes anything: a text header
+:func:`read_sequence` (a sweep of a uscal dataset, :mod:`calib.files.dataset`) and the
+PLUS import (:mod:`calib.files.plus_import`). Reading never executes anything: a text header
 of ``key = value`` lines and raw bytes; every check that fails raises one
 :class:`DatasetError` naming the file and what is wrong.
 
@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from . import se3
-from .errors import DatasetError, TransformError
-from .records import Sweep
+from .. import se3
+from ..errors import DatasetError, TransformError
+from ..records import Sweep
 
 __all__ = [
     "Metafile",

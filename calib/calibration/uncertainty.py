@@ -1,6 +1,6 @@
 """95 % error bounds of an estimated ``T_ee_us`` from the data it rests on.
 
-The first-order covariance of :func:`calib.calibrate.calibrate` (Jacobian and residual
+The first-order covariance of :func:`calib.calibration.markers.calibrate` (Jacobian and residual
 variance) treats every localized centre as independent noise. Two kinds of error break
 that: errors that depend on the pose and so are shared by the sweeps of one view (a
 localization bias that depends on how the sphere is seen, the kinematic model's
@@ -46,10 +46,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtri, stdtrit
 
-from . import se3
+from .. import se3
+from ..image import pixel_to_us
 from .alternation import AlternationResult
-from .calibrate import CalibrationResult, Observation
-from .image import pixel_to_us
+from .markers import CalibrationResult, Observation
 
 __all__ = [
     "Bound95",
@@ -108,7 +108,7 @@ class Bound95:
     """95 % error bounds of a ``T_ee_us`` estimate and what they were made of.
 
     ``covariance`` (6, 6) is of (rotation vector in the ee frame, rad; translation, m) of
-    ``T_ee_us``, as :class:`calib.calibrate.CalibrationResult`'s; ``terms`` the 1 σ of
+    ``T_ee_us``, as :class:`calib.calibration.markers.CalibrationResult`'s; ``terms`` the 1 σ of
     rotation and translation (rss over the axes, degrees and mm) of each part.
     """
 

@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from . import se3
-from .errors import DatasetError
+from .. import se3
+from ..errors import DatasetError
 
 __all__ = [
     "NWire",

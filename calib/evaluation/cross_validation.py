@@ -30,12 +30,12 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from . import se3
-from .alternation import AlternationResult, AlternationSettings, alternate
-from .calibrate import centres_in_base, robust_inliers
-from .errors import CalibrationError
-from .localize import LocalizerConfig, SweepLocalization, localize_sphere
-from .records import Sweep
+from .. import se3
+from ..calibration.alternation import AlternationResult, AlternationSettings, alternate
+from ..calibration.markers import centres_in_base, robust_inliers
+from ..errors import CalibrationError
+from ..localize import LocalizerConfig, SweepLocalization, localize_sphere
+from ..records import Sweep
 
 __all__ = [
     "METHOD_TITLES",

@@ -2,10 +2,10 @@
 standard phantom through the same questions the sphere method answers — what ``T_ee_us``
 is, how sure we are of it, and whether to use it.
 
-Each frame in which :func:`calib.nwire.detect_nwires` finds every pattern gives one
+Each frame in which :func:`calib.localize.nwire.detect_nwires` finds every pattern gives one
 point per pattern whose position is known in two frames: in the image (the diagonal
 wire's dot, pixels) and in the phantom (where the image plane cuts the diagonal,
-:func:`calib.nwire.middle_wire_point`, from the ratio of the dots' distances along
+:func:`calib.localize.nwire.middle_wire_point`, from the ratio of the dots' distances along
 their line). With the probe's pose ``T_base_ee`` per frame (a tracker's
 ``ProbeToReference``, or a robot's flange pose) the calibration solves, over every such
 point ``i`` of frame ``k``,
@@ -33,7 +33,7 @@ estimates the layout's; a tracker measures it, PLUS's ``Phantom`` → ``Referenc
    halves' answers differ by 1.2 mm over the image, which blocks of ten frames would
    call impossible) against the first-order covariance, the larger in every direction,
    Student-t widened; the 95 % bounds of rotation, translation and the mean error over
-   the image; and a verdict as :mod:`calib.verdict` gives the sphere method's.
+   the image; and a verdict as :mod:`calib.calibration.verdict` gives the sphere method's.
 """
 
 from __future__ import annotations
@@ -50,14 +50,14 @@ from scipy.optimize import least_squares
 from scipy.special import ndtri, stdtrit
 from scipy.stats import chi2
 
-from . import se3
-from .dataset_files import AcquisitionInfo
-from .errors import CalibrationError
-from .image import pixel_axes
-from .nwire import NWireDetection, detect_nwires, middle_wire_point
-from .pipeline import axial_scale
-from .plus_config import NWirePattern, image_to_probe_mm
-from .records import Dataset
+from .. import se3
+from ..errors import CalibrationError
+from ..files.dataset import AcquisitionInfo
+from ..files.plus_config import NWirePattern, image_to_probe_mm
+from ..image import pixel_axes
+from ..localize.nwire import NWireDetection, detect_nwires, middle_wire_point
+from ..pipeline import axial_scale
+from ..records import Dataset
 from .uncertainty import _dominating, image_grid
 from .verdict import (
     DEFAULT_IMAGE_MM,
@@ -494,7 +494,7 @@ def calibrate_nwire(
     cov = cov * widen
     # The information about the mount (θ = rotation rad, translation mm) with the
     # nuisances (phantom pose, scale) profiled out: its conditioning, as
-    # calib.observability states a sphere plan's.
+    # calib.acquisition.observability states a sphere plan's.
     J_raw = _jacobian(lambda x: model.residuals(x), fit.x)
     J_raw[:, 3:6] *= 1e-3
     H = J_raw.T @ J_raw
@@ -642,7 +642,7 @@ class NWireVerdict:
 
 
 def judge_nwire(cal: NWireCalibration, requirements: Requirements | None = None) -> NWireVerdict:
-    """The verdict of an N-wire calibration, on the questions :mod:`calib.verdict` asks
+    """The verdict of an N-wire calibration, on the questions :mod:`calib.calibration.verdict` asks
     of a sphere calibration that apply to it: did the fit converge; do the data
     determine ``T_ee_us`` (bound within 10° / 10 mm); do the points agree as their own
     scatter predicts (outliers at most a tenth); is the bound what the user asked (or

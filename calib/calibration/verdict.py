@@ -56,9 +56,9 @@ from numpy.typing import NDArray
 from scipy import stats
 from scipy.optimize import least_squares
 
-from . import se3
+from .. import se3
 from .alternation import AlternationResult, AlternationSettings
-from .calibrate import centres_in_base
+from .markers import centres_in_base
 from .uncertainty import Bound95, orientation_groups
 
 __all__ = [
@@ -80,7 +80,7 @@ _MM = 1e3
 @dataclass(frozen=True)
 class BoundFigures:
     """A 95 % bound's three figures, as ``metrics.json``'s ``bound95`` keeps them (where
-    the :class:`calib.uncertainty.Bound95` itself was made elsewhere)."""
+    the :class:`calib.calibration.uncertainty.Bound95` itself was made elsewhere)."""
 
     rotation_deg: float
     translation_mm: float

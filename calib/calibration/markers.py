@@ -32,9 +32,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from . import se3
-from .errors import CalibrationError
-from .robust import outlier_limit, robust_inliers
+from .. import se3
+from ..errors import CalibrationError
+from ..robust import outlier_limit, robust_inliers
 
 __all__ = [
     "CalibrationConfig",

@@ -21,10 +21,10 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import se3
-from .errors import CollisionError, UnreachablePoseError
+from .. import se3
+from ..errors import CollisionError, UnreachablePoseError
+from ..records import RobotReading, Sweep, Touch, UsFrame
 from .planning import SweepPose, paper_poses, sweep_commands
-from .records import RobotReading, Sweep, Touch, UsFrame
 
 __all__ = [
     "DeferredImager",
@@ -265,7 +265,7 @@ class DeferredImager(Protocol):
 @dataclass(frozen=True)
 class PlannedSweep:
     """One sweep of the plan: flange commands for its frames, and where it was placed
-    relative to the taught pose (:class:`calib.planning.SweepPose`)."""
+    relative to the taught pose (:class:`calib.acquisition.planning.SweepPose`)."""
 
     target: str
     pose_id: int
@@ -292,7 +292,7 @@ def plan_sweeps(
     poses: Sequence[SweepPose] | None = None,
 ) -> list[PlannedSweep]:
     """The sweeps about one sphere: the paper's 9 orientations × 5 positions, or the
-    ``poses`` of a chosen plan (:mod:`calib.planning`).
+    ``poses`` of a chosen plan (:mod:`calib.acquisition.planning`).
 
     The taught pose puts the sphere on the image centre line at ``target_depth_mm`` as the
     coarse ``T_ee_us`` predicts it; orientations turn about that point, positions shift the

@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from .plus_config import NWirePattern
+from ..files.plus_config import NWirePattern
 
 __all__ = ["NWireDetection", "detect_nwires", "middle_wire_point"]
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import se3
+from .. import se3
 
 __all__ = [
     "Observability",

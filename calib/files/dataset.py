@@ -43,7 +43,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import DatasetError
+from ..errors import DatasetError
+from ..records import Dataset, Sweep, Touch
 from .metafile import (
     atomic_file,
     checked_rigid,
@@ -53,7 +54,6 @@ from .metafile import (
     write_sequence,
 )
 from .plus_config import NWirePhantom
-from .records import Dataset, Sweep, Touch
 
 __all__ = [
     "FORMAT",

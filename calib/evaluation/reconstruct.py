@@ -34,8 +34,8 @@ from skimage.filters import gaussian, threshold_otsu
 from skimage.measure import LineModelND, label
 from skimage.morphology import isotropic_closing
 
-from . import se3
-from .image import pixel_to_us
+from .. import se3
+from ..image import pixel_to_us
 
 __all__ = [
     "Boundary",

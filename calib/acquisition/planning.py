@@ -6,7 +6,7 @@ A sweep is placed relative to the taught nominal pose (:class:`SweepPose`): turn
 the target by three angles about the image axes, then shifted in its image plane, as the
 paper's plan does with its 9 orientations × 5 positions (:func:`paper_poses`). Each sweep
 yields one localized centre; its information about θ = (ω rad, t mm) of ``T_ee_us`` is
-that of :mod:`calib.observability`, whitened by the localizer's noise in the image frame
+that of :mod:`calib.acquisition.observability`, whitened by the localizer's noise in the image frame
 (anisotropic: laterally under a hundredth of a millimetre, axially one or two, in elevation
 about five hundredths, :class:`NoiseModel`).
 
@@ -35,7 +35,7 @@ the image's points, so that rotation and translation are weighed by what a user 
 - ``A``: minimize the predicted mean squared image error, trace(M H⁻¹);
 - ``E``: minimize its worst direction, λ_max(M^½ H⁻¹ M^½).
 
-The prediction (:func:`predict`) is the spread of the fit :mod:`calib.calibrate` makes,
+The prediction (:func:`predict`) is the spread of the fit :mod:`calib.calibration.markers` makes,
 which weighs every axis alike: the sandwich N⁻¹ (Σ Jᵀ S J) N⁻¹ of that least squares
 under the anisotropic noise S, a little above H⁻¹ (the noise-weighted fit's); the noise
 is the localizer's and the arm's pose noise, added.
@@ -50,7 +50,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import se3
+from .. import se3
 from .observability import jacobians
 
 __all__ = [
@@ -232,7 +232,7 @@ def paper_poses(
 ) -> list[SweepPose]:
     """The paper's 45 sweeps about one sphere: the nominal orientation and the eight
     (±r, ±r, ±r) corners, each at the nominal position and the four (±t, ±t) in-plane
-    corners (the order of :func:`calib.protocol.plan_sweeps`). ``tilt_deg``: the corners
+    corners (the order of :func:`calib.acquisition.protocol.plan_sweeps`). ``tilt_deg``: the corners
     about the image's lateral axis at ± this instead (None: ± r)."""
     r, t = float(rotation_deg), float(translation_mm)
     tx = r if tilt_deg is None else float(tilt_deg)
@@ -311,7 +311,7 @@ class Candidates:
     targets' positions, or the phantom's pose), and each sweep's target. ``G``, ``D`` are
     the same Jacobians unwhitened (mm) and ``S`` (n, 3, 3) each centre's noise
     covariance in the base frame (mm²): what :func:`predict` needs for the spread of
-    the fit :mod:`calib.calibrate` makes, which weighs every axis alike."""
+    the fit :mod:`calib.calibration.markers` makes, which weighs every axis alike."""
 
     A: Array
     B: Array
@@ -574,7 +574,7 @@ class PlanPrediction:
 
 
 def _fit_covariance(cands: Candidates, chosen: Sequence[int]) -> Array:
-    """(6, 6) covariance of θ as :func:`calib.calibrate.calibrate` estimates it: least
+    """(6, 6) covariance of θ as :func:`calib.calibration.markers.calibrate` estimates it: least
     squares of the centres' base-frame residuals, every axis weighed alike, under the
     anisotropic noise ``S`` — the sandwich N⁻¹ (Σ Jᵀ S J) N⁻¹, N = Σ JᵀJ. It exceeds the
     inverse information (the efficient, noise-weighted fit) the more the plan turns the
