@@ -32,7 +32,7 @@ from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
-from .config.geometry import lateral_axis
+from .config.geometry import WIRED, lateral_axis
 from .config.method import stated_radius
 from .config.plan_file import spare_poses, sphere_poses, sweeps_about
 from .config.scenario import Scenario
@@ -167,8 +167,8 @@ def teach_at(
 def acquisition_targets(scenario: Scenario) -> list[str]:
     """What an acquisition sweeps: the protocol's spheres, or the N-wire phantom's
     patterns (one target, ``nwire``, at their centre)."""
-    if scenario.phantom.kind == "nwire":
-        return ["nwire"]
+    if scenario.phantom.kind in WIRED:
+        return [scenario.phantom.kind]
     return [f"sphere_{i}" for i in scenario.protocol.spheres]
 
 

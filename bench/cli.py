@@ -30,6 +30,7 @@ from twin.ur_controller import ControllerFaults
 from .acquire_rig import acquire_dataset, console_operator, dashboard_operator
 from .cli_parser import parser
 from .config.docs import scenarios_markdown
+from .config.geometry import WIRED
 from .config.hw import load_hw_config
 from .config.method import requirements, scenario_uncertainty
 from .config.plan_file import write_plan
@@ -177,7 +178,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     out = Path(args.out or scenario.output.dir)
     if args.save_dataset:
         check_new_directory(args.save_dataset, "--save-dataset")
-    if scenario.phantom.kind == "nwire":
+    if scenario.phantom.kind in WIRED:
         return _run_nwire(args, scenario, out, console)
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
@@ -213,8 +214,8 @@ def _run_nwire(args: argparse.Namespace, scenario, out: Path, console: Console) 
             result = run(scenario, None, None, args.save_dataset)
         written = write_nwire(tmp, result.nwire)
     print_nwire(result.nwire, console)
-    e = result.metrics["calibration"]["nwire"]["true_error"]
-    covers = result.metrics["calibration"]["nwire"]["bound_covers"]
+    cal = result.metrics["calibration"][scenario.phantom.kind]
+    e, covers = cal["true_error"], cal["bound_covers"]
     outside = [k for k, v in covers.items() if not v]
     console.print(
         f"against the twin's truth: {e['rotation_deg']:.3f}°, {e['translation_mm']:.3f} mm, "

@@ -1,25 +1,25 @@
 """Which phantom should I print? The paper's comparison of calibration targets as an
-experiment (issue "N-wire and wire targets", item 5): a printed sphere and the field's
-N-wire phantom (PLUS's fCal 2.0 geometry, nylon wire) on the same twin rig — the same
+experiment (issue "N-wire and wire targets", item 5): a printed sphere, a single wire
+and the field's N-wire phantom (PLUS's fCal 2.0 geometry, nylon wire; the single wire
+through its centre, between the same plates) on the same twin rig — the same
 arm, probe (a 50 × 50 mm image), water, and the same error sources drawn at random for
 each run: gain, water temperature, teaching error, the phantom's print tolerance, the
 scenario's seed (arm noise, coarse mount, speckle). Each target runs its own protocol
 for the same number of sweeps and frames (the paper's 45 sweeps of 21 frames; the
-N-wire's tilt about the lateral axis kept to 3°, as its wires' echoes need), and the
-robot time of each is reported.
+wires' tilt about the lateral axis kept to 3°, as their echoes need), and the robot time
+of each is reported.
 
 Per run (``uscal run`` on the twin, :func:`bench.jobs.single.run`): the true rotation,
 translation and mean image error of ``T_ee_us`` (the N-wire's with its fitted pixel
 scale), the 95 % bound over the image and whether it covers the truth, the verdict, the
 conditioning of the information the data hold about the mount (its condition number:
-the sphere's centres with their sphere's position unknown, the N-wire's points with the
+the sphere's centres with their sphere's position unknown, the wires' points with the
 phantom's pose and the scale unknown), and what was not used (sweeps rejected by the
-localizer, frames without every wire). The single wire and the cone tip are not yet
-targets of the pipeline: they are listed as such, not guessed.
+localizer, frames without every wire). The cone tip is not yet a target of the
+pipeline: it is listed as such, not guessed.
 
-Last line: ``runs=<n> sphere_image_mm=<median> nwire_image_mm=<median>
-sphere_rotation_deg=<median> nwire_rotation_deg=<median> sphere_covered=<share>
-nwire_covered=<share>``.
+Last line: ``runs=<n>`` then, per target (sphere, wire, nwire), ``<target>_image_mm``,
+``<target>_rotation_deg`` (medians) and ``<target>_covered`` (share).
 
 Run: python benchmarks/targets.py [--runs 6] [--seed 0] [--workers 2] [--json FILE]
 """
@@ -46,9 +46,12 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 SPHERE = ROOT / "scenarios" / "quick.yaml"
 NWIRE = ROOT / "scenarios" / "nwire.yaml"
+WIRE = ROOT / "scenarios" / "wire.yaml"
+TARGETS = ("sphere", "wire", "nwire")
+SCENARIO = {"sphere": SPHERE, "wire": WIRE, "nwire": NWIRE}
 #: The same probe for both targets: wide enough for the N-wire patterns.
 PROBE = {"imaging.width_mm": 50.0, "imaging.depth_mm": 50.0, "imaging.pixel_spacing_mm": [0.2, 0.2]}
-NOT_YET = ("single wire", "cone tip")
+NOT_YET = ("cone tip",)
 
 
 def draw(rng: np.random.Generator, k: int) -> dict[str, Any]:
@@ -71,7 +74,7 @@ def _run(target: str, conditions: dict[str, Any]) -> dict[str, Any]:
     overrides = [f"{k}={json.dumps(v)}" for k, v in {**conditions, **PROBE}.items()]
     if target == "sphere":
         overrides += ["protocol.spheres=[1]"]
-    scenario = load_scenario(str(SPHERE if target == "sphere" else NWIRE), overrides)
+    scenario = load_scenario(str(SCENARIO[target]), overrides)
     t0 = time.perf_counter()
     result = run(scenario)
     m = result.metrics
@@ -93,7 +96,7 @@ def _run(target: str, conditions: dict[str, Any]) -> dict[str, Any]:
             f"{m['localization']['n_sweeps']} sweeps",
         }
     else:
-        cal = m["calibration"]["nwire"]
+        cal = m["calibration"][target]
         out |= {
             "true_error": cal["true_error"],
             "bound_image_mm": cal["bound95"]["image_mm"],
@@ -115,7 +118,7 @@ def main() -> None:
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     conditions = [draw(rng, k) for k in range(args.runs)]
-    jobs = [(t, c) for c in conditions for t in ("sphere", "nwire")]
+    jobs = [(t, c) for c in conditions for t in TARGETS]
     t0 = time.perf_counter()
     ctx = multiprocessing.get_context("spawn")
     with cf.ProcessPoolExecutor(args.workers, mp_context=ctx) as pool:
@@ -129,14 +132,14 @@ def main() -> None:
     for k, r in enumerate(results):
         e = r["true_error"]
         print(
-            f"{r['target']:7s} {k // 2:3d} {r['robot_time_s']:8.0f} {e['rotation_deg']:7.3f} "
+            f"{r['target']:7s} {k // len(TARGETS):3d} {r['robot_time_s']:8.0f} {e['rotation_deg']:7.3f} "
             f"{e['translation_mm']:8.3f} {e['image_mm']:8.3f} {r['bound_image_mm']:6.2f} "
             f"{'yes' if r['covered'] else 'NO':>4s} {r['condition_number']:8.1f} "
             f"{r['verdict']:>9s}  {r['not_used']}"
         )
     summary: dict[str, float] = {}
     print("\nmedian (spread) over the rigs:")
-    for target in ("sphere", "nwire"):
+    for target in TARGETS:
         mine = [r for r in results if r["target"] == target]
         for key in ("rotation_deg", "translation_mm", "image_mm"):
             v = np.array([r["true_error"][key] for r in mine])
@@ -150,12 +153,13 @@ def main() -> None:
             json.dumps({"conditions": conditions, "runs": results}, indent=2)
         )
     print(
-        f"runs={len(results)} sphere_image_mm={summary['sphere_image_mm']:.3f} "
-        f"nwire_image_mm={summary['nwire_image_mm']:.3f} "
-        f"sphere_rotation_deg={summary['sphere_rotation_deg']:.3f} "
-        f"nwire_rotation_deg={summary['nwire_rotation_deg']:.3f} "
-        f"sphere_covered={summary['sphere_covered']:.2f} "
-        f"nwire_covered={summary['nwire_covered']:.2f}"
+        f"runs={len(results)} "
+        + " ".join(
+            f"{t}_image_mm={summary[f'{t}_image_mm']:.3f} "
+            f"{t}_rotation_deg={summary[f'{t}_rotation_deg']:.3f} "
+            f"{t}_covered={summary[f'{t}_covered']:.2f}"
+            for t in TARGETS
+        )
     )
 
 

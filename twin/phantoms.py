@@ -50,6 +50,7 @@ __all__ = [
     "build_phantom",
     "build_tank",
     "nwire_patterns",
+    "single_wire",
     "phantom_pair",
 ]
 
@@ -64,12 +65,13 @@ _HULL_VERTICES = 20_000  # vertices of a printed part's collision hull at most
 class PhantomConfig:
     """The phantom in the tank: which one, where (truth), its CAD and its tolerance."""
 
-    kind: Literal["spheres", "cone", "prism", "nwire"] = field(
+    kind: Literal["spheres", "cone", "prism", "nwire", "wire"] = field(
         default="spheres",
         metadata={
-            "doc": "Phantom in the tank: four-sphere calibration phantom, cone, prism, or "
+            "doc": "Phantom in the tank: four-sphere calibration phantom, cone, prism, "
             "the N-wire phantom (PLUS's fCal 2.0 geometry: three N patterns of wires "
-            "between two printed end plates)."
+            "between two printed end plates), or a single wire (one straight wire between "
+            "the same plates, through the N patterns' centre)."
         },
     )
     position_mm: tuple[float, float, float] = field(
@@ -117,7 +119,7 @@ class PhantomConfig:
     wire_diameter_mm: float = field(
         default=0.3,
         metadata={
-            "doc": "N-wire phantom: the wires' diameter (nylon fishing line 0.2-0.5 mm).",
+            "doc": "N-wire and single-wire phantoms: the wires' diameter (nylon fishing line 0.2-0.5 mm).",
             "gt": 0.02,
             "le": 2,
         },
@@ -125,7 +127,7 @@ class PhantomConfig:
     wire_material: Literal["nylon", "steel"] = field(
         default="nylon",
         metadata={
-            "doc": "N-wire phantom: the wires' material (steel rings: a comet tail under "
+            "doc": "N-wire and single-wire phantoms: the wires' material (steel rings: a comet tail under "
             "each wire)."
         },
     )
@@ -486,15 +488,28 @@ def nwire_patterns(cfg: PhantomConfig | None = None) -> tuple[tuple[str, Array, 
     )
 
 
+def single_wire(cfg: PhantomConfig | None = None) -> tuple[tuple[str, Array, Array], ...]:
+    """The single-wire phantom's wire as (name, front, back), CAD frame, metres: along y
+    through the N patterns' centre, between the same end plates."""
+    del cfg
+    ends = np.array([p for _, f, b in nwire_patterns() for p in (f, b)])
+    centre = (ends.min(axis=0) + ends.max(axis=0)) / 2
+    half = np.array([0.0, (ends[:, 1].max() - ends[:, 1].min()) / 2, 0.0])
+    return (("wire", centre - half, centre + half),)
+
+
 def _build_nwire(cfg: PhantomConfig, wires: tuple[tuple[str, Array, Array], ...]) -> Phantom:
-    """Two end plates the wires pass between, on a base plate; landmarks ``nwire`` (the
-    patterns' centre, where the probe is taught) and each wire's ends."""
+    """Two end plates the wires pass between, on a base plate; landmarks ``nwire`` (or
+    ``wire``: the wires' centre, where the probe is taught) and each wire's ends. The
+    plates span the N-wire phantom's width whatever the wires (one print for both)."""
     ends = np.array([p for _, f, b in wires for p in (f, b)])
     lo, hi = ends.min(axis=0), ends.max(axis=0)
+    frame = np.array([p for _, f, b in nwire_patterns() for p in (f, b)])
+    lo_x, hi_x = frame[:, 0].min(), frame[:, 0].max()
     t = _NWIRE_PLATE_MM * 1e-3
     base_t = cfg.plate_thickness_mm * 1e-3
     margin = 0.01
-    x0, x1 = lo[0] - margin, hi[0] + margin
+    x0, x1 = lo_x - margin, hi_x + margin
     z1 = hi[2] + 0.003  # the plates stop just above the top wires: the probe sweeps over them
     parts = [
         PhantomPart(
@@ -517,12 +532,12 @@ def _build_nwire(cfg: PhantomConfig, wires: tuple[tuple[str, Array, Array], ...]
                 "pla",
             )
         )
-    landmarks = {"nwire": (lo + hi) / 2}
+    landmarks = {cfg.kind: (lo + hi) / 2}
     for name, f, b in wires:
         landmarks[f"{name}_front"], landmarks[f"{name}_back"] = f.copy(), b.copy()
     d = cfg.wire_diameter_mm * 1e-3
     return Phantom(
-        "nwire",
+        cfg.kind,
         tuple(parts),
         landmarks,
         wires=tuple(PhantomWire(n, f, b, d, cfg.wire_material) for n, f, b in wires),
@@ -584,10 +599,11 @@ def build_phantom(cfg: PhantomConfig, rng: np.random.Generator | None = None) ->
             for i, (c, r) in enumerate(zip(g.centres, g.radii, strict=True))
         ]
         return _build_spheres(g, printed)
-    if cfg.kind == "nwire":
+    if cfg.kind in ("nwire", "wire"):
         # The wires' ends where the plates' holes put them (the print's position
         # tolerance); the plates themselves are not imaged.
-        wires = tuple((n, jitter(f, tol_p), jitter(b, tol_p)) for n, f, b in nwire_patterns(cfg))
+        cad = nwire_patterns(cfg) if cfg.kind == "nwire" else single_wire(cfg)
+        wires = tuple((n, jitter(f, tol_p), jitter(b, tol_p)) for n, f, b in cad)
         return _build_nwire(cfg, wires)
     on = rng is not None and (prints.surface or prints.shape)
     if cfg.kind == "cone":

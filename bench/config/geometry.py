@@ -43,19 +43,31 @@ class World(Protocol):
     def protocol(self) -> ProtocolConfig: ...
 
 
+#: The phantoms of wires: the N-wire phantom and the single wire (one target each, at
+#: their wires' centre, the probe taught across the wires).
+WIRED = ("nwire", "wire")
+
+
 def _targets(s: World) -> dict[str, np.ndarray]:
     """Imaging targets of the phantom in base (CAD at the true pose)."""
     phantom = build_phantom(s.phantom)
     marks = phantom.landmarks_in(s.phantom.T_base_phantom)
-    keep = {"spheres": "sphere_", "cone": "apex", "prism": "ridge_", "nwire": "nwire"}
+    keep = {
+        "spheres": "sphere_",
+        "cone": "apex",
+        "prism": "ridge_",
+        "nwire": "nwire",
+        "wire": "wire",
+    }
     return {k: v for k, v in marks.items() if k.startswith(keep[s.phantom.kind]) and (
-        s.phantom.kind != "nwire" or k == "nwire")}  # fmt: skip
+        s.phantom.kind not in WIRED or k == s.phantom.kind)}  # fmt: skip
 
 
 def lateral_axis(phantom: PhantomConfig) -> np.ndarray:
     """The image's lateral axis (base frame) the probe is taught with: across the wires of
-    an N-wire phantom (its x: the image plane cuts every wire), base y otherwise."""
-    if phantom.kind == "nwire":
+    an N-wire or single-wire phantom (its x: the image plane cuts every wire), base y
+    otherwise."""
+    if phantom.kind in WIRED:
         return phantom.T_base_phantom[:3, 0].copy()
     return np.array([0.0, 1.0, 0.0])
 

@@ -59,10 +59,12 @@ def print_import(summary: ImportSummary, console: Console) -> None:
 def print_nwire(run: NWireRun, console: Console) -> None:
     """``uscal calibrate`` of an N-wire dataset: detection, calibration, verdict."""
     m, cal = run.metrics, run.calibration
-    det, e = m["detection"], m["calibration"]["nwire"]["reprojection_3d_mm"]
+    kind = m["dataset"]["target"]
+    det, e = m["detection"], m["calibration"][kind]["reprojection_3d_mm"]
     console.print(
-        f"dataset {run.dataset.name} (N-wire, phantom pose {m['dataset']['phantom_pose']}): "
-        f"{m['dataset']['n_frames']} frames, every pattern found in {det['frames_found']}",
+        f"dataset {run.dataset.name} ({'N-wire' if kind == 'nwire' else 'single wire'}, "
+        f"phantom pose {m['dataset']['phantom_pose']}): "
+        f"{m['dataset']['n_frames']} frames, every wire found in {det['frames_found']}",
         highlight=False,
     )
     for reason, n in list(det["refused"].items())[:3]:
@@ -72,8 +74,9 @@ def print_nwire(run: NWireRun, console: Console) -> None:
     console.print(
         f"pixel spacing {sx:.5f} × {sy:.5f} mm"
         + (" (fitted)" if cal.scale_estimated else "")
-        + f"; 3-D reprojection error {e['plus_mean']:.3f} ± {e['plus_sd']:.3f} mm (PLUS's "
-        f"definition); 95 % bound {b['rotation_deg']:.2f}°, {b['translation_mm']:.2f} mm, "
+        + f"; {'3-D reprojection error' if kind == 'nwire' else 'error across the wire'} "
+        f"{e['plus_mean']:.3f} ± {e['plus_sd']:.3f} mm (PLUS's statistic); "
+        f"95 % bound {b['rotation_deg']:.2f}°, {b['translation_mm']:.2f} mm, "
         f"{b['image_mm']:.2f} mm over the image",
         highlight=False,
     )

@@ -51,9 +51,13 @@ def gallery_poses() -> list[GalleryPose]:
 
 
 def _target(scenario: Scenario, landmarks: dict[str, np.ndarray]) -> tuple[str, np.ndarray]:
-    name = {"spheres": "sphere_1", "cone": "apex", "prism": "ridge_start", "nwire": "nwire"}[
-        scenario.phantom.kind
-    ]
+    name = {
+        "spheres": "sphere_1",
+        "cone": "apex",
+        "prism": "ridge_start",
+        "nwire": "nwire",
+        "wire": "wire",
+    }[scenario.phantom.kind]
     point = landmarks[name]
     if scenario.phantom.kind == "prism":  # the middle of the ridge
         point = (landmarks["ridge_start"] + landmarks["ridge_end"]) / 2

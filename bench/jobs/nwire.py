@@ -26,10 +26,14 @@ from calib.calibration.nwire import (
     observe_nwires,
     plus_error_mm,
 )
+from calib.calibration.targets import TargetModel, calibrate_targets, nominal_xy
 from calib.calibration.verdict import Requirements
+from calib.errors import UscalError
 from calib.files.dataset import AcquisitionInfo
 from calib.image import pixel_to_us
+from calib.localize.nwire import detect_wire
 from calib.records import Dataset
+from calib.targets import TargetObservations, WireTarget
 from sim_us.materials import medium_material
 
 from ..acquire_sim import acquisition_info
@@ -39,6 +43,7 @@ from ..truth import equivalent_mount, transform_difference
 __all__ = [
     "NWireRun",
     "calibrate_nwire_dataset",
+    "calibrate_wire_dataset",
     "run_nwire",
 ]
 
@@ -97,7 +102,6 @@ def calibrate_nwire_dataset(
         axial_bias_m=axial_bias_m,
     )
     verdict = judge_nwire(cal, requirements)
-    mean, sd = plus_error_mm(cal.errors_mm)
     metrics: dict[str, Any] = {
         "dataset": {
             "path": str(path),
@@ -121,40 +125,176 @@ def calibrate_nwire_dataset(
             "marked_side": "last wire first" if mirrored else "first wire first",
             "ms_per_frame": t_detect / max(len(images), 1) * 1e3,
         },
-        "calibration": {
-            "nwire": {
-                "T_ee_us": cal.T_ee_us.tolist(),
-                "plus_ImageToProbe_mm": cal.image_to_probe_mm().tolist(),
-                "spacing_fitted_mm": [v * _MM for v in cal.spacing_m],
-                "scale_estimated": cal.scale_estimated,
-                "scale": list(cal.scale),
-                "T_base_phantom": cal.T_base_phantom.tolist(),
-                "reprojection_3d_mm": {
-                    "plus_mean": mean,
-                    "plus_sd": sd,
-                    "mean": float(cal.errors_mm.mean()),
-                    "median": float(np.median(cal.errors_mm)),
-                    "p95": float(np.percentile(cal.errors_mm, 95)),
-                    "note": "PLUS's statistic: mean and SD below the 95th percentile",
-                },
-                "bound95": cal.bound95,
-                "covariance_rotvec_rad_translation_m_scale": cal.covariance.tolist(),
-                "jackknife_blocks": cal.blocks,
-                "information": {
-                    "eigenvalues": cal.information_eigenvalues.tolist(),
-                    "condition_number": _condition(cal.information_eigenvalues),
-                    "note": "about the mount (rotation rad, translation mm), the phantom "
-                    "pose and scale profiled out",
-                },
-                "outliers": cal.outliers,
-                "converged": cal.converged,
-                "solver": cal.message,
-                "verdict": verdict.as_dict(),
-                "seconds": cal.seconds,
-            }
-        },
+        "calibration": {"nwire": _calibration_metrics(cal, verdict)},
         "timing_s": {"detection": t_detect, "total": time.perf_counter() - t0},
     }
+    return NWireRun(dataset, info, Path(path), obs, cal, verdict, metrics)
+
+
+def _calibration_metrics(cal: NWireCalibration, verdict: NWireVerdict) -> dict[str, Any]:
+    mean, sd = plus_error_mm(cal.errors_mm)
+    return {
+        "T_ee_us": cal.T_ee_us.tolist(),
+        "plus_ImageToProbe_mm": cal.image_to_probe_mm().tolist(),
+        "spacing_fitted_mm": [v * _MM for v in cal.spacing_m],
+        "scale_estimated": cal.scale_estimated,
+        "scale": list(cal.scale),
+        "T_base_phantom": cal.T_base_phantom.tolist(),
+        "reprojection_3d_mm": {
+            "plus_mean": mean,
+            "plus_sd": sd,
+            "mean": float(cal.errors_mm.mean()),
+            "median": float(np.median(cal.errors_mm)),
+            "p95": float(np.percentile(cal.errors_mm, 95)),
+            "note": "PLUS's statistic: mean and SD below the 95th percentile",
+        },
+        "bound95": cal.bound95,
+        "covariance_rotvec_rad_translation_m_scale": cal.covariance.tolist(),
+        "jackknife_blocks": cal.blocks,
+        "information": {
+            "eigenvalues": cal.information_eigenvalues.tolist(),
+            "condition_number": _condition(cal.information_eigenvalues),
+            "note": "about the mount (rotation rad, translation mm), the phantom "
+            "pose and scale profiled out",
+        },
+        "outliers": cal.outliers,
+        "converged": cal.converged,
+        "solver": cal.message,
+        "verdict": verdict.as_dict(),
+        "seconds": cal.seconds,
+    }
+
+
+def _wire_start(obs: TargetObservations, target: WireTarget, T_k, T_X0, width_px, spacing):
+    """Where a single wire's fit starts: the dots through the coarse mount, the line
+    through them (their principal axis: the sweeps move along the wire) taken for the
+    wire's CAD line (the phantom's pose about and along the wire is not needed)."""
+    xy = nominal_xy(obs.pixel, width_px, spacing)
+    P_us = np.column_stack([xy, np.zeros(len(xy))])
+    T = T_k[obs.frame] @ T_X0
+    pts = np.einsum("nij,nj->ni", T[:, :3, :3], P_us) + T[:, :3, 3]
+    centre = pts.mean(axis=0)
+    axis = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+    d = target.direction
+    if axis @ d < 0:
+        axis = -axis
+    v, c = np.cross(d, axis), float(d @ axis)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    R = np.eye(3) + K + K @ K / (1.0 + c)  # the least rotation taking d onto the axis
+    mid = (np.asarray(target.front) + np.asarray(target.back)) / 2
+    return se3.make(R, centre - R @ mid)
+
+
+def _wire_tolerance(obs: TargetObservations, target: WireTarget, tolerance: float):
+    """The build tolerance as declared errors: each coordinate of each wire end at 1 σ,
+    moving the line where each observation meets it (by its place along the wire)."""
+
+    def columns(model: TargetModel, x):
+        if tolerance <= 0:
+            return None
+        _, T_P, _ = model.unpack(x)
+        image, _ = model.points(x)
+        local = se3.apply(se3.invert(T_P), image)
+        front, back = np.asarray(target.front), np.asarray(target.back)
+        s = ((local - front) @ target.direction) / np.linalg.norm(back - front)
+        cols = []
+        for weight in (1.0 - s, s):  # the front end, the back end
+            for axis in range(3):
+                delta = np.zeros((len(s), 3))
+                delta[:, axis] = weight * tolerance
+                cols.append(model.shift_columns(x, delta))
+        return np.column_stack(cols)
+
+    return columns
+
+
+def calibrate_wire_dataset(
+    dataset: Dataset,
+    info: AcquisitionInfo,
+    path: str | Path,
+    requirements: Requirements,
+    *,
+    estimate_scale: bool = True,
+    wire_tolerance_m: float = 0.0,
+    axial_bias_m: float = 0.0,
+) -> NWireRun:
+    """A single wire's dataset: the wire's dot in every frame
+    (:func:`calib.localize.nwire.detect_wire`), then ``T_ee_us``, the pixel scale and the
+    wire's pose (:func:`calib.calibration.targets.calibrate_targets`, the wire's two
+    constraints per frame), from the coarse mount as start; its bounds and verdict."""
+    front, back = info.landmarks.get("wire_front"), info.landmarks.get("wire_back")
+    if front is None or back is None:
+        raise UscalError("a single-wire dataset names its wire's ends (wire_front, wire_back)")
+    target = WireTarget("wire", front, back)
+    t0 = time.perf_counter()
+    images, poses = dataset_frames(dataset)
+    spacing = dataset_spacing_m(dataset, info)
+    spacing_mm = (spacing[0] * _MM, spacing[1] * _MM)
+    detections = tuple(detect_wire(f, spacing_mm) for f in images)
+    found = [k for k, d in enumerate(detections) if d.ok]
+    t_detect = time.perf_counter() - t0
+    obs = NWireObservations(
+        np.array(found, dtype=int),
+        np.zeros(len(found), dtype=int),
+        np.array([detections[k].points["wire"] for k in found], dtype=float).reshape(-1, 2),
+        np.tile(np.asarray(front, dtype=float), (len(found), 1)),
+        detections,
+        None,
+        np.array([detections[k].skew["wire"] for k in found], dtype=float),
+    )
+    tobs = TargetObservations(
+        obs.frame, obs.pattern, obs.pixel, obs.phantom_point, obs.skew, obs.refusals()
+    )
+    H, W = images.shape[1:]
+    start = None
+    if len(found):
+        start = (
+            info.T_ee_us_coarse,
+            _wire_start(tobs, target, poses, info.T_ee_us_coarse, W, spacing),
+        )
+    cal = calibrate_targets(
+        tobs,
+        [target],
+        poses,
+        width_px=W,
+        height_px=H,
+        spacing_m=spacing,
+        start=start,
+        estimate_scale=estimate_scale,
+        declared=_wire_tolerance(tobs, target, wire_tolerance_m),
+        axial_bias_m=axial_bias_m,
+    )
+    verdict = judge_nwire(cal, requirements)
+    metrics: dict[str, Any] = {
+        "dataset": {
+            "path": str(path),
+            "name": dataset.name,
+            "source": info.source,
+            "target": "wire",
+            "n_sequences": len(dataset.sweeps),
+            "n_frames": len(images),
+            "patterns": 1,
+            "phantom_pose": f"estimated ({cal.phantom_dof} of its 6 directions: a lone "
+            "wire's pose along and about itself is not seen)",
+        },
+        "image": {
+            "width_px": int(W),
+            "height_px": int(H),
+            "spacing_m": [float(v) for v in spacing],
+        },
+        "detection": {
+            "frames_found": obs.frames_used,
+            "points": len(obs.frame),
+            "refused": dict(obs.refusals().most_common()),
+            "ms_per_frame": t_detect / max(len(images), 1) * 1e3,
+        },
+        "calibration": {"wire": _calibration_metrics(cal, verdict)},
+        "timing_s": {"detection": t_detect, "total": time.perf_counter() - t0},
+    }
+    metrics["calibration"]["wire"]["reprojection_3d_mm"]["note"] = (
+        "for a wire: each dot's distance from the wire across it (mean and SD below the "
+        "95th percentile, as PLUS states its 3-D error)"
+    )
     return NWireRun(dataset, info, Path(path), obs, cal, verdict, metrics)
 
 
@@ -170,7 +310,9 @@ def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
     info = acquisition_info(scenario, twin, acq.T_ee_us_coarse)
     inputs = scenario_uncertainty(scenario)
     t_sim = time.perf_counter() - t_start
-    result = calibrate_nwire_dataset(
+    kind = scenario.phantom.kind
+    calibrate = calibrate_wire_dataset if kind == "wire" else calibrate_nwire_dataset
+    result = calibrate(
         acq.dataset,
         info,
         "(twin acquisition)",
@@ -206,11 +348,9 @@ def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
         "robot_time_s": acq.robot_time_s,
         "replaced": [r.line() for r in acq.replaced],
     }
-    m["calibration"]["nwire"]["true_error"] = error
-    m["calibration"]["nwire"]["bound_covers"] = covered
-    m["calibration"]["nwire"]["coarse_error"] = transform_difference(
-        acq.T_ee_us_coarse, truth.T_ee_us
-    )
+    m["calibration"][kind]["true_error"] = error
+    m["calibration"][kind]["bound_covers"] = covered
+    m["calibration"][kind]["coarse_error"] = transform_difference(acq.T_ee_us_coarse, truth.T_ee_us)
     m["timing_s"]["simulate"] = t_sim
     m["timing_s"]["total"] = time.perf_counter() - t_start
     return replace(result, path=Path(scenario.output.dir), metrics=m)

@@ -30,6 +30,7 @@ from ..acquire_sim import (
     simulate_touches,
 )
 from ..acquire_sim import save_dataset as save_dataset_files
+from ..config.geometry import WIRED
 from ..config.method import (
     axial_scale,
     image_points,
@@ -199,7 +200,7 @@ def run(
         acq = simulate_acquisition(scenario, twin, imager, progress="acquire sweeps")
     else:
         acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
-    if scenario.phantom.kind == "nwire":
+    if scenario.phantom.kind in WIRED:
         nwire = run_nwire(scenario, twin, acq, t_start)
         if save_dataset is not None:
             save_dataset_files(save_dataset, scenario, twin, acq)

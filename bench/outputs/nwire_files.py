@@ -37,8 +37,20 @@ def plus_coordinate_definition(cal: NWireCalibration, error_mm: float) -> str:
     )
 
 
+_PHANTOM = {"nwire": "N-wire phantom", "wire": "single wire"}
+_ERROR = {
+    "nwire": "3-D reprojection error (PLUS's definition)",
+    "wire": "error across the wire (PLUS's statistic)",
+}
+
+
+def _kind(run: NWireRun) -> str:
+    """``nwire`` or ``wire``: which wires the calibration rests on."""
+    return str(run.metrics["dataset"]["target"])
+
+
 def _document(run: NWireRun) -> dict[str, Any]:
-    cal, m = run.calibration, run.metrics["calibration"]["nwire"]
+    cal, m = run.calibration, run.metrics["calibration"][_kind(run)]
     mean, sd = m["reprojection_3d_mm"]["plus_mean"], m["reprojection_3d_mm"]["plus_sd"]
     std = np.sqrt(np.clip(np.diag(cal.covariance), 0.0, None))
     return {
@@ -50,7 +62,10 @@ def _document(run: NWireRun) -> dict[str, Any]:
         ),
         "dataset": str(run.path),
         "method": "N-wire phantom: threshold-free wire detection, closed form and robust "
-        "least squares of the 3-D wire-point distances",
+        "least squares of the 3-D wire-point distances"
+        if _kind(run) == "nwire"
+        else "single wire: threshold-free dot detection, robust least squares of each dot's "
+        "distance across the wire, the wire's pose estimated with T_ee_us",
         "verdict": run.verdict.as_dict(),
         "T_ee_us": _pose_doc(cal.T_ee_us),
         "uncertainty_1sigma": {
@@ -77,7 +92,10 @@ def _document(run: NWireRun) -> dict[str, Any]:
             "sd": round(sd, 4),
             "note": "PLUS's definition: distance between each diagonal-wire point and "
             "its image point mapped through the calibration and the pose; mean and SD "
-            "of the errors below their 95th percentile",
+            "of the errors below their 95th percentile"
+            if _kind(run) == "nwire"
+            else "each dot's distance from the wire across it, mapped through the "
+            "calibration and the pose; mean and SD below their 95th percentile",
         },
         "image": {
             "width_px": cal.width_px,
@@ -101,14 +119,14 @@ def _document(run: NWireRun) -> dict[str, Any]:
 
 def _report(run: NWireRun, figure: str | None) -> str:
     cal, m = run.calibration, run.metrics
-    e = m["calibration"]["nwire"]["reprojection_3d_mm"]
+    e = m["calibration"][_kind(run)]["reprojection_3d_mm"]
     det = m["detection"]
     lines = [
-        f"# uscal calibration of {run.dataset.name} (N-wire phantom)",
+        f"# uscal calibration of {run.dataset.name} ({_PHANTOM[_kind(run)]})",
         "",
         f"**Verdict: {run.verdict.line()}**",
         "",
-        f"- frames: {m['dataset']['n_frames']}, every pattern found in "
+        f"- frames: {m['dataset']['n_frames']}, every wire found in "
         f"{det['frames_found']} ({det['points']} wire points; "
         f"{det['ms_per_frame']:.1f} ms per frame)",
     ]
@@ -119,7 +137,7 @@ def _report(run: NWireRun, figure: str | None) -> str:
         f"- phantom pose: {m['dataset']['phantom_pose']}",
         f"- pixel spacing: {sx:.5f} × {sy:.5f} mm"
         + (f" (fitted; × {cal.scale[0]:.4f}, {cal.scale[1]:.4f})" if cal.scale_estimated else ""),
-        f"- 3-D reprojection error (PLUS's definition): {e['plus_mean']:.3f} ± "
+        f"- {_ERROR[_kind(run)]}: {e['plus_mean']:.3f} ± "
         f"{e['plus_sd']:.3f} mm (median {e['median']:.3f}, 95th percentile {e['p95']:.3f})",
         f"- 95 % bounds: {cal.bound95['rotation_deg']:.3f}°, "
         f"{cal.bound95['translation_mm']:.3f} mm, {cal.bound95['image_mm']:.3f} mm over the "
@@ -168,7 +186,8 @@ def write_nwire(directory: Path, run: NWireRun) -> list[str]:
 
     (directory / "metrics.json").write_text(json.dumps(run.metrics, indent=2) + "\n")
     header = (
-        "# uscal calibration (N-wire phantom). T_ee_us: image (us) → probe / flange (ee).\n"
+        f"# uscal calibration ({_PHANTOM[_kind(run)]}). "
+        "T_ee_us: image (us) → probe / flange (ee).\n"
         "# Lengths in metres unless the key says mm; rotations in radians unless deg.\n"
     )
     doc = yaml.dump(_document(run), Dumper=_Dumper, sort_keys=False, allow_unicode=True)

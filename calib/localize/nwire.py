@@ -42,10 +42,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
+from scipy.special import ndtri
 
 from ..files.plus_config import NWirePattern
 
-__all__ = ["NWireDetection", "detect_nwires", "middle_wire_point"]
+__all__ = ["NWireDetection", "detect_nwires", "detect_wire", "middle_wire_point"]
 
 Array = NDArray[np.float64]
 
@@ -266,6 +267,42 @@ def detect_nwires(
             x, y, skew[wire.name] = _centroid(frame, cand[c, 0], cand[c, 1], spacing_mm, reach)
             points[wire.name] = (x, y)
     return NWireDetection(True, points, skew=skew)
+
+
+#: A lone wire's dot must stand out of the frame's other maxima (speckle, reverberation)
+#: so far that, among that many of them, one would get there by chance with at most this
+#: probability: a false-alarm rate, not a grey level.
+_WIRE_FALSE_ALARM = 0.01
+
+
+def detect_wire(
+    frame: NDArray[np.uint8], spacing_mm: tuple[float, float], name: str = "wire"
+) -> NWireDetection:
+    """A single wire's dot in one frame, threshold-free: the brightest dot of the frame
+    (:func:`_candidates`: a local maximum at the wire's scale that is compact at a whole
+    echo's scale, not a plate's line), kept only when it stands out of the frame's own
+    local maxima — above their median by more than the Gaussian quantile of a 1 %
+    false alarm among that many maxima, in units of their robust spread — and centred
+    over its whole echo (:func:`_centroid`)."""
+    sx, sy = spacing_mm
+    smooth = ndimage.gaussian_filter(frame.astype(np.float32), (0.15 / sy, 0.15 / sx))
+    reach = (max(3, round(1.0 / sy) | 1), max(3, round(1.0 / sx) | 1))
+    levels = smooth[(smooth == ndimage.maximum_filter(smooth, size=reach)) & (smooth > 0)]
+    cand = _candidates(frame, spacing_mm, 4)
+    if len(cand) == 0 or len(levels) < 3:
+        return NWireDetection(False, {}, "no compact bright dot in the frame")
+    centre = float(np.median(levels))
+    spread = max(1.4826 * float(np.median(np.abs(levels - centre))), 1.0)
+    k = float(ndtri(1.0 - _WIRE_FALSE_ALARM / len(levels)))
+    if cand[0, 2] < centre + k * spread:
+        return NWireDetection(
+            False,
+            {},
+            "the brightest dot does not stand out of the frame's other maxima (beyond a 1 % "
+            "false alarm among them): no wire in the image plane",
+        )
+    x, y, skew = _centroid(frame, cand[0, 0], cand[0, 1], spacing_mm, _DOT_REACH_MM)
+    return NWireDetection(True, {name: (x, y)}, skew={name: skew})
 
 
 def middle_wire_point(pattern: NWirePattern, pa: ArrayLike, pm: ArrayLike, pb: ArrayLike) -> Array:
