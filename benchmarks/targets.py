@@ -132,8 +132,9 @@ def main() -> None:
     for k, r in enumerate(results):
         e = r["true_error"]
         print(
-            f"{r['target']:7s} {k // len(TARGETS):3d} {r['robot_time_s']:8.0f} {e['rotation_deg']:7.3f} "
-            f"{e['translation_mm']:8.3f} {e['image_mm']:8.3f} {r['bound_image_mm']:6.2f} "
+            f"{r['target']:7s} {k // len(TARGETS):3d} {r['robot_time_s']:8.0f} "
+            f"{e['rotation_deg']:7.3f} {e['translation_mm']:8.3f} {e['image_mm']:8.3f} "
+            f"{r['bound_image_mm']:6.2f} "
             f"{'yes' if r['covered'] else 'NO':>4s} {r['condition_number']:8.1f} "
             f"{r['verdict']:>9s}  {r['not_used']}"
         )

@@ -50,8 +50,8 @@ __all__ = [
     "build_phantom",
     "build_tank",
     "nwire_patterns",
-    "single_wire",
     "phantom_pair",
+    "single_wire",
 ]
 
 Array = NDArray[np.float64]
@@ -119,7 +119,8 @@ class PhantomConfig:
     wire_diameter_mm: float = field(
         default=0.3,
         metadata={
-            "doc": "N-wire and single-wire phantoms: the wires' diameter (nylon fishing line 0.2-0.5 mm).",
+            "doc": "N-wire and single-wire phantoms: the wires' diameter (nylon fishing "
+            "line 0.2-0.5 mm).",
             "gt": 0.02,
             "le": 2,
         },
@@ -127,8 +128,8 @@ class PhantomConfig:
     wire_material: Literal["nylon", "steel"] = field(
         default="nylon",
         metadata={
-            "doc": "N-wire and single-wire phantoms: the wires' material (steel rings: a comet tail under "
-            "each wire)."
+            "doc": "N-wire and single-wire phantoms: the wires' material (steel rings: a "
+            "comet tail under each wire)."
         },
     )
     cone_base_diameter_mm: float = field(
