@@ -83,7 +83,7 @@ _GLITCH_SIGMAS = 3.0
 OUTLIER_FLOOR_MM = 1.0
 #: A direction of the phantom's pose the residuals see less than this (relative to the
 #: best seen one) is not estimated: a lone wire's pose along and about itself.
-_GAUGE_RTOL = 1e-6
+_GAUGE_RTOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -319,18 +319,28 @@ def _jacobian(f, x: Array, h: float = 1e-7) -> Array:
 
 
 def _phantom_basis(model: TargetModel) -> Array | None:
-    """The directions of the phantom's pose the residuals see at the start (6, k), or
-    None when they see all six."""
-    x = model.x0()
-    J = _jacobian(lambda v: model.residuals(v), x)[:, 6:12]
-    J[:, 3:] *= 1e-3  # translation per mm, as rotation per mrad: comparable columns
+    """The directions of the phantom's pose the targets' constraints see (6, k), or None
+    when they see all six: how a small move of the phantom (rotation vector about the
+    base origin, translation; metres) moves each constraint where its observation meets
+    it — a point's position, the foot of the observation on a wire — along the
+    constraint's rows. A lone wire's rotation about itself and slide along itself move
+    no constraint: exactly null, whatever the residuals at the start."""
+    _, T_P, _ = model.unpack(model.x0())
+    R, t = T_P[:3, :3], T_P[:3, 3]
+    image, _ = model.points(model.x0())
+    local = (image - t) @ R  # the observations in the phantom frame
+    q = model.p.copy()
+    wire = ~model.mask.all(axis=1)
+    if wire.any():
+        d = np.cross(model.rows[wire, 0], model.rows[wire, 1])  # along each wire
+        along = np.einsum("ni,ni->n", local[wire] - q[wire], d)
+        q[wire] = q[wire] + along[:, None] * d
+    q_base = q @ R.T  # about the base origin, as unpack turns the pose
+    b_base = np.einsum("nij,kj->nik", model.rows, R)  # each row in the base frame
+    J = np.concatenate([np.cross(q_base[:, None, :], b_base), b_base], axis=2)[model.mask]
     _, s, Vt = np.linalg.svd(J, full_matrices=False)
     seen = s > _GAUGE_RTOL * s[0]
-    if seen.all():
-        return None
-    V = Vt[seen].T.copy()
-    V[3:] *= 1e-3  # back to metres per unit of the parameter
-    return V
+    return None if seen.all() else Vt[seen].T.copy()
 
 
 #: A declared error shared by every frame: given the model and the solution, the
