@@ -24,7 +24,7 @@ from calib.acquisition.protocol import (
     touch_plan,
 )
 from calib.calibration.markers import CalibrationConfig
-from calib.files.dataset import AcquisitionInfo, DatasetWriter
+from calib.files.dataset import AcquisitionInfo, DatasetWriter, WirePhantom
 from calib.files.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.records import Dataset, Sweep, Touch
 from twin.arm_errors import robot_stream
@@ -277,6 +277,10 @@ def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> Acquisi
     """What a twin acquisition's dataset records besides its sweeps: what the pipeline
     knows (CAD landmarks, coarse mount, settings), never the truth."""
     nwire = twin_nwire_phantom(twin) if scenario.phantom.kind == "nwire" else None
+    wire = None
+    if scenario.phantom.kind == "wire":
+        (w,) = twin.phantom_cad.wires
+        wire = WirePhantom(NWire(w.name, w.front, w.back))
     return AcquisitionInfo(
         T_ee_us_coarse=np.asarray(T_ee_us_coarse, dtype=float),
         landmarks={k: np.asarray(v, dtype=float) for k, v in twin.phantom_cad.landmarks.items()},
@@ -290,6 +294,7 @@ def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> Acquisi
         target_depth_mm=scenario.protocol.target_depth_mm,
         extra={"scenario": scenario.source, "seed": scenario.seed},
         nwire=nwire,
+        wire=wire,
     )
 
 

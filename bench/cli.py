@@ -55,7 +55,7 @@ from .console import (
 from .files import atomic_output_dir, check_new_directory, write_text_atomic
 from .jobs.budget import plan_budget, run_budget
 from .jobs.gallery import write_gallery
-from .jobs.nwire import calibrate_nwire_dataset
+from .jobs.nwire import calibrate_nwire_dataset, calibrate_wire_dataset
 from .jobs.plan import plan_report
 from .jobs.plan_optimize import optimize_plan, plan_about
 from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
@@ -318,7 +318,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     settings = load_scenario(args.settings, _with_requirements(args))
     dataset = Path(args.dataset)
     out = Path(args.out) if args.out else dataset.with_name(dataset.name + "-calibration")
-    if dataset_kind(dataset) == "nwire":
+    if dataset_kind(dataset) in WIRED:
         return _calibrate_nwire(args, settings, dataset, out, console)
     markers = (int(args.markers),) if args.markers else (1, 3)
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
@@ -334,11 +334,12 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
 
 
 def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console) -> int:
-    """``uscal calibrate`` of an N-wire dataset (:mod:`bench.jobs.nwire`)."""
+    """``uscal calibrate`` of an N-wire or single-wire dataset (:mod:`bench.jobs.nwire`)."""
     data, info = read_dataset(dataset)
+    calibrate = calibrate_wire_dataset if info.wire is not None else calibrate_nwire_dataset
     with atomic_output_dir(out, force=args.force) as tmp:
         with console.status(f"finding the wires in {dataset}"):
-            result = calibrate_nwire_dataset(
+            result = calibrate(
                 data,
                 info,
                 dataset,
@@ -350,7 +351,8 @@ def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console)
         written = write_nwire(tmp, result)
     print_nwire(result, console)
     print_written(out, written, console)
-    return _gate_status(settings, "the N-wire calibration", result.verdict.status, console)
+    what = "the single-wire" if info.wire is not None else "the N-wire"
+    return _gate_status(settings, f"{what} calibration", result.verdict.status, console)
 
 
 def _cmd_validate(args: argparse.Namespace, console: Console) -> int:

@@ -165,24 +165,31 @@ def _calibration_metrics(cal: NWireCalibration, verdict: NWireVerdict) -> dict[s
     }
 
 
-def _wire_start(obs: TargetObservations, target: WireTarget, T_k, T_X0, width_px, spacing):
-    """Where a single wire's fit starts: the dots through the coarse mount, the line
-    through them (their principal axis: the sweeps move along the wire) taken for the
-    wire's CAD line (the phantom's pose about and along the wire is not needed)."""
+def _wire_starts(obs: TargetObservations, target: WireTarget, T_k, T_X0, width_px, spacing):
+    """Where a single wire's fit may start: the dots through the coarse mount, and the
+    wire's CAD line laid through their centre along (a) the mean normal of the image
+    planes (the probe is taught across the wire, so the wire runs along the image's
+    elevation axis) and (b) the dots' principal axis (the sweeps slide along the wire).
+    With a coarse mount degrees off, (b) can follow the mount's error instead; with
+    sweeps turned far about the axial axis, (a) can: both are tried. The phantom's pose
+    about and along the wire is not needed."""
     xy = nominal_xy(obs.pixel, width_px, spacing)
     P_us = np.column_stack([xy, np.zeros(len(xy))])
     T = T_k[obs.frame] @ T_X0
     pts = np.einsum("nij,nj->ni", T[:, :3, :3], P_us) + T[:, :3, 3]
     centre = pts.mean(axis=0)
-    axis = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+    normal = T[:, :3, 2].mean(axis=0)
+    axes = (normal / np.linalg.norm(normal), np.linalg.svd(pts - centre, full_matrices=False)[2][0])
     d = target.direction
-    if axis @ d < 0:
-        axis = -axis
-    v, c = np.cross(d, axis), float(d @ axis)
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    R = np.eye(3) + K + K @ K / (1.0 + c)  # the least rotation taking d onto the axis
     mid = (np.asarray(target.front) + np.asarray(target.back)) / 2
-    return se3.make(R, centre - R @ mid)
+    starts = []
+    for axis in axes:
+        axis = axis if axis @ d >= 0 else -axis
+        v, c = np.cross(d, axis), float(d @ axis)
+        K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+        R = np.eye(3) + K + K @ K / (1.0 + c)  # the least rotation taking d onto the axis
+        starts.append(se3.make(R, centre - R @ mid))
+    return starts
 
 
 def _wire_tolerance(obs: TargetObservations, target: WireTarget, tolerance: float):
@@ -222,10 +229,10 @@ def calibrate_wire_dataset(
     (:func:`calib.localize.nwire.detect_wire`), then ``T_ee_us``, the pixel scale and the
     wire's pose (:func:`calib.calibration.targets.calibrate_targets`, the wire's two
     constraints per frame), from the coarse mount as start; its bounds and verdict."""
-    front, back = info.landmarks.get("wire_front"), info.landmarks.get("wire_back")
-    if front is None or back is None:
-        raise UscalError("a single-wire dataset names its wire's ends (wire_front, wire_back)")
-    target = WireTarget("wire", front, back)
+    if info.wire is None:
+        raise UscalError("not a single-wire dataset: its manifest has no acquisition.phantom.wire")
+    front, back = info.wire.wire.front, info.wire.wire.back
+    target = WireTarget(info.wire.wire.name, front, back)
     t0 = time.perf_counter()
     images, poses = dataset_frames(dataset)
     spacing = dataset_spacing_m(dataset, info)
@@ -246,24 +253,28 @@ def calibrate_wire_dataset(
         obs.frame, obs.pattern, obs.pixel, obs.phantom_point, obs.skew, obs.refusals()
     )
     H, W = images.shape[1:]
-    start = None
+    starts = [None]
     if len(found):
-        start = (
-            info.T_ee_us_coarse,
-            _wire_start(tobs, target, poses, info.T_ee_us_coarse, W, spacing),
+        X0 = info.T_ee_us_coarse
+        starts = [(X0, P0) for P0 in _wire_starts(tobs, target, poses, X0, W, spacing)]
+    fits = [
+        calibrate_targets(
+            tobs,
+            [target],
+            poses,
+            width_px=W,
+            height_px=H,
+            spacing_m=spacing,
+            start=start,
+            estimate_scale=estimate_scale,
+            declared=_wire_tolerance(tobs, target, wire_tolerance_m),
+            axial_bias_m=axial_bias_m,
         )
-    cal = calibrate_targets(
-        tobs,
-        [target],
-        poses,
-        width_px=W,
-        height_px=H,
-        spacing_m=spacing,
-        start=start,
-        estimate_scale=estimate_scale,
-        declared=_wire_tolerance(tobs, target, wire_tolerance_m),
-        axial_bias_m=axial_bias_m,
-    )
+        for start in starts
+    ]
+    # The start whose answer the dots agree with best (the others' fits end in a
+    # minimum where they scatter by millimetres).
+    cal = min(fits, key=lambda c: c.sigma_mm)
     verdict = judge_nwire(cal, requirements)
     metrics: dict[str, Any] = {
         "dataset": {

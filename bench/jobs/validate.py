@@ -41,7 +41,7 @@ from calib.calibration.nwire import (
     plus_error_mm,
     reprojection_errors_mm,
 )
-from calib.errors import DatasetError
+from calib.errors import DatasetError, UscalError
 from calib.files.dataset import read_dataset
 from calib.files.plus_config import read_plus_config, read_plus_results, us_of_image_to_probe
 from calib.localize import localize_sphere
@@ -117,6 +117,12 @@ def validate_dataset(
     dataset, info = read_dataset(directory)
     if info.nwire is not None:
         return _validate_nwire(dataset, info, calibration)
+    if info.wire is not None:
+        raise UscalError(
+            f"{directory}: a single-wire dataset; validate checks calibrations on N-wire "
+            "and sphere datasets (a lone wire's pose along itself is not seen, so its "
+            "points cannot score another calibration on their own)"
+        )
     return _validate_spheres(dataset, info, calibration, settings)
 
 

@@ -53,13 +53,14 @@ from .metafile import (
     read_sequence,
     write_sequence,
 )
-from .plus_config import NWirePhantom
+from .plus_config import NWire, NWirePhantom
 
 __all__ = [
     "FORMAT",
     "VERSION",
     "AcquisitionInfo",
     "DatasetWriter",
+    "WirePhantom",
     "dataset_kind",
     "read_dataset",
 ]
@@ -73,6 +74,40 @@ _NUMBER = (int, float, Decimal)
 
 
 # ------------------------------------------------------------------------- manifest
+
+
+@dataclass(frozen=True)
+class WirePhantom:
+    """A single straight wire in a dataset (the twin's single-wire phantom, or a rig's):
+    its ends in the phantom frame (metres); the phantom's pose in the base is unknown and
+    estimated with ``T_ee_us`` as far as a line tells it."""
+
+    wire: NWire
+
+    def to_yaml(self) -> dict[str, Any]:
+        """The manifest's ``acquisition.phantom`` (millimetres)."""
+        w = self.wire
+        return {
+            "kind": "wire",
+            "wire": {
+                "name": w.name,
+                "front_mm": [round(float(v) * 1e3, 6) for v in w.front],
+                "back_mm": [round(float(v) * 1e3, 6) for v in w.back],
+            },
+        }
+
+    @classmethod
+    def from_yaml(cls, path: Path, doc: Any) -> WirePhantom:
+        """Read :meth:`to_yaml`'s mapping; one line naming what is wrong."""
+        where = "acquisition.phantom.wire"
+        w = doc.get("wire") if isinstance(doc, dict) else None
+        if not isinstance(w, dict):
+            raise DatasetError(f"{path}: {where} must be a mapping with front_mm and back_mm")
+        front = _vector(path, f"{where}.front_mm", w.get("front_mm"), 3) * 1e-3
+        back = _vector(path, f"{where}.back_mm", w.get("back_mm"), 3) * 1e-3
+        if np.linalg.norm(back - front) < 1e-3:
+            raise DatasetError(f"{path}: {where}: the wire's ends are less than 1 mm apart")
+        return cls(NWire(str(w.get("name", "wire")), front, back))
 
 
 @dataclass(frozen=True)
@@ -103,6 +138,7 @@ class AcquisitionInfo:
     target_depth_mm: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     nwire: NWirePhantom | None = None
+    wire: WirePhantom | None = None
 
     def to_yaml(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -112,10 +148,12 @@ class AcquisitionInfo:
             "assumed_speed_m_s": float(self.assumed_speed_m_s),
             "sound_speed_correction": bool(self.sound_speed_correction),
         }
-        if self.nwire is None:
-            out["sphere_radius_mm"] = float(self.sphere_radius_mm)
-        else:
+        if self.nwire is not None:
             out["phantom"] = self.nwire.to_yaml()
+        elif self.wire is not None:
+            out["phantom"] = self.wire.to_yaml()
+        else:
+            out["sphere_radius_mm"] = float(self.sphere_radius_mm)
         if self.T_ee_us_coarse is not None:
             out["T_ee_us_coarse_mm"] = _matrix_mm(self.T_ee_us_coarse)
         out["landmarks_mm"] = {k: [mm_decimal(x) for x in v] for k, v in self.landmarks.items()}
@@ -343,9 +381,13 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
         raise DatasetError(f"{path}: acquisition must be a mapping")
     landmarks = _get(path, acq, "landmarks_mm", dict)
     tip = acq.get("stylus_tip_cad_mm")
-    nwire = None
+    nwire = wire = None
     if acq.get("phantom") is not None:
-        nwire = NWirePhantom.from_yaml(path, acq["phantom"])
+        doc = acq["phantom"]
+        if isinstance(doc, dict) and doc.get("kind") == "wire":
+            wire = WirePhantom.from_yaml(path, doc)
+        else:
+            nwire = NWirePhantom.from_yaml(path, doc)
         radius = float("nan")  # no sphere
     else:
         radius = float(_get(path, acq, "sphere_radius_mm", _NUMBER))
@@ -386,18 +428,22 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
         target_depth_mm=depth,
         extra=dict(acq.get("extra") or {}),
         nwire=nwire,
+        wire=wire,
     )
 
 
 def dataset_kind(directory: str | os.PathLike[str]) -> str:
-    """``"nwire"`` for a dataset of an N-wire phantom, ``"spheres"`` otherwise (from the
-    manifest alone; a directory that is not a dataset reads as spheres and
-    :func:`read_dataset` says what is wrong)."""
+    """``"nwire"`` for a dataset of an N-wire phantom, ``"wire"`` of a single wire,
+    ``"spheres"`` otherwise (from the manifest alone; a directory that is not a dataset
+    reads as spheres and :func:`read_dataset` says what is wrong)."""
     manifest = Path(directory) / MANIFEST
     if not manifest.is_file():
         return "spheres"
     acq = _load_manifest(manifest).get("acquisition")
-    return "nwire" if isinstance(acq, dict) and acq.get("phantom") is not None else "spheres"
+    phantom = acq.get("phantom") if isinstance(acq, dict) else None
+    if phantom is None:
+        return "spheres"
+    return "wire" if isinstance(phantom, dict) and phantom.get("kind") == "wire" else "nwire"
 
 
 def read_dataset(

@@ -79,7 +79,9 @@ class NWireDetection:
     skew: dict[str, float] = field(default_factory=dict)  # centre − peak, rows
 
 
-def _candidates(frame: NDArray[np.uint8], spacing_mm: tuple[float, float], n: int) -> Array:
+def _candidates(
+    frame: NDArray[np.uint8], spacing_mm: tuple[float, float], n: int, isolated: bool = False
+) -> Array:
     sx, sy = spacing_mm
     smooth = ndimage.gaussian_filter(frame.astype(np.float32), (0.15 / sy, 0.15 / sx))
     reach = (max(3, round(1.0 / sy) | 1), max(3, round(1.0 / sx) | 1))
@@ -105,16 +107,22 @@ def _candidates(frame: NDArray[np.uint8], spacing_mm: tuple[float, float], n: in
     coarse = ndimage.gaussian_filter(small, (0.5 / (sy * f), 0.5 / (sx * f)), truncate=2.5)
     first = slice(0, 4 * n)
     centre = ((rows[first] + 0.5) / f - 0.5, (cols[first] + 0.5) / f - 0.5)
-    dot = _is_dot(coarse, *centre, (sx * f, sy * f))
+    dot = _is_dot(coarse, *centre, (sx * f, sy * f), isolated=isolated)
     rows, cols = rows[: 4 * n][dot][:n], cols[: 4 * n][dot][:n]
     return np.column_stack([cols, rows, smooth[rows, cols]])
 
 
-def _is_dot(smooth: Array, rows, cols, spacing_mm) -> NDArray[np.bool_]:
+def _is_dot(smooth: Array, rows, cols, spacing_mm, *, isolated: bool = False) -> NDArray[np.bool_]:
     """Whether each maximum is a dot: at ``_DOT_REACH_MM`` from it, in every pair of
     opposite directions, at least one side has fallen below half its height over the
     frame's background (its median). A line (a plate's or the tank's surface) stays
-    bright both ways along itself; a neighbouring dot, or a comet tail, on one side only."""
+    bright both ways along itself; a neighbouring dot, or a comet tail, on one side only.
+
+    ``isolated`` (a lone wire, nothing else of the phantom beside it): both sides must
+    have fallen in every direction but along the beam, where the side above suffices (a
+    comet tail or reverberation hangs below a wire). A plate's corner or edge then is
+    no dot (its surface stays bright on one side), nor is anything at the frame's edge
+    (outside the frame nothing is known)."""
     if len(rows) == 0:
         return np.zeros(0, dtype=bool)
     sx, sy = spacing_mm
@@ -133,8 +141,14 @@ def _is_dot(smooth: Array, rows, cols, spacing_mm) -> NDArray[np.bool_]:
             smooth, [r.ravel(), c.ravel()], order=1, mode="constant", cval=np.inf
         )
         both.append(seen.reshape(r.shape))
-    low = np.minimum(both[0], both[1]) < half[:, None]
-    return low.all(axis=1)
+    if not isolated:
+        low = np.minimum(both[0], both[1]) < half[:, None]
+        return low.all(axis=1)
+    fallen = np.maximum(both[0], both[1]) < half[:, None]
+    # Along the beam (angle 90°, rows increasing downwards): the side above only.
+    beam = np.isclose(angles, np.pi / 2)
+    fallen[:, beam] = both[1][:, beam] < half[:, None]
+    return fallen.all(axis=1)
 
 
 def _centroid(
@@ -269,38 +283,43 @@ def detect_nwires(
     return NWireDetection(True, points, skew=skew)
 
 
-#: A lone wire's dot must stand out of the frame's other maxima (speckle, reverberation)
-#: so far that, among that many of them, one would get there by chance with at most this
-#: probability: a false-alarm rate, not a grey level.
+#: A lone wire's dot must stand out of the frame's other dots (speckle grains, noise,
+#: reverberation) so far that, among that many of them, one would get there by chance
+#: with at most this probability: a false-alarm rate, not a grey level.
 _WIRE_FALSE_ALARM = 0.01
+#: The frame's other dots, ranked by brightness, looked at: far more than a frame's
+#: real targets, enough for their spread.
+_WIRE_POPULATION = 64
 
 
 def detect_wire(
     frame: NDArray[np.uint8], spacing_mm: tuple[float, float], name: str = "wire"
 ) -> NWireDetection:
     """A single wire's dot in one frame, threshold-free: the brightest dot of the frame
-    (:func:`_candidates`: a local maximum at the wire's scale that is compact at a whole
-    echo's scale, not a plate's line), kept only when it stands out of the frame's own
-    local maxima — above their median by more than the Gaussian quantile of a 1 %
-    false alarm among that many maxima, in units of their robust spread — and centred
-    over its whole echo (:func:`_centroid`)."""
-    sx, sy = spacing_mm
-    smooth = ndimage.gaussian_filter(frame.astype(np.float32), (0.15 / sy, 0.15 / sx))
-    reach = (max(3, round(1.0 / sy) | 1), max(3, round(1.0 / sx) | 1))
-    levels = smooth[(smooth == ndimage.maximum_filter(smooth, size=reach)) & (smooth > 0)]
-    cand = _candidates(frame, spacing_mm, 4)
-    if len(cand) == 0 or len(levels) < 3:
-        return NWireDetection(False, {}, "no compact bright dot in the frame")
-    centre = float(np.median(levels))
-    spread = max(1.4826 * float(np.median(np.abs(levels - centre))), 1.0)
-    k = float(ndtri(1.0 - _WIRE_FALSE_ALARM / len(levels)))
-    if cand[0, 2] < centre + k * spread:
-        return NWireDetection(
-            False,
-            {},
-            "the brightest dot does not stand out of the frame's other maxima (beyond a 1 % "
-            "false alarm among them): no wire in the image plane",
-        )
+    that is compact and isolated at a whole echo's scale (:func:`_candidates`: not a
+    plate's line, edge or corner, not at the frame's edge), kept only when it stands out
+    of the frame's other compact maxima (speckle grains, noise; a plate's line is no
+    such maximum) — above their median by more than the Gaussian quantile of a 1 % false
+    alarm among that many, in units of their robust spread; with fewer than three
+    others nothing competes with it — and centred over its whole echo
+    (:func:`_centroid`)."""
+    cand = _candidates(frame, spacing_mm, _WIRE_POPULATION, isolated=True)
+    if len(cand) == 0:
+        return NWireDetection(False, {}, "no compact, isolated bright dot in the frame")
+    dots = _candidates(frame, spacing_mm, _WIRE_POPULATION)
+    top = np.hypot(dots[:, 0] - cand[0, 0], dots[:, 1] - cand[0, 1]) < 0.5
+    others = dots[~top, 2]
+    if len(others) >= 3:
+        centre = float(np.median(others))
+        spread = max(1.4826 * float(np.median(np.abs(others - centre))), 1.0)
+        k = float(ndtri(1.0 - _WIRE_FALSE_ALARM / len(others)))
+        if cand[0, 2] < centre + k * spread:
+            return NWireDetection(
+                False,
+                {},
+                "the brightest dot does not stand out of the frame's other dots (beyond a "
+                "1 % false alarm among them): no wire in the image plane",
+            )
     x, y, skew = _centroid(frame, cand[0, 0], cand[0, 1], spacing_mm, _DOT_REACH_MM)
     return NWireDetection(True, {name: (x, y)}, skew={name: skew})
 

@@ -1,0 +1,69 @@
+"""The twin's single-wire phantom (scenarios/wire.yaml: one 0.3 mm nylon wire between the
+N-wire phantom's plates, drawn by sim_us as a line target) calibrated end to end with
+uscal's own threshold-free dot detection, the wire's pose unknown, against the twin's
+ground truth: `uscal run`, the dataset it saves through `uscal calibrate`; with every
+error source off as the sanity case."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from .test_cli import uscal, uscal_here
+
+# Two twin runs of 945 frames (≈ 30 s each): the slow tier.
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[1]
+WIRE = ROOT / "scenarios" / "wire.yaml"
+
+
+@pytest.fixture(scope="module")
+def wire_run(tmp_path_factory):
+    base = tmp_path_factory.mktemp("wire")
+    r = uscal("run", str(WIRE), "--out", str(base / "run"), "--save-dataset", str(base / "data"))
+    assert r.returncode == 0, r.stderr
+    return base, json.loads((base / "run" / "metrics.json").read_text()), r.stdout
+
+
+def test_the_twin_s_single_wire_calibrates_to_its_ground_truth(wire_run):
+    _, m, stdout = wire_run
+    w = m["calibration"]["wire"]
+    assert m["dataset"]["target"] == "wire"
+    assert m["detection"]["frames_found"] >= 0.9 * m["dataset"]["n_frames"]
+    assert w["converged"] and m["dataset"]["phantom_pose"].startswith("estimated (4 of")
+    e = w["true_error"]
+    assert e["rotation_deg"] < 0.5 and e["translation_mm"] < 0.5 and e["image_mm"] < 0.3
+    assert all(w["bound_covers"].values()), (e, w["bound95"])
+    assert "against the twin's truth" in stdout
+
+
+def test_its_dataset_calibrates_as_the_run_did_and_validate_refuses_it(wire_run, capsys):
+    base, m, _ = wire_run
+    r = uscal_here(capsys, "calibrate", str(base / "data"), "--out", str(base / "cal"))
+    assert r.returncode == 0, r.stderr
+    again = json.loads((base / "cal" / "metrics.json").read_text())["calibration"]["wire"]
+    np.testing.assert_allclose(again["T_ee_us"], m["calibration"]["wire"]["T_ee_us"], atol=1e-6)
+    doc = (base / "cal" / "calibration.yaml").read_text()
+    assert "single wire" in doc and "<Transform From=\"Image\" To=\"Probe\"" in doc
+    r = uscal_here(
+        capsys, "validate", str(base / "data"),
+        "--calibration", str(base / "cal" / "calibration.yaml"),
+    )  # fmt: skip
+    assert r.returncode == 2 and "a single-wire dataset" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_with_every_error_source_off_the_wire_gives_the_mount(tmp_path):
+    r = uscal(
+        "run", str(WIRE), "--out", str(tmp_path / "run"),
+        "--set", "phantom.tolerance_position_mm=0", "--set", "protocol.teaching_error_mm=0",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    w = json.loads((tmp_path / "run" / "metrics.json").read_text())["calibration"]["wire"]
+    e = w["true_error"]
+    assert e["rotation_deg"] < 0.2 and e["translation_mm"] < 0.1 and e["image_mm"] < 0.1
+    assert all(w["bound_covers"].values())
+    assert w["verdict"]["status"] == "accepted"
