@@ -47,7 +47,7 @@ def test_its_dataset_calibrates_as_the_run_did_and_validate_refuses_it(wire_run,
     again = json.loads((base / "cal" / "metrics.json").read_text())["calibration"]["wire"]
     np.testing.assert_allclose(again["T_ee_us"], m["calibration"]["wire"]["T_ee_us"], atol=1e-6)
     doc = (base / "cal" / "calibration.yaml").read_text()
-    assert "single wire" in doc and "<Transform From=\"Image\" To=\"Probe\"" in doc
+    assert "single wire" in doc and '<Transform From="Image" To="Probe"' in doc
     r = uscal_here(
         capsys, "validate", str(base / "data"),
         "--calibration", str(base / "cal" / "calibration.yaml"),
