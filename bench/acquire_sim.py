@@ -165,10 +165,12 @@ def teach_at(
 
 
 def acquisition_targets(scenario: Scenario) -> list[str]:
-    """What an acquisition sweeps: the protocol's spheres, or the N-wire phantom's
-    patterns (one target, ``nwire``, at their centre)."""
+    """What an acquisition sweeps: the protocol's spheres, the wires' centre (one
+    target, ``nwire`` or ``wire``), or the cone's tip (``apex``)."""
     if scenario.phantom.kind in WIRED:
         return [scenario.phantom.kind]
+    if scenario.phantom.kind == "cone":
+        return ["apex"]
     return [f"sphere_{i}" for i in scenario.protocol.spheres]
 
 

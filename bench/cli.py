@@ -30,7 +30,7 @@ from twin.ur_controller import ControllerFaults
 from .acquire_rig import acquire_dataset, console_operator, dashboard_operator
 from .cli_parser import parser
 from .config.docs import scenarios_markdown
-from .config.geometry import WIRED
+from .config.geometry import TARGET_PHANTOMS, WIRED
 from .config.hw import load_hw_config
 from .config.method import requirements, scenario_uncertainty
 from .config.plan_file import write_plan
@@ -39,13 +39,13 @@ from .console import (
     print_cached_run,
     print_evaluation,
     print_import,
-    print_nwire,
     print_plan,
     print_plan_comparison,
     print_reconstruction,
     print_recorded,
     print_run,
     print_scenario_summary,
+    print_target,
     print_truth,
     print_workload,
     print_written,
@@ -55,18 +55,18 @@ from .console import (
 from .files import atomic_output_dir, check_new_directory, write_text_atomic
 from .jobs.budget import plan_budget, run_budget
 from .jobs.gallery import write_gallery
-from .jobs.nwire import calibrate_nwire_dataset, calibrate_wire_dataset
 from .jobs.plan import plan_report
 from .jobs.plan_optimize import optimize_plan, plan_about
 from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
 from .jobs.single import run
 from .jobs.sweep import load_sweep, run_sweep
+from .jobs.targets import calibrate_nwire_dataset, calibrate_wire_dataset
 from .jobs.twin_serve import export_twin, landmarks_mm, serve_twin
 from .jobs.validate import read_calibration, validate_dataset
 from .outputs.budget_report import write_budget
-from .outputs.nwire_files import write_nwire
 from .outputs.run_files import run_directory
 from .outputs.sweep_report import write_sweep
+from .outputs.target_files import write_target
 from .progress import reporting
 from .sequential import StopRule
 from .summaries import RecordedSummary, RunSummary
@@ -178,8 +178,8 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     out = Path(args.out or scenario.output.dir)
     if args.save_dataset:
         check_new_directory(args.save_dataset, "--save-dataset")
-    if scenario.phantom.kind in WIRED:
-        return _run_nwire(args, scenario, out, console)
+    if scenario.phantom.kind in TARGET_PHANTOMS:
+        return _run_target(args, scenario, out, console)
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
             say = lambda msg: bars.console.print(f"[dim]{msg}[/dim]")  # noqa: E731
@@ -200,9 +200,9 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     return _gate(scenario, summary.calibrations, console)
 
 
-def _run_nwire(args: argparse.Namespace, scenario, out: Path, console: Console) -> int:
+def _run_target(args: argparse.Namespace, scenario, out: Path, console: Console) -> int:
     """``uscal run`` of an N-wire scenario: the acquisition, the N-wire calibration and
-    its errors against the twin's truth (:func:`bench.jobs.nwire.run_nwire`); no rerun
+    its errors against the twin's truth (:func:`bench.jobs.targets.run_target`); no rerun
     recording yet."""
     if _until(args) is not None:
         raise UscalError(
@@ -212,9 +212,9 @@ def _run_nwire(args: argparse.Namespace, scenario, out: Path, console: Console) 
     with atomic_output_dir(out, force=args.force) as tmp:
         with progress_bars(console) as bars, reporting(bars.update):
             result = run(scenario, None, None, args.save_dataset)
-        written = write_nwire(tmp, result.nwire)
-    print_nwire(result.nwire, console)
-    cal = result.metrics["calibration"][scenario.phantom.kind]
+        written = write_target(tmp, result.nwire)
+    print_target(result.nwire, console)
+    cal = result.metrics["calibration"][result.metrics["dataset"]["target"]]
     e, covers = cal["true_error"], cal["bound_covers"]
     outside = [k for k, v in covers.items() if not v]
     console.print(
@@ -319,7 +319,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     dataset = Path(args.dataset)
     out = Path(args.out) if args.out else dataset.with_name(dataset.name + "-calibration")
     if dataset_kind(dataset) in WIRED:
-        return _calibrate_nwire(args, settings, dataset, out, console)
+        return _calibrate_target(args, settings, dataset, out, console)
     markers = (int(args.markers),) if args.markers else (1, 3)
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
@@ -333,8 +333,8 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     return _gate(settings, recorded.calibrations, console)
 
 
-def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console) -> int:
-    """``uscal calibrate`` of an N-wire or single-wire dataset (:mod:`bench.jobs.nwire`)."""
+def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console) -> int:
+    """``uscal calibrate`` of an N-wire or single-wire dataset (:mod:`bench.jobs.targets`)."""
     data, info = read_dataset(dataset)
     calibrate = calibrate_wire_dataset if info.wire is not None else calibrate_nwire_dataset
     with atomic_output_dir(out, force=args.force) as tmp:
@@ -348,8 +348,8 @@ def _calibrate_nwire(args, settings, dataset: Path, out: Path, console: Console)
                 wire_tolerance_m=settings.phantom.tolerance_position_mm * 1e-3,
                 axial_bias_m=scenario_uncertainty(settings).axial_bias_m,
             )
-        written = write_nwire(tmp, result)
-    print_nwire(result, console)
+        written = write_target(tmp, result)
+    print_target(result, console)
     print_written(out, written, console)
     what = "the single-wire" if info.wire is not None else "the N-wire"
     return _gate_status(settings, f"{what} calibration", result.verdict.status, console)

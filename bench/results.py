@@ -74,7 +74,7 @@ class RunResult:
     three: AlternationResult | None = None
     evaluation: EvaluationResult | None = None
     snapshot: LocalizationSnapshot | None = None  # what the report shows of one sweep
-    nwire: Any = None  # an N-wire scenario's run (bench.jobs.nwire.NWireRun)
+    nwire: Any = None  # an N-wire scenario's run (bench.jobs.targets.TargetRun)
 
     def alternations(self) -> dict[str, AlternationResult]:
         """The calibrations ``metrics["calibration"]`` describes, by method (in an

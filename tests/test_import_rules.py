@@ -279,8 +279,8 @@ def test_layer_check_catches_an_upward_import(tmp_path):
 #: the paper's experiment (``paper``, its datasets and metrics, the re-calibration and
 #: Table III); ``uscal plan`` checks a plan or, with ``--optimize``, chooses one.
 BENCH_JOBS = {
-    # nwire: `uscal calibrate` of an N-wire dataset, which `uscal run` of an N-wire
-    # scenario also runs on the twin's acquisition.
+    # targets: `uscal calibrate` of an N-wire or single-wire dataset, which `uscal run`
+    # of a wire or cone scenario also runs on the twin's acquisition.
     "run": (
         "single",
         "paper",
@@ -288,7 +288,7 @@ BENCH_JOBS = {
         "paper_metrics",
         "recalibration",
         "table3",
-        "nwire",
+        "targets",
     ),
     "plan": ("plan", "plan_optimize"),
 }

@@ -46,6 +46,9 @@ class World(Protocol):
 #: The phantoms of wires: the N-wire phantom and the single wire (one target each, at
 #: their wires' centre, the probe taught across the wires).
 WIRED = ("nwire", "wire")
+#: The phantoms `uscal run` calibrates from their own target, not from spheres: the wires
+#: and the cone (its tip, :mod:`calib.localize.cone_tip`).
+TARGET_PHANTOMS = (*WIRED, "cone")
 
 
 def _targets(s: World) -> dict[str, np.ndarray]:

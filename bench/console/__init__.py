@@ -11,7 +11,7 @@ in :mod:`bench.cli`."""
 
 from .grids import print_cached_run, print_workload
 from .paper import paper_table, print_evaluation, print_reconstruction
-from .recorded import print_import, print_nwire, print_recorded
+from .recorded import print_import, print_recorded, print_target
 from .run import print_run, print_written
 from .scenario import print_plan, print_plan_comparison, print_scenario_summary, print_truth
 from .tables import print_table, rich_table
@@ -23,7 +23,6 @@ __all__ = [
     "print_cached_run",
     "print_evaluation",
     "print_import",
-    "print_nwire",
     "print_plan",
     "print_plan_comparison",
     "print_reconstruction",
@@ -31,6 +30,7 @@ __all__ = [
     "print_run",
     "print_scenario_summary",
     "print_table",
+    "print_target",
     "print_truth",
     "print_workload",
     "print_written",

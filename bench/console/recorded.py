@@ -7,12 +7,12 @@ from rich.console import Console
 
 from calib.files.plus_import import ImportSummary
 
-from ..jobs.nwire import NWireRun
+from ..jobs.targets import TargetRun
 from ..summaries import RecordedSummary
 from .run import print_verdicts
 from .tables import print_table
 
-__all__ = ["print_import", "print_nwire", "print_recorded"]
+__all__ = ["print_import", "print_recorded", "print_target"]
 
 
 def print_recorded(rec: RecordedSummary, console: Console) -> None:
@@ -56,15 +56,28 @@ def print_import(summary: ImportSummary, console: Console) -> None:
     )
 
 
-def print_nwire(run: NWireRun, console: Console) -> None:
+_NAMES = {"nwire": "N-wire", "wire": "single wire", "cone_tip": "cone tip"}
+_ERRORS = {
+    "nwire": "3-D reprojection error",
+    "wire": "error across the wire",
+    "cone_tip": "3-D error of the tips",
+}
+
+
+def print_target(run: TargetRun, console: Console) -> None:
     """``uscal calibrate`` of an N-wire dataset: detection, calibration, verdict."""
     m, cal = run.metrics, run.calibration
     kind = m["dataset"]["target"]
     det, e = m["detection"], m["calibration"][kind]["reprojection_3d_mm"]
     console.print(
-        f"dataset {run.dataset.name} ({'N-wire' if kind == 'nwire' else 'single wire'}, "
+        f"dataset {run.dataset.name} ({_NAMES[kind]}, "
         f"phantom pose {m['dataset']['phantom_pose']}): "
-        f"{m['dataset']['n_frames']} frames, every wire found in {det['frames_found']}",
+        f"{m['dataset']['n_frames']} frames, "
+        + (
+            f"the tip found in {det['sweeps_found']} of {m['dataset']['n_sequences']} sweeps"
+            if kind == "cone_tip"
+            else f"every wire found in {det['frames_found']}"
+        ),
         highlight=False,
     )
     for reason, n in list(det["refused"].items())[:3]:
@@ -74,7 +87,7 @@ def print_nwire(run: NWireRun, console: Console) -> None:
     console.print(
         f"pixel spacing {sx:.5f} × {sy:.5f} mm"
         + (" (fitted)" if cal.scale_estimated else "")
-        + f"; {'3-D reprojection error' if kind == 'nwire' else 'error across the wire'} "
+        + f"; {_ERRORS[kind]} "
         f"{e['plus_mean']:.3f} ± {e['plus_sd']:.3f} mm (PLUS's statistic); "
         f"95 % bound {b['rotation_deg']:.2f}°, {b['translation_mm']:.2f} mm, "
         f"{b['image_mm']:.2f} mm over the image",

@@ -37,7 +37,7 @@ from calib.errors import UscalError
 
 from .. import progress as progress_report
 from ..config.error_sources import ERROR_SOURCES, ErrorSource, value_at
-from ..config.geometry import WIRED
+from ..config.geometry import TARGET_PHANTOMS
 from ..config.scenario import Scenario, load_scenario
 from ..grid import GridPoint, cache_key, run_grid
 from ..results import RunResult
@@ -142,7 +142,7 @@ def plan_budget(
     if seeds < 1:
         raise BudgetError(f"--seeds {seeds}: a budget needs at least one seed")
     scenario = load_scenario(path, overrides)
-    if scenario.phantom.kind in WIRED:
+    if scenario.phantom.kind in TARGET_PHANTOMS:
         raise BudgetError(
             "an N-wire scenario (phantom.kind: nwire): the error budget is measured on the "
             "sphere method; run the N-wire scenario with `uscal run` (and benchmarks/targets.py)"

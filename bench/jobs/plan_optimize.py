@@ -56,7 +56,7 @@ from ..candidates import (
     sweep_of,
     taught_sphere,
 )
-from ..config.geometry import WIRED
+from ..config.geometry import TARGET_PHANTOMS
 from ..config.method import image_points
 from ..config.scenario import Scenario
 from ..sessions import PLAN_SESSIONS_KEY, stage_rngs, stream
@@ -238,7 +238,7 @@ def optimize_plan(
     3 when the protocol scans three or more spheres) and score the paper's plan beside
     them (see the module docstring)."""
     proto = scenario.protocol
-    if scenario.phantom.kind in WIRED:
+    if scenario.phantom.kind in TARGET_PHANTOMS:
         raise UscalError(
             "--optimize: the planner chooses sphere sweeps by what they tell of the mount; "
             "an N-wire scenario (phantom.kind: nwire) runs its protocol's sweeps as they "

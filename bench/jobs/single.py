@@ -30,7 +30,7 @@ from ..acquire_sim import (
     simulate_touches,
 )
 from ..acquire_sim import save_dataset as save_dataset_files
-from ..config.geometry import WIRED
+from ..config.geometry import TARGET_PHANTOMS
 from ..config.method import (
     axial_scale,
     image_points,
@@ -53,8 +53,8 @@ from ..truth import (
     snapshot_of,
     transform_difference,
 )
-from .nwire import run_nwire
 from .paper import run_evaluation
+from .targets import run_target
 
 __all__ = ["run"]
 
@@ -200,8 +200,13 @@ def run(
         acq = simulate_acquisition(scenario, twin, imager, progress="acquire sweeps")
     else:
         acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
-    if scenario.phantom.kind in WIRED:
-        nwire = run_nwire(scenario, twin, acq, t_start)
+    if scenario.phantom.kind in TARGET_PHANTOMS:
+        if save_dataset is not None and scenario.phantom.kind == "cone":
+            raise UscalError(
+                "--save-dataset: a cone's sweeps have no dataset format yet (sphere, "
+                "N-wire and single-wire datasets do); run the cone scenario without it"
+            )
+        nwire = run_target(scenario, twin, acq, t_start)
         if save_dataset is not None:
             save_dataset_files(save_dataset, scenario, twin, acq)
         return RunResult(nwire.metrics, acq, nwire=nwire)

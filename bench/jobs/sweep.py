@@ -40,7 +40,7 @@ from calib.localize import localize_sphere
 
 from .. import progress as progress_report
 from ..acquire_sim import make_imager, make_twin, simulate_acquisition
-from ..config.geometry import WIRED
+from ..config.geometry import TARGET_PHANTOMS
 from ..config.method import axial_scale, stated_radius
 from ..config.scenario import acquisition_pixels, load_scenario, validate_overrides
 from ..config.schema import read_yaml
@@ -177,8 +177,8 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     # allowed): the base whole, each grid value by its keys and values (the file read
     # once, ≈ 1 ms a value). Reach and collisions depend on the whole point: a point that
     # cannot be reached fails alone in the sweep, with its reason.
-    if load_scenario(base).phantom.kind in WIRED or any(
-        k == "phantom.kind" and any(w in v for w in WIRED) for k, v in grid.items()
+    if load_scenario(base).phantom.kind in TARGET_PHANTOMS or any(
+        k == "phantom.kind" and any(w in v for w in TARGET_PHANTOMS) for k, v in grid.items()
     ):
         raise _fail(
             source, "base", "a sphere scenario: sweeps grid the sphere localizer; an N-wire "

@@ -255,6 +255,7 @@ def calibrate_nwire(
     patterns: Sequence[NWirePattern] | None = None,
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
+    groups_of_frames: NDArray[np.int_] | None = None,
 ) -> NWireCalibration:
     """``T_ee_us`` (and the pixel scale, and the phantom's pose when ``T_base_phantom``
     is None) from the N-wire observations of frames taken at poses ``T_base_ee`` (one per
@@ -268,7 +269,8 @@ def calibrate_nwire(
     depth (``axial_bias_m``, 1 σ: the echo comes from the wire's front surface, drawn by
     a pulse; at least the rms distance between the dots' centres and their echoes'
     peaks, which a comet tail lengthens), each propagated to first order through the
-    fit."""
+    fit. ``groups_of_frames`` (one per frame): the jackknife's groups (a robot's views);
+    without, blocks of consecutive frames."""
     if obs.frames_used < MIN_FRAMES:
         why = obs.refusals().most_common(1)
         raise CalibrationError(
@@ -292,6 +294,7 @@ def calibrate_nwire(
         declared=_tolerance_columns(obs, patterns, spacing_m, wire_tolerance_m),
         axial_bias_m=axial_bias_m,
         n_draws=n_draws,
+        groups=None if groups_of_frames is None else np.asarray(groups_of_frames)[obs.frame],
     )
 
 

@@ -362,18 +362,25 @@ def calibrate_targets(
     declared: Declared | None = None,
     axial_bias_m: float = 0.0,
     n_draws: int = 4000,
+    groups: NDArray[np.int_] | None = None,
 ) -> TargetCalibration:
     """``T_ee_us`` (and the pixel scale, and the phantom's pose when ``T_base_phantom``
     is None) from observations of ``targets`` in frames taken at poses ``T_base_ee``
     (one per frame); see the module doc. ``start`` (T_ee_us, T_base_phantom): where the
-    fit starts when the targets include wires (points need none). One
+    fit starts; needed when the targets include wires or a lone point (its phantom's
+    turn is unseen and the closed form cannot have it); otherwise the closed form. One
     :class:`~calib.errors.CalibrationError` when the frames cannot determine it.
 
     The bounds add declared errors every frame shares, which no residual shows:
     ``declared`` (e.g. a phantom's build tolerance) and a bias of the echoes' depth
     (``axial_bias_m``, 1 σ; at least the rms distance between the points' centres and
     their echoes' peaks, which a comet tail lengthens), propagated to first order
-    through the fit."""
+    through the fit.
+
+    ``groups`` (n,): the jackknife's groups when the data have them — a robot's views
+    (:func:`calib.calibration.uncertainty.pose_orientation_groups`: the sweeps of one
+    orientation share what that orientation does to the target's echo); without, blocks
+    of consecutive frames (a freehand recording)."""
     t0 = time.perf_counter()
     if obs.frames_used < MIN_FRAMES:
         why = obs.refused.most_common(1)
@@ -385,7 +392,7 @@ def calibrate_targets(
     T_k = np.asarray(T_base_ee, dtype=float)[obs.frame]
     p = obs.phantom_point
     rows, mask = observation_rows(obs, targets), row_mask(obs, targets)
-    if mask.all():
+    if mask.all() and start is None:
         T_X0, scale0, T_P0 = closed_form(xy, T_k, p, T_base_phantom)
     elif start is None:
         raise CalibrationError(
@@ -425,7 +432,10 @@ def calibrate_targets(
     # First-order covariance of the parameters (robust scale) and the block jackknife.
     # fit.jac is the Jacobian the robust loss weighted (inliers ≈ 1, outliers less).
     cov1 = np.linalg.pinv(fit.jac.T @ fit.jac) * sigma**2
-    blocks = _blocks(obs.frame, 2 * correlation_frames(obs.frame, obs.target, r))
+    if groups is None:
+        blocks = _blocks(obs.frame, 2 * correlation_frames(obs.frame, obs.target, r))
+    else:
+        blocks = np.unique(np.asarray(groups), return_inverse=True)[1]
     g = int(blocks.max()) + 1
     estimates = []
     for b in range(g):

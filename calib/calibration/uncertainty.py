@@ -58,6 +58,7 @@ __all__ = [
     "bound95",
     "image_grid",
     "orientation_groups",
+    "pose_orientation_groups",
 ]
 
 Array = NDArray[np.float64]
@@ -143,11 +144,16 @@ def orientation_groups(obs: Sequence[Observation], *, tol_deg: float = 5.0) -> N
     """Group index (n,) of each observation: observations whose flange orientations are
     within ``tol_deg`` of a group's first one share it (the protocol's views; the
     in-plane positions of one view, and the same view of other spheres, fall together)."""
-    R = np.array([o.T_base_ee[:3, :3] for o in obs])
+    return pose_orientation_groups(np.array([o.T_base_ee for o in obs]), tol_deg=tol_deg)
+
+
+def pose_orientation_groups(T_base_ee: Array, *, tol_deg: float = 5.0) -> NDArray[np.int_]:
+    """:func:`orientation_groups` of flange poses (n, 4, 4)."""
+    R = np.asarray(T_base_ee, dtype=float)[:, :3, :3]
     cos_tol = np.cos(np.radians(tol_deg))
-    out = np.full(len(obs), -1)
+    out = np.full(len(R), -1)
     g = 0
-    for i in range(len(obs)):
+    for i in range(len(R)):
         if out[i] >= 0:
             continue
         # cos of the relative angle: (tr(R_iᵀ R_j) − 1) / 2

@@ -3,16 +3,18 @@ rig's N-wire acquisition): uscal's own wire detection on every frame, ``T_ee_us`
 ``ImageToProbe``) with the pixel scale and, without a tracked phantom, the phantom's pose
 (:mod:`calib.calibration.nwire`), its bounds and verdict; and ``uscal run`` of an N-wire
 scenario, the same on the twin's acquisition scored against its truth. Written by
-:mod:`bench.outputs.nwire_files`."""
+:mod:`bench.outputs.target_files`."""
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibration.nwire import (
@@ -27,13 +29,15 @@ from calib.calibration.nwire import (
     plus_error_mm,
 )
 from calib.calibration.targets import TargetModel, calibrate_targets, nominal_xy
+from calib.calibration.uncertainty import pose_orientation_groups
 from calib.calibration.verdict import Requirements
 from calib.errors import UscalError
 from calib.files.dataset import AcquisitionInfo
 from calib.image import pixel_to_us
+from calib.localize.cone_tip import locate_cone_tip
 from calib.localize.nwire import detect_wire
 from calib.records import Dataset
-from calib.targets import TargetObservations, WireTarget
+from calib.targets import PointTarget, TargetObservations, WireTarget
 from sim_us.materials import medium_material
 
 from ..acquire_sim import acquisition_info
@@ -41,17 +45,19 @@ from ..config.method import requirements, scenario_uncertainty
 from ..truth import equivalent_mount, transform_difference
 
 __all__ = [
-    "NWireRun",
+    "TargetRun",
+    "calibrate_cone_dataset",
     "calibrate_nwire_dataset",
     "calibrate_wire_dataset",
-    "run_nwire",
+    "run_target",
 ]
 
 _MM = 1e3
+Array = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class NWireRun:
+class TargetRun:
     """An N-wire dataset's calibration and what it rests on."""
 
     dataset: Dataset
@@ -61,6 +67,15 @@ class NWireRun:
     calibration: NWireCalibration
     verdict: NWireVerdict
     metrics: dict[str, Any]
+
+
+def _views(info: AcquisitionInfo, poses: Array) -> NDArray[np.int_] | None:
+    """The jackknife's groups of a robot's frames: its views (the frames of one flange
+    orientation share what that orientation does to the targets' echoes); None for a
+    freehand recording (PLUS's), whose groups are blocks of consecutive frames."""
+    if info.source == "plus":
+        return None
+    return pose_orientation_groups(poses)
 
 
 def _condition(eigenvalues) -> float:
@@ -76,7 +91,7 @@ def calibrate_nwire_dataset(
     estimate_scale: bool = True,
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
-) -> NWireRun:
+) -> TargetRun:
     """Detect, calibrate and judge (see the module doc). ``wire_tolerance_m`` and
     ``axial_bias_m``: the declared errors of the bounds (the phantom's build tolerance,
     the echoes' depth bias; :func:`calib.calibration.nwire.calibrate_nwire`)."""
@@ -100,6 +115,7 @@ def calibrate_nwire_dataset(
         estimate_scale=estimate_scale,
         wire_tolerance_m=wire_tolerance_m,
         axial_bias_m=axial_bias_m,
+        groups_of_frames=_views(info, poses),
     )
     verdict = judge_nwire(cal, requirements)
     metrics: dict[str, Any] = {
@@ -128,7 +144,7 @@ def calibrate_nwire_dataset(
         "calibration": {"nwire": _calibration_metrics(cal, verdict)},
         "timing_s": {"detection": t_detect, "total": time.perf_counter() - t0},
     }
-    return NWireRun(dataset, info, Path(path), obs, cal, verdict, metrics)
+    return TargetRun(dataset, info, Path(path), obs, cal, verdict, metrics)
 
 
 def _calibration_metrics(cal: NWireCalibration, verdict: NWireVerdict) -> dict[str, Any]:
@@ -224,7 +240,7 @@ def calibrate_wire_dataset(
     estimate_scale: bool = True,
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
-) -> NWireRun:
+) -> TargetRun:
     """A single wire's dataset: the wire's dot in every frame
     (:func:`calib.localize.nwire.detect_wire`), then ``T_ee_us``, the pixel scale and the
     wire's pose (:func:`calib.calibration.targets.calibrate_targets`, the wire's two
@@ -257,6 +273,7 @@ def calibrate_wire_dataset(
     if len(found):
         X0 = info.T_ee_us_coarse
         starts = [(X0, P0) for P0 in _wire_starts(tobs, target, poses, X0, W, spacing)]
+    views = _views(info, poses)
     fits = [
         calibrate_targets(
             tobs,
@@ -269,6 +286,7 @@ def calibrate_wire_dataset(
             estimate_scale=estimate_scale,
             declared=_wire_tolerance(tobs, target, wire_tolerance_m),
             axial_bias_m=axial_bias_m,
+            groups=None if views is None else views[tobs.frame],
         )
         for start in starts
     ]
@@ -306,13 +324,163 @@ def calibrate_wire_dataset(
         "for a wire: each dot's distance from the wire across it (mean and SD below the "
         "95th percentile, as PLUS states its 3-D error)"
     )
-    return NWireRun(dataset, info, Path(path), obs, cal, verdict, metrics)
+    return TargetRun(dataset, info, Path(path), obs, cal, verdict, metrics)
 
 
-# ---------------------------------------------------------------- the twin's N-wire run
+def _pose_at(T: Array, e: Array, e0: float) -> Array:
+    """The flange pose of a sweep at elevation ``e0`` between its frames' (``e`` each):
+    the two nearest frames' translations interpolated (a sweep slides the probe; its
+    turn is the nearest frame's)."""
+    order = np.argsort(e)
+    i = int(np.clip(np.searchsorted(e[order], e0), 1, len(e) - 1))
+    a, b = order[i - 1], order[i]
+    u = (e0 - e[a]) / (e[b] - e[a]) if e[b] != e[a] else 0.0
+    out = T[a if u < 0.5 else b].copy()
+    out[:3, 3] = T[a, :3, 3] + u * (T[b, :3, 3] - T[a, :3, 3])
+    return out
 
 
-def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
+def calibrate_cone_dataset(
+    dataset: Dataset,
+    info: AcquisitionInfo,
+    path: str | Path,
+    requirements: Requirements,
+    *,
+    estimate_scale: bool = False,
+    wire_tolerance_m: float = 0.0,
+    axial_bias_m: float = 0.0,
+) -> TargetRun:
+    """A cone's sweeps: the apex of each (:func:`calib.localize.cone_tip.locate_cone_tip`,
+    the sweep's elevations from the robot's poses along the coarse mount's image normal;
+    the apex put in the image at the pose the sweep passes over it), then ``T_ee_us``
+    and the cone's position (:func:`calib.calibration.targets.calibrate_targets`, a
+    point target: three constraints per sweep; the pixel scale held unless asked),
+    from the coarse mount as start. ``wire_tolerance_m``: the apex's print tolerance."""
+    apex = info.landmarks.get("apex")
+    if apex is None:
+        raise UscalError("not a cone dataset: its manifest has no apex landmark")
+    target = PointTarget("apex", np.asarray(apex, dtype=float), "cone_tip")
+    t0 = time.perf_counter()
+    spacing = dataset_spacing_m(dataset, info)
+    X0 = info.T_ee_us_coarse
+    poses, pixels, found, refused = [], [], [], Counter()
+    W = H = 0
+    for s in dataset.sweeps:
+        H, W = s.images.shape[1:]
+        normal = (s.T_base_ee[s.reference_index] @ X0)[:3, 2]
+        e = (s.T_base_ee[:, :3, 3] - s.T_base_ee[s.reference_index, :3, 3]) @ normal
+        tip = locate_cone_tip(s.images, e, spacing, W)
+        if not tip.ok:
+            refused[tip.reason] += 1
+            continue
+        found.append(tip)
+        poses.append(_pose_at(s.T_base_ee, e, tip.elevation_m))
+        pixels.append([tip.x_m / spacing[0] + (W - 1) / 2, tip.depth_m / spacing[1]])
+    t_detect = time.perf_counter() - t0
+    n = len(found)
+    tobs = TargetObservations.of(
+        np.arange(n), np.zeros(n), pixels, np.tile(target.position, (n, 1)), refused=refused
+    )
+    start = None
+    if n:
+        T = np.array(poses) @ X0
+        xy = nominal_xy(tobs.pixel, W, spacing)
+        pts = np.einsum("nij,nj->ni", T[:, :3, :3], np.column_stack([xy, np.zeros(n)]))
+        centre = (pts + T[:, :3, 3]).mean(axis=0)
+        start = (X0, se3.make(np.eye(3), centre - target.position))
+
+    views = _views(info, np.array(poses).reshape(-1, 4, 4)) if n else None
+    # A view's tips share a bias no residual of the calibration shows: where the surface
+    # lies within its echo depends on the incidence, and within the slice's flat top
+    # (its half thickness) the apex's elevation is not resolved. Each view's tips are
+    # off by as much as the surface echoes scatter about the fitted cone (their robust
+    # scatter, per axis, 1 σ) or that half thickness (uniform: its √3rd), the same way
+    # for the sweeps of one view (measured on the twin's cone: the views' mean errors
+    # 0.1–0.3 mm per axis, the echoes' scatter ≈ 0.2 mm).
+    sigma_e = (
+        float(
+            np.median(
+                [max(f.scatter_px * spacing[1], f.slice_half_m / np.sqrt(3.0)) for f in found]
+            )
+        )
+        if n
+        else 0.0
+    )
+
+    def tolerance(model: TargetModel, x: Array) -> Array | None:
+        cols = []
+        for axis in range(3 if wire_tolerance_m > 0 else 0):
+            delta = np.zeros((n, 3))
+            delta[:, axis] = wire_tolerance_m
+            cols.append(model.shift_columns(x, delta))
+        if sigma_e > 0 and views is not None:
+            T_X, T_P, _ = model.unpack(x)
+            for axis in range(3):  # the image's axes, in the phantom frame
+                along = (model.T_k @ T_X)[:, :3, axis] @ T_P[:3, :3]
+                for g in np.unique(views):
+                    delta = np.where((views == g)[:, None], sigma_e * along, 0.0)
+                    cols.append(model.shift_columns(x, delta))
+        return np.column_stack(cols) if cols else None
+
+    cal = calibrate_targets(
+        tobs,
+        [target],
+        np.array(poses).reshape(-1, 4, 4),
+        width_px=W,
+        height_px=H,
+        spacing_m=spacing,
+        start=start,
+        estimate_scale=estimate_scale,
+        declared=tolerance,
+        axial_bias_m=axial_bias_m,
+        groups=views,
+    )
+    verdict = judge_nwire(cal, requirements)
+    obs = NWireObservations(
+        tobs.frame, tobs.target, tobs.pixel, tobs.phantom_point, (), None, tobs.skew
+    )
+    n_frames = int(sum(s.n_frames for s in dataset.sweeps))
+    metrics: dict[str, Any] = {
+        "dataset": {
+            "path": str(path),
+            "name": dataset.name,
+            "source": info.source,
+            "target": "cone_tip",
+            "n_sequences": len(dataset.sweeps),
+            "n_frames": n_frames,
+            "patterns": 1,
+            "phantom_pose": f"estimated ({cal.phantom_dof} of its 6 directions: a lone "
+            "point's turn about itself is not seen)",
+        },
+        "image": {
+            "width_px": int(W),
+            "height_px": int(H),
+            "spacing_m": [float(v) for v in spacing],
+        },
+        "detection": {
+            "sweeps_found": n,
+            "frames_found": n,
+            "points": n,
+            "refused": dict(refused.most_common()),
+            "half_angle_deg": float(np.median([f.half_angle_deg for f in found]))
+            if found
+            else None,
+            "ms_per_frame": t_detect / max(n_frames, 1) * 1e3,
+        },
+        "calibration": {"cone_tip": _calibration_metrics(cal, verdict)},
+        "timing_s": {"detection": t_detect, "total": time.perf_counter() - t0},
+    }
+    metrics["calibration"]["cone_tip"]["reprojection_3d_mm"]["note"] = (
+        "each sweep's apex: its distance from the cone's fitted tip (mean and SD below "
+        "the 95th percentile, as PLUS states its 3-D error)"
+    )
+    return TargetRun(dataset, info, Path(path), obs, cal, verdict, metrics)
+
+
+# ---------------------------------------------------------------- the twin's runs
+
+
+def run_target(scenario, twin, acq, t_start: float) -> TargetRun:
     """``uscal run`` of an N-wire scenario: the acquisition's frames calibrated as
     ``uscal calibrate`` would (phantom pose estimated), then scored against the twin's
     truth — rotation, translation and mean image error of ``T_ee_us`` with the fitted
@@ -321,8 +489,11 @@ def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
     info = acquisition_info(scenario, twin, acq.T_ee_us_coarse)
     inputs = scenario_uncertainty(scenario)
     t_sim = time.perf_counter() - t_start
-    kind = scenario.phantom.kind
-    calibrate = calibrate_wire_dataset if kind == "wire" else calibrate_nwire_dataset
+    calibrate = {
+        "wire": calibrate_wire_dataset,
+        "nwire": calibrate_nwire_dataset,
+        "cone": calibrate_cone_dataset,
+    }[scenario.phantom.kind]
     result = calibrate(
         acq.dataset,
         info,
@@ -359,6 +530,7 @@ def run_nwire(scenario, twin, acq, t_start: float) -> NWireRun:
         "robot_time_s": acq.robot_time_s,
         "replaced": [r.line() for r in acq.replaced],
     }
+    kind = m["dataset"]["target"]
     m["calibration"][kind]["true_error"] = error
     m["calibration"][kind]["bound_covers"] = covered
     m["calibration"][kind]["coarse_error"] = transform_difference(acq.T_ee_us_coarse, truth.T_ee_us)

@@ -15,11 +15,11 @@ import numpy as np
 
 from calib.calibration.nwire import NWireCalibration
 
-from ..jobs.nwire import NWireRun
+from ..jobs.targets import TargetRun
 from .calibration_doc import _Dumper, _pose_doc
 from .report import report_html
 
-__all__ = ["plus_coordinate_definition", "write_nwire"]
+__all__ = ["plus_coordinate_definition", "write_target"]
 
 _MM = 1e3
 
@@ -37,19 +37,20 @@ def plus_coordinate_definition(cal: NWireCalibration, error_mm: float) -> str:
     )
 
 
-_PHANTOM = {"nwire": "N-wire phantom", "wire": "single wire"}
+_PHANTOM = {"nwire": "N-wire phantom", "wire": "single wire", "cone_tip": "cone tip"}
 _ERROR = {
     "nwire": "3-D reprojection error (PLUS's definition)",
     "wire": "error across the wire (PLUS's statistic)",
+    "cone_tip": "3-D error of the tip (PLUS's statistic)",
 }
 
 
-def _kind(run: NWireRun) -> str:
+def _kind(run: TargetRun) -> str:
     """``nwire`` or ``wire``: which wires the calibration rests on."""
     return str(run.metrics["dataset"]["target"])
 
 
-def _document(run: NWireRun) -> dict[str, Any]:
+def _document(run: TargetRun) -> dict[str, Any]:
     cal, m = run.calibration, run.metrics["calibration"][_kind(run)]
     mean, sd = m["reprojection_3d_mm"]["plus_mean"], m["reprojection_3d_mm"]["plus_sd"]
     std = np.sqrt(np.clip(np.diag(cal.covariance), 0.0, None))
@@ -65,7 +66,10 @@ def _document(run: NWireRun) -> dict[str, Any]:
         "least squares of the 3-D wire-point distances"
         if _kind(run) == "nwire"
         else "single wire: threshold-free dot detection, robust least squares of each dot's "
-        "distance across the wire, the wire's pose estimated with T_ee_us",
+        "distance across the wire, the wire's pose estimated with T_ee_us"
+        if _kind(run) == "wire"
+        else "cone tip: the apex of each sweep (a cone fitted to its frames' surface echoes), "
+        "robust least squares of the apexes' distances, the cone's position estimated",
         "verdict": run.verdict.as_dict(),
         "T_ee_us": _pose_doc(cal.T_ee_us),
         "uncertainty_1sigma": {
@@ -117,7 +121,7 @@ def _document(run: NWireRun) -> dict[str, Any]:
     }
 
 
-def _report(run: NWireRun, figure: str | None) -> str:
+def _report(run: TargetRun, figure: str | None) -> str:
     cal, m = run.calibration, run.metrics
     e = m["calibration"][_kind(run)]["reprojection_3d_mm"]
     det = m["detection"]
@@ -126,8 +130,9 @@ def _report(run: NWireRun, figure: str | None) -> str:
         "",
         f"**Verdict: {run.verdict.line()}**",
         "",
-        f"- frames: {m['dataset']['n_frames']}, every wire found in "
-        f"{det['frames_found']} ({det['points']} wire points; "
+        f"- frames: {m['dataset']['n_frames']}, "
+        + ("the tip found in sweeps: " if _kind(run) == "cone_tip" else "every wire found in ")
+        + f"{det['frames_found']} ({det['points']} points; "
         f"{det['ms_per_frame']:.1f} ms per frame)",
     ]
     for reason, n in det["refused"].items():
@@ -160,7 +165,7 @@ def _report(run: NWireRun, figure: str | None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _figure(run: NWireRun, path: Path) -> None:
+def _figure(run: TargetRun, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -179,7 +184,7 @@ def _figure(run: NWireRun, path: Path) -> None:
     plt.close(fig)
 
 
-def write_nwire(directory: Path, run: NWireRun) -> list[str]:
+def write_target(directory: Path, run: TargetRun) -> list[str]:
     """``metrics.json``, ``calibration.yaml``, ``report.md`` and its figure into
     ``directory``; the names written."""
     import yaml
