@@ -193,6 +193,11 @@ def run(
         ev = run_evaluation(scenario, progress, recording, save)
         return RunResult(ev.metrics, evaluation=ev, snapshot=ev.outcomes[0].snapshot)
     t_start = time.perf_counter()
+    if save_dataset is not None and scenario.phantom.kind == "cone":
+        raise UscalError(
+            "--save-dataset: a cone's sweeps have no dataset format yet (sphere, "
+            "N-wire and single-wire datasets do); run the cone scenario without it"
+        )
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
     scans = []
@@ -201,11 +206,6 @@ def run(
     else:
         acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
     if scenario.phantom.kind in TARGET_PHANTOMS:
-        if save_dataset is not None and scenario.phantom.kind == "cone":
-            raise UscalError(
-                "--save-dataset: a cone's sweeps have no dataset format yet (sphere, "
-                "N-wire and single-wire datasets do); run the cone scenario without it"
-            )
         nwire = run_target(scenario, twin, acq, t_start)
         if save_dataset is not None:
             save_dataset_files(save_dataset, scenario, twin, acq)
