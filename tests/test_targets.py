@@ -171,3 +171,21 @@ def test_the_wire_s_dot_is_found_and_an_empty_frame_refused(rng):
     assert abs(x - col) < 0.3 and abs(y - row) < 0.3
     empty = detect_wire(_speckle(rng).astype(np.uint8), spacing_mm)
     assert not empty.ok and "stand out" in empty.reason
+
+
+def test_the_information_of_each_kind_is_the_observability_module_s(rng):
+    """A point's constraint rows give the point information, a wire's the line
+    information along its direction in the base frame (paper §III-B)."""
+    from calib.acquisition.observability import information, information_of_target, jacobians
+
+    T = np.array([se3.make(se3.matrix_from_rotvec(rng.normal(0, 0.2, 3)), rng.normal(0, 0.05, 3))
+                  for _ in range(12)])  # fmt: skip
+    G = jacobians(T, T_EE_US, rng.normal(0, 0.01, (12, 3)))
+    R = T_BASE_PHANTOM[:3, :3]
+    np.testing.assert_allclose(information_of_target(G, TIP, R), information(G), rtol=1e-12)
+    np.testing.assert_allclose(
+        information_of_target(G, WIRE, R),
+        information(G, line_direction=R @ WIRE.direction),
+        rtol=1e-10,
+        atol=1e-9,
+    )

@@ -28,10 +28,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .. import se3
+from ..targets import Target, constraint_rows
 
 __all__ = [
     "Observability",
     "information",
+    "information_of_target",
     "jacobians",
     "observability",
     "planned_observations",
@@ -68,6 +70,16 @@ def information(G: Array, *, line_direction: ArrayLike | None = None) -> Array:
     u = u / np.linalg.norm(u)
     P = np.eye(3) - np.outer(u, u)
     return np.einsum("nij,il,nlk->jk", Gt, P, Gt)
+
+
+def information_of_target(G: Array, target: Target, R_base_phantom: ArrayLike) -> Array:
+    """H̃ (6, 6) of Jacobians ``G`` (n, 3, 6) of observations of any kind of target
+    (:mod:`calib.targets`): its constraint rows, turned into the base frame, project
+    each observation's displacement (a point: all of it; a wire: across it).
+    :func:`information` is the point's and the line's case."""
+    B = constraint_rows(target) @ np.asarray(R_base_phantom, dtype=float).T  # base frame
+    Gt = G - G.mean(axis=0)
+    return np.einsum("nij,ki,kl,nlm->jm", Gt, B, B, Gt)
 
 
 @dataclass(frozen=True)
