@@ -118,32 +118,63 @@ def calibrate_nwire_dataset(
         groups_of_frames=_views(info, poses),
     )
     verdict = judge_nwire(cal, requirements)
+    return _target_run(
+        "nwire", dataset, info, path, obs, cal, verdict,
+        shape=(H, W), spacing=spacing, n_frames=len(images),
+        patterns=len(info.nwire.patterns),
+        phantom_pose="estimated" if cal.phantom_estimated else "tracked",
+        detection={
+            "frames_found": obs.frames_used,
+            "points": len(obs.frame),
+            "refused": dict(obs.refusals().most_common()),
+            "marked_side": "last wire first" if mirrored else "first wire first",
+        },
+        times=(t_detect, t0),
+    )  # fmt: skip
+
+
+def _target_run(
+    kind: str,
+    dataset: Dataset,
+    info: AcquisitionInfo,
+    path: str | Path,
+    obs: NWireObservations,
+    cal: NWireCalibration,
+    verdict: NWireVerdict,
+    *,
+    shape: tuple[int, int],
+    spacing: tuple[float, float],
+    n_frames: int,
+    patterns: int,
+    phantom_pose: str,
+    detection: dict[str, Any],
+    times: tuple[float, float],
+    error_note: str | None = None,
+) -> TargetRun:
+    """The run's metrics, one layout for every kind of target (``kind``: its key)."""
+    t_detect, t0 = times
     metrics: dict[str, Any] = {
         "dataset": {
             "path": str(path),
             "name": dataset.name,
             "source": info.source,
-            "target": "nwire",
+            "target": kind,
             "n_sequences": len(dataset.sweeps),
-            "n_frames": len(images),
-            "patterns": len(info.nwire.patterns),
-            "phantom_pose": "estimated" if cal.phantom_estimated else "tracked",
+            "n_frames": n_frames,
+            "patterns": patterns,
+            "phantom_pose": phantom_pose,
         },
         "image": {
-            "width_px": int(W),
-            "height_px": int(H),
+            "width_px": int(shape[1]),
+            "height_px": int(shape[0]),
             "spacing_m": [float(v) for v in spacing],
         },
-        "detection": {
-            "frames_found": obs.frames_used,
-            "points": len(obs.frame),
-            "refused": dict(obs.refusals().most_common()),
-            "marked_side": "last wire first" if mirrored else "first wire first",
-            "ms_per_frame": t_detect / max(len(images), 1) * 1e3,
-        },
-        "calibration": {"nwire": _calibration_metrics(cal, verdict)},
+        "detection": detection | {"ms_per_frame": t_detect / max(n_frames, 1) * 1e3},
+        "calibration": {kind: _calibration_metrics(cal, verdict)},
         "timing_s": {"detection": t_detect, "total": time.perf_counter() - t0},
     }
+    if error_note is not None:
+        metrics["calibration"][kind]["reprojection_3d_mm"]["note"] = error_note
     return TargetRun(dataset, info, Path(path), obs, cal, verdict, metrics)
 
 
@@ -294,37 +325,20 @@ def calibrate_wire_dataset(
     # minimum where they scatter by millimetres).
     cal = min(fits, key=lambda c: c.sigma_mm)
     verdict = judge_nwire(cal, requirements)
-    metrics: dict[str, Any] = {
-        "dataset": {
-            "path": str(path),
-            "name": dataset.name,
-            "source": info.source,
-            "target": "wire",
-            "n_sequences": len(dataset.sweeps),
-            "n_frames": len(images),
-            "patterns": 1,
-            "phantom_pose": f"estimated ({cal.phantom_dof} of its 6 directions: a lone "
-            "wire's pose along and about itself is not seen)",
-        },
-        "image": {
-            "width_px": int(W),
-            "height_px": int(H),
-            "spacing_m": [float(v) for v in spacing],
-        },
-        "detection": {
+    return _target_run(
+        "wire", dataset, info, path, obs, cal, verdict,
+        shape=(H, W), spacing=spacing, n_frames=len(images), patterns=1,
+        phantom_pose=f"estimated ({cal.phantom_dof} of its 6 directions: a lone wire's "
+        "pose along and about itself is not seen)",
+        detection={
             "frames_found": obs.frames_used,
             "points": len(obs.frame),
             "refused": dict(obs.refusals().most_common()),
-            "ms_per_frame": t_detect / max(len(images), 1) * 1e3,
         },
-        "calibration": {"wire": _calibration_metrics(cal, verdict)},
-        "timing_s": {"detection": t_detect, "total": time.perf_counter() - t0},
-    }
-    metrics["calibration"]["wire"]["reprojection_3d_mm"]["note"] = (
-        "for a wire: each dot's distance from the wire across it (mean and SD below the "
-        "95th percentile, as PLUS states its 3-D error)"
-    )
-    return TargetRun(dataset, info, Path(path), obs, cal, verdict, metrics)
+        times=(t_detect, t0),
+        error_note="for a wire: each dot's distance from the wire across it (mean and SD "
+        "below the 95th percentile, as PLUS states its 3-D error)",
+    )  # fmt: skip
 
 
 def _pose_at(T: Array, e: Array, e0: float) -> Array:
@@ -439,42 +453,24 @@ def calibrate_cone_dataset(
     obs = NWireObservations(
         tobs.frame, tobs.target, tobs.pixel, tobs.phantom_point, (), None, tobs.skew
     )
-    n_frames = int(sum(s.n_frames for s in dataset.sweeps))
-    metrics: dict[str, Any] = {
-        "dataset": {
-            "path": str(path),
-            "name": dataset.name,
-            "source": info.source,
-            "target": "cone_tip",
-            "n_sequences": len(dataset.sweeps),
-            "n_frames": n_frames,
-            "patterns": 1,
-            "phantom_pose": f"estimated ({cal.phantom_dof} of its 6 directions: a lone "
-            "point's turn about itself is not seen)",
-        },
-        "image": {
-            "width_px": int(W),
-            "height_px": int(H),
-            "spacing_m": [float(v) for v in spacing],
-        },
-        "detection": {
+    return _target_run(
+        "cone_tip", dataset, info, path, obs, cal, verdict,
+        shape=(H, W), spacing=spacing,
+        n_frames=int(sum(s.n_frames for s in dataset.sweeps)), patterns=1,
+        phantom_pose=f"estimated ({cal.phantom_dof} of its 6 directions: a lone point's "
+        "turn about itself is not seen)",
+        detection={
             "sweeps_found": n,
             "frames_found": n,
             "points": n,
             "refused": dict(refused.most_common()),
             "half_angle_deg": float(np.median([f.half_angle_deg for f in found]))
-            if found
-            else None,
-            "ms_per_frame": t_detect / max(n_frames, 1) * 1e3,
+            if found else None,
         },
-        "calibration": {"cone_tip": _calibration_metrics(cal, verdict)},
-        "timing_s": {"detection": t_detect, "total": time.perf_counter() - t0},
-    }
-    metrics["calibration"]["cone_tip"]["reprojection_3d_mm"]["note"] = (
-        "each sweep's apex: its distance from the cone's fitted tip (mean and SD below "
-        "the 95th percentile, as PLUS states its 3-D error)"
-    )
-    return TargetRun(dataset, info, Path(path), obs, cal, verdict, metrics)
+        times=(t_detect, t0),
+        error_note="each sweep's apex: its distance from the cone's fitted tip (mean and SD "
+        "below the 95th percentile, as PLUS states its 3-D error)",
+    )  # fmt: skip
 
 
 # ---------------------------------------------------------------- the twin's runs
