@@ -1,8 +1,11 @@
-"""An N-wire scenario (scenarios/nwire.yaml) is a valid scenario, its protocol checks,
-and the commands that measure the sphere method refuse it in one line, writing nothing."""
+"""The scenarios of targets other than spheres (scenarios/nwire.yaml, wire.yaml,
+cone_tip.yaml) are valid scenarios, their protocols check, the commands that measure the
+sphere method refuse them in one line, writing nothing, and `uscal budget` measures
+them."""
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import pytest
@@ -11,33 +14,48 @@ from .test_cli import uscal_here
 
 ROOT = Path(__file__).resolve().parents[1]
 NWIRE = str(ROOT / "scenarios" / "nwire.yaml")
+SCENARIOS = {k: str(ROOT / "scenarios" / f"{k}.yaml") for k in ("nwire", "wire", "cone_tip")}
+KIND = {"nwire": "nwire", "wire": "wire", "cone_tip": "cone"}
 
 
-def test_the_n_wire_scenario_is_valid_and_its_protocol_checks(capsys):
-    r = uscal_here(capsys, "check", NWIRE)
+@pytest.mark.parametrize("name", sorted(SCENARIOS))
+def test_the_scenario_is_valid_and_its_protocol_checks(capsys, name):
+    r = uscal_here(capsys, "check", SCENARIOS[name])
     assert r.returncode == 0, r.stderr
-    assert "nwire" in r.stdout and "scenario is valid" in r.stdout
-    r = uscal_here(capsys, "plan", NWIRE)
+    assert KIND[name] in r.stdout and "scenario is valid" in r.stdout
+    r = uscal_here(capsys, "plan", SCENARIOS[name])
     assert r.returncode == 0, r.stderr
-    assert "nwire" in r.stdout
 
 
-@pytest.mark.parametrize(
-    "args, message",
-    [
-        (["budget", NWIRE], "the error budget is measured on the sphere method"),
-        (["plan", NWIRE, "--optimize", "--sweeps", "10"], "the planner chooses sphere sweeps"),
-    ],
-)
-def test_sphere_only_commands_refuse_it_in_one_line(capsys, tmp_path, args, message):
+@pytest.mark.parametrize("name", sorted(SCENARIOS))
+def test_the_planner_refuses_it_in_one_line(capsys, tmp_path, name):
+    args = ["plan", SCENARIOS[name], "--optimize", "--sweeps", "10"]
     r = uscal_here(capsys, *args, "--out", str(tmp_path / "out"))
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
-    assert message in r.stderr and not (tmp_path / "out").exists()
+    assert "the planner chooses sphere sweeps" in r.stderr and not (tmp_path / "out").exists()
 
 
-def test_a_sweep_over_it_is_refused(capsys, tmp_path):
+@pytest.mark.parametrize("name", sorted(SCENARIOS))
+def test_a_sweep_over_it_is_refused(capsys, tmp_path, name):
     sweep = tmp_path / "sweep.yaml"
-    sweep.write_text(f"base: {NWIRE}\ngrid:\n  imaging.gain_db: [0, 6]\n", encoding="utf-8")
+    sweep.write_text(f"base: {SCENARIOS[name]}\ngrid:\n  imaging.gain_db: [0, 6]\n")
     r = uscal_here(capsys, "sweep", str(sweep), "--out", str(tmp_path / "out"))
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
-    assert "an N-wire scenario runs with `uscal run`" in r.stderr
+    assert "cone scenario runs with `uscal run`" in r.stderr
+
+
+@pytest.mark.slow
+def test_the_budget_measures_a_wire_scenario(capsys, tmp_path):
+    """One source, one seed: the error-free rig, the scenario, the source alone and all
+    but it, each a whole run of the single wire, its true error in the budget."""
+    out = tmp_path / "budget"
+    r = uscal_here(
+        capsys, "budget", SCENARIOS["wire"], "--sources", "print_tolerance",
+        "--seeds", "1", "--workers", "1", "--out", str(out),
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader((out / "budget.csv").open()))
+    assert len(rows) == 4 and not any(row["error"] for row in rows), rows
+    image = [float(row["image_mm"]) for row in rows]
+    assert all(0 < v < 0.3 for v in image)  # the single wire's error, every source off or on
+    assert "single marker or the target" in (out / "budget.md").read_text()

@@ -37,7 +37,6 @@ from calib.errors import UscalError
 
 from .. import progress as progress_report
 from ..config.error_sources import ERROR_SOURCES, ErrorSource, value_at
-from ..config.geometry import TARGET_PHANTOMS
 from ..config.scenario import Scenario, load_scenario
 from ..grid import GridPoint, cache_key, run_grid
 from ..results import RunResult
@@ -59,13 +58,18 @@ FIGURES: dict[str, str] = {
     "sphere_precision_mm": "sphere precision, single marker (mm)",
     "sphere_accuracy_mm": "sphere accuracy, single marker (mm)",
     "tool_precision_mm": "tool precision (mm)",
-    "image_mm": "T_ee_us true error over the image, single marker (mm)",
-    "rotation_deg": "T_ee_us true rotation error, single marker (°)",
-    "translation_mm": "T_ee_us true translation error, single marker (mm)",
+    "image_mm": "T_ee_us true error over the image, single marker or the target (mm)",
+    "rotation_deg": "T_ee_us true rotation error, single marker or the target (°)",
+    "translation_mm": "T_ee_us true translation error, single marker or the target (mm)",
     "cone_mae_mm": "cone MAE after ICP, single marker (mm)",
     "prism_mae_mm": "prism MAE after ICP, single marker (mm)",
 }
 MODES = ("none", "alone", "all_but", "all")
+
+
+#: The calibrations of targets other than spheres (``metrics.json``'s
+#: ``dataset.target``): the wires' and the cone's tip.
+TARGET_KINDS = ("nwire", "wire", "cone_tip")
 
 
 class BudgetError(UscalError):
@@ -142,11 +146,6 @@ def plan_budget(
     if seeds < 1:
         raise BudgetError(f"--seeds {seeds}: a budget needs at least one seed")
     scenario = load_scenario(path, overrides)
-    if scenario.phantom.kind in TARGET_PHANTOMS:
-        raise BudgetError(
-            "an N-wire scenario (phantom.kind: nwire): the error budget is measured on the "
-            "sphere method; run the N-wire scenario with `uscal run` (and benchmarks/targets.py)"
-        )
     known = {s.name: s for s in ERROR_SOURCES}
     if sources is None:
         chosen = ERROR_SOURCES
@@ -179,12 +178,17 @@ def budget_figures(metrics: dict[str, Any]) -> dict[str, float]:
     With the paper's evaluation: the overall MAE of Tables I–III (single marker) and the
     true errors of ``T_ee_us`` averaged over the single-marker folds. One acquisition:
     the single-marker calibration's precision, its accuracy against the true centres, and
-    its true errors; no tool precision or reconstruction (NaN).
+    its true errors; no tool precision or reconstruction (NaN). A wire, N-wire or cone-tip
+    scenario: its calibration's true errors (no sphere figures).
     """
     nan = float("nan")
     out = dict.fromkeys(FIGURES, nan)
     ev = metrics.get("evaluation", {})
-    if "single" in ev:
+    target = metrics.get("dataset", {}).get("target")
+    if target in TARGET_KINDS:
+        for key in ("image_mm", "rotation_deg", "translation_mm"):
+            out[key] = metrics["calibration"][target]["true_error"][key]
+    elif "single" in ev:
         table = ev["single"]
         out["sphere_precision_mm"] = table["sphere_precision_mm"]["overall"]["mae"]
         out["sphere_accuracy_mm"] = table["sphere_accuracy_mm"]["overall"]["mae"]

@@ -241,7 +241,7 @@ def optimize_plan(
     if scenario.phantom.kind in TARGET_PHANTOMS:
         raise UscalError(
             "--optimize: the planner chooses sphere sweeps by what they tell of the mount; "
-            "an N-wire scenario (phantom.kind: nwire) runs its protocol's sweeps as they "
+            f"a {scenario.phantom.kind} scenario runs its protocol's sweeps as they "
             "are (`uscal plan` without --optimize checks them)"
         )
     if markers is None:

@@ -181,8 +181,9 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
         k == "phantom.kind" and any(w in v for w in TARGET_PHANTOMS) for k, v in grid.items()
     ):
         raise _fail(
-            source, "base", "a sphere scenario: sweeps grid the sphere localizer; an N-wire "
-            "scenario runs with `uscal run` (and benchmarks/targets.py)",
+            source, "base", "a sphere scenario: sweeps grid the sphere localizer; a wire, "
+            "N-wire or cone scenario runs with `uscal run`, `uscal budget` and "
+            "benchmarks/targets.py",
         )  # fmt: skip
     validate_overrides(
         base,
