@@ -60,7 +60,7 @@ from .jobs.plan_optimize import optimize_plan, plan_about
 from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
 from .jobs.single import run
 from .jobs.sweep import load_sweep, run_sweep
-from .jobs.targets import calibrate_nwire_dataset, calibrate_wire_dataset
+from .jobs.targets import calibrate_nwire_dataset, calibrate_wire_dataset, run_target
 from .jobs.twin_serve import export_twin, landmarks_mm, serve_twin
 from .jobs.validate import read_calibration, validate_dataset
 from .outputs.budget_report import write_budget
@@ -400,7 +400,7 @@ def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
     print_workload(spec.count(), len(spec.seeds), hours, workers, bool(args.scheduler), console)
     out = Path(args.out or Path("out") / Path(args.sweep_file).stem)
     with progress_bars(console) as bars, reporting(bars.update):
-        result = run_sweep(spec, out, args.scheduler, args.workers or None)
+        result = run_sweep(spec, out, args.scheduler, args.workers or None, run_target)
     files = write_sweep(out, result)
     print_cached_run("points", len(result.points), result, files, console)
     return 1 if result.failed else 0

@@ -1,7 +1,6 @@
 """The scenarios of targets other than spheres (scenarios/nwire.yaml, wire.yaml,
-cone_tip.yaml) are valid scenarios, their protocols check, the commands that measure the
-sphere method refuse them in one line, writing nothing, and `uscal budget` measures
-them."""
+cone_tip.yaml) are valid scenarios, their protocols check, the planner refuses them in
+one line, writing nothing, and `uscal sweep` and `uscal budget` measure them."""
 
 from __future__ import annotations
 
@@ -35,13 +34,32 @@ def test_the_planner_refuses_it_in_one_line(capsys, tmp_path, name):
     assert "the planner chooses sphere sweeps" in r.stderr and not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("name", sorted(SCENARIOS))
-def test_a_sweep_over_it_is_refused(capsys, tmp_path, name):
+def test_a_sweep_mixing_spheres_and_other_targets_is_refused(capsys, tmp_path):
     sweep = tmp_path / "sweep.yaml"
-    sweep.write_text(f"base: {SCENARIOS[name]}\ngrid:\n  imaging.gain_db: [0, 6]\n")
+    sweep.write_text(
+        f"base: {SCENARIOS['wire']}\ngrid:\n  phantom.kind: [wire, spheres]\n", encoding="utf-8"
+    )
     r = uscal_here(capsys, "sweep", str(sweep), "--out", str(tmp_path / "out"))
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
-    assert "cone scenario runs with `uscal run`" in r.stderr
+    assert "sweep them in separate files" in r.stderr and not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_sweep_over_a_wire_calibrates_each_point(capsys, tmp_path):
+    """Each point finds and calibrates the wire as `uscal run` does: one row named after
+    the target, its unused share of frames, its true error and verdict."""
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(
+        f"base: {SCENARIOS['wire']}\ngrid:\n  imaging.gain_db: [-6, 6]\nseeds: [0]\n",
+        encoding="utf-8",
+    )
+    r = uscal_here(capsys, "sweep", str(sweep), "--out", str(tmp_path / "out"), "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader((tmp_path / "out" / "results.csv").open()))
+    assert [row["method"] for row in rows] == ["wire", "wire"]
+    assert all(0 < float(row["calibration_image_mm"]) < 0.3 for row in rows)
+    assert all(float(row["rejected_fraction"]) < 0.1 for row in rows)
+    assert all(row["calibration_verdict"] == "accepted" for row in rows)
 
 
 @pytest.mark.slow

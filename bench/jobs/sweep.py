@@ -26,7 +26,8 @@ import functools
 import itertools
 import json
 import os
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -177,14 +178,20 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     # allowed): the base whole, each grid value by its keys and values (the file read
     # once, ≈ 1 ms a value). Reach and collisions depend on the whole point: a point that
     # cannot be reached fails alone in the sweep, with its reason.
-    if load_scenario(base).phantom.kind in TARGET_PHANTOMS or any(
-        k == "phantom.kind" and any(w in v for w in TARGET_PHANTOMS) for k, v in grid.items()
+    base_kind = load_scenario(base).phantom.kind
+    if any(
+        k == "phantom.kind"
+        and any((w in TARGET_PHANTOMS) != (base_kind in TARGET_PHANTOMS) for w in v)
+        for k, v in grid.items()
     ):
         raise _fail(
-            source, "base", "a sphere scenario: sweeps grid the sphere localizer; a wire, "
-            "N-wire or cone scenario runs with `uscal run`, `uscal budget` and "
-            "benchmarks/targets.py",
+            source, "grid", "phantom.kind: spheres and the other targets (wires, the cone's "
+            "tip) are measured differently; sweep them in separate files",
         )  # fmt: skip
+    if base_kind in TARGET_PHANTOMS:
+        # A wire, N-wire or cone point finds and calibrates its own target (one row
+        # named after it): no sphere localizer to choose.
+        stages, methods = ["localize", "calibrate"], [base_kind]
     validate_overrides(
         base,
         (
@@ -228,6 +235,10 @@ def point_key(spec: SweepSpec, overrides: Sequence[tuple[str, Any]], seed: int) 
 
 # ----------------------------------------------------------------------------- a point
 
+#: How a sweep calibrates a target other than spheres at a point: ``uscal run``'s
+#: (scenario, twin, acquisition, start time) → the run with its ``metrics``.
+TargetRunner = Callable[[Any, Any, Any, float], Any]
+
 
 def run_point(
     base: str,
@@ -235,17 +246,25 @@ def run_point(
     seed: int,
     stages: Sequence[str],
     methods: Sequence[str],
+    target_runner: TargetRunner | None = None,
 ) -> list[dict[str, Any]]:
     """Simulate one acquisition of ``base`` with ``overrides`` and ``seed``, localize
     every sphere with each method (the sweeps stacked with the twin's true ``T_ee_us``:
     the localizer alone) and, with the ``calibrate`` stage, calibrate single-marker on
     the first sphere from the coarse estimate; one row of metrics per method, no
-    frames."""
+    frames. A wire, N-wire or cone scenario is calibrated from its own target by
+    ``target_runner`` (``uscal run``'s: :func:`bench.jobs.targets.run_target`)."""
     scenario = load_scenario(Path(base), [*(_override(k, v) for k, v in overrides), f"seed={seed}"])
+    t0 = time.perf_counter()
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
     with progress_report.reporting(None):  # the sweep counts points, not sweeps
         acq = simulate_acquisition(scenario, twin, imager, "sweep")
+    if scenario.phantom.kind in TARGET_PHANTOMS:
+        del imager
+        if target_runner is None:
+            raise SweepError(f"a {scenario.phantom.kind} scenario's point needs its runner")
+        return [_target_row(target_runner, scenario, twin, acq, seed, t0)]
     truth = twin.truth
     del imager
     release_memory()
@@ -311,15 +330,44 @@ def run_point(
     return rows
 
 
+def _target_row(
+    run_target: TargetRunner, scenario, twin, acq, seed: int, t0: float
+) -> dict[str, Any]:
+    """A wire, N-wire or cone scenario's point: its own target found and calibrated as
+    ``uscal run`` does (:func:`bench.jobs.targets.run_target`); one row named after the
+    target: the share of frames (cone: sweeps) not used, the calibration's true error
+    over the image and its verdict (no sphere localization figures)."""
+    try:
+        run = run_target(scenario, twin, acq, t0)
+    except UscalError as exc:  # e.g. too few frames show the target
+        return {"seed": seed, "method": scenario.phantom.kind, "calibration_error": str(exc),
+                "calibration_image_mm": float("nan")}  # fmt: skip
+    m = run.metrics
+    kind = m["dataset"]["target"]
+    per_sweep = kind == "cone_tip"
+    n = m["dataset"]["n_sequences"] if per_sweep else m["dataset"]["n_frames"]
+    used = m["detection"]["sweeps_found" if per_sweep else "frames_found"]
+    cal = m["calibration"][kind]
+    return {
+        "seed": seed,
+        "method": kind,
+        "rejected_fraction": (n - used) / n if n else float("nan"),
+        "sweeps": len(acq.dataset.sweeps),
+        "calibration_image_mm": cal["true_error"]["image_mm"],
+        "calibration_verdict": cal["verdict"]["status"],
+    }
+
+
 def _sweep_point(
     base: str,
     stages: Sequence[str],
     methods: Sequence[str],
+    target_runner: TargetRunner | None,
     overrides: Sequence[tuple[str, Any]],
     seed: int,
 ) -> dict[str, Any]:
     """A point's result as the grid records it (:func:`run_point`'s rows)."""
-    return {"rows": run_point(base, overrides, seed, stages, methods)}
+    return {"rows": run_point(base, overrides, seed, stages, methods, target_runner)}
 
 
 # ----------------------------------------------------------------------------- reading a point
@@ -427,13 +475,15 @@ def run_sweep(
     out: str | os.PathLike[str],
     scheduler: str | None = None,
     workers: int | None = None,
+    target_runner: TargetRunner | None = None,
 ) -> SweepResult:
     """Run every point not yet cached in ``out/points``, on a local process pool
     (``workers``, default one per core) or the Dask cluster at ``scheduler``
     (:func:`bench.grid.run_grid`). A failed point records its error, a refused one why
     its plan was refused (collision, reach), and the sweep goes on;
-    :func:`bench.outputs.sweep_report.write_sweep` writes the tables."""
-    task = functools.partial(_sweep_point, str(spec.base), spec.stages, spec.methods)
+    :func:`bench.outputs.sweep_report.write_sweep` writes the tables. ``target_runner``:
+    how a wire, N-wire or cone scenario's points are calibrated (:func:`run_point`)."""
+    task = functools.partial(_sweep_point, str(spec.base), spec.stages, spec.methods, target_runner)
     points = [GridPoint(o, s, point_key(spec, o, s)) for o, s in spec.points()]
     grid = run_grid(task, points, out, scheduler, workers, "sweep points")
     return SweepResult(
