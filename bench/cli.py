@@ -32,7 +32,7 @@ from .cli_parser import parser
 from .config.docs import scenarios_markdown
 from .config.geometry import TARGET_PHANTOMS, WIRED
 from .config.hw import load_hw_config
-from .config.method import requirements, scenario_uncertainty
+from .config.method import requirements
 from .config.plan_file import write_plan
 from .config.scenario import load_scenario
 from .console import (
@@ -60,7 +60,12 @@ from .jobs.plan_optimize import optimize_plan, plan_about
 from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
 from .jobs.single import run
 from .jobs.sweep import load_sweep, run_sweep
-from .jobs.targets import calibrate_nwire_dataset, calibrate_wire_dataset, run_target
+from .jobs.targets import (
+    calibrate_nwire_dataset,
+    calibrate_wire_dataset,
+    echo_depth_bias_m,
+    run_target,
+)
 from .jobs.twin_serve import export_twin, landmarks_mm, serve_twin
 from .jobs.validate import read_calibration, validate_dataset
 from .outputs.budget_report import write_budget
@@ -346,7 +351,7 @@ def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console
                 requirements(settings),
                 estimate_scale=not args.fixed_pixel_scale,
                 wire_tolerance_m=settings.phantom.tolerance_position_mm * 1e-3,
-                axial_bias_m=scenario_uncertainty(settings).axial_bias_m,
+                axial_bias_m=echo_depth_bias_m(settings),
             )
         written = write_target(tmp, result)
     print_target(result, console)

@@ -69,6 +69,19 @@ class TargetRun:
     metrics: dict[str, Any]
 
 
+def echo_depth_bias_m(scenario) -> float:
+    """The echoes' depth uncertainty a target's bounds declare (1 σ, m): the scenario's
+    (the localizer's bias along the beam) and, for wires, where between the wire's front
+    surface and its axis the echo's centre lies — anywhere from the specular point a
+    radius above the axis (the wire's definition) to the axis itself: the rms of such
+    a bias, r/√3 (on the twin with every other error source off, the single wire's
+    0.06 mm over the image is that bias)."""
+    bias = scenario_uncertainty(scenario).axial_bias_m
+    if scenario.phantom.kind in ("nwire", "wire"):
+        bias = max(bias, scenario.phantom.wire_diameter_mm / 2 * 1e-3 / np.sqrt(3.0))
+    return bias
+
+
 def _views(info: AcquisitionInfo, poses: Array) -> NDArray[np.int_] | None:
     """The jackknife's groups of a robot's frames: its views (the frames of one flange
     orientation share what that orientation does to the targets' echoes); None for a
@@ -483,7 +496,6 @@ def run_target(scenario, twin, acq, t_start: float) -> TargetRun:
     pixel scale, and whether the 95 % bounds cover them."""
 
     info = acquisition_info(scenario, twin, acq.T_ee_us_coarse)
-    inputs = scenario_uncertainty(scenario)
     t_sim = time.perf_counter() - t_start
     calibrate = {
         "wire": calibrate_wire_dataset,
@@ -496,7 +508,7 @@ def run_target(scenario, twin, acq, t_start: float) -> TargetRun:
         "(twin acquisition)",
         requirements(scenario),
         wire_tolerance_m=scenario.phantom.tolerance_position_mm / _MM,
-        axial_bias_m=inputs.axial_bias_m,
+        axial_bias_m=echo_depth_bias_m(scenario),
     )
     truth = twin.truth
     X_equiv = equivalent_mount(scenario, acq, truth)
