@@ -34,12 +34,12 @@ sys.path.insert(0, str(ROOT))
 from calib.calibration.nwire import (  # noqa: E402
     NWireObservations,
     calibrate_nwire,
-    judge_nwire,
     observations_of,
     observe_nwires,
     plus_error_mm,
     reprojection_errors_mm,
 )
+from calib.calibration.targets import judge_targets  # noqa: E402
 from calib.errors import CalibrationError  # noqa: E402
 from calib.files.metafile import read_metafile  # noqa: E402
 from calib.files.plus_config import read_plus_config, read_plus_results  # noqa: E402
@@ -146,7 +146,7 @@ def calibrate_against_plus(data: Path, config, results, frames) -> dict[str, flo
         f"  pixel spacing fitted {cal.spacing_m[0] * 1e3:.5f} × {cal.spacing_m[1] * 1e3:.5f} mm;"
         f" 95 % bound {cal.bound95['rotation_deg']:.2f}°, {cal.bound95['translation_mm']:.2f} "
         f"mm, {cal.bound95['image_mm']:.2f} mm over the image; verdict "
-        f"{judge_nwire(cal).line()}"
+        f"{judge_targets(cal).line()}"
     )
     print("  3-D error as PLUS states it (mean ± SD below the 95th percentile), mm:")
     print(f"  {'transform':10s} {'uscal pts':>15s} {'PLUS pts':>15s} {'PLUS validation':>16s}")
@@ -196,7 +196,7 @@ def calibrate_against_plus(data: Path, config, results, frames) -> dict[str, flo
         robot = calibrate_nwire(
             obs, tracked, width_px=W, height_px=H, spacing_m=tuple(spacing * 1e-3), n_draws=500
         )
-        print(f"  phantom pose estimated too (a robot rig): {judge_nwire(robot).line()}")
+        print(f"  phantom pose estimated too (a robot rig): {judge_targets(robot).line()}")
     except CalibrationError as e:
         print(f"  phantom pose estimated too (a robot rig): refused: {e}")
     return {

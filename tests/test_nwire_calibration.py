@@ -13,10 +13,10 @@ from calib import se3
 from calib.calibration.nwire import (
     NWireObservations,
     calibrate_nwire,
-    judge_nwire,
     plus_error_mm,
     reprojection_errors_mm,
 )
+from calib.calibration.targets import judge_targets
 from calib.calibration.verdict import Requirements
 from calib.errors import CalibrationError
 from calib.files.plus_config import NWire, NWirePattern, image_to_probe_mm, us_of_image_to_probe
@@ -121,7 +121,7 @@ def test_noise_and_a_wrong_nominal_spacing_stay_within_the_bound(rng):
     assert cal.scale[0] == pytest.approx(1.02, abs=0.004)
     assert error < 0.3
     assert error <= cal.bound95["image_mm"] < max(5 * error, 0.5)
-    assert judge_nwire(cal).status == "accepted"
+    assert judge_targets(cal).status == "accepted"
     # The same frames with the spacing held: the 2 % shows as error the fit cannot remove.
     held = calibrate_nwire(
         _noisy(obs, rng, 0.5), poses, width_px=W, height_px=H, spacing_m=SPACING,
@@ -170,7 +170,7 @@ def test_glitches_make_it_suspect_and_do_not_move_it(rng):
         glitched, poses, width_px=W, height_px=H, spacing_m=SPACING, T_base_phantom=T_BASE_PHANTOM
     )
     assert _image_error_mm(cal) < 0.4
-    verdict = judge_nwire(cal)
+    verdict = judge_targets(cal)
     assert verdict.status == "suspect"
     assert any("disagree with the rest" in r for r in verdict.reasons)
 
@@ -181,10 +181,10 @@ def test_a_requirement_the_bound_misses_rejects_it(rng):
         _noisy(obs, rng, 1.0), poses, width_px=W, height_px=H, spacing_m=SPACING,
         T_base_phantom=T_BASE_PHANTOM, n_draws=400,
     )  # fmt: skip
-    verdict = judge_nwire(cal, Requirements(image_mm=cal.bound95["image_mm"] / 2))
+    verdict = judge_targets(cal, Requirements(image_mm=cal.bound95["image_mm"] / 2))
     assert verdict.status == "rejected"
     assert "above the requirement" in verdict.line()
-    assert judge_nwire(cal, Requirements(image_mm=cal.bound95["image_mm"] * 2)).status in (
+    assert judge_targets(cal, Requirements(image_mm=cal.bound95["image_mm"] * 2)).status in (
         "accepted",
         "suspect",
     )

@@ -20,15 +20,19 @@ from calib import se3
 from calib.calibration.nwire import (
     NWireCalibration,
     NWireObservations,
-    NWireVerdict,
     calibrate_either_side,
     dataset_frames,
     dataset_spacing_m,
-    judge_nwire,
     observe_nwires,
     plus_error_mm,
 )
-from calib.calibration.targets import TargetModel, calibrate_targets, nominal_xy
+from calib.calibration.targets import (
+    TargetModel,
+    TargetVerdict,
+    calibrate_targets,
+    judge_targets,
+    nominal_xy,
+)
 from calib.calibration.uncertainty import pose_orientation_groups
 from calib.calibration.verdict import Requirements
 from calib.errors import UscalError
@@ -65,7 +69,7 @@ class TargetRun:
     path: Path
     observations: NWireObservations
     calibration: NWireCalibration
-    verdict: NWireVerdict
+    verdict: TargetVerdict
     metrics: dict[str, Any]
 
 
@@ -130,7 +134,7 @@ def calibrate_nwire_dataset(
         axial_bias_m=axial_bias_m,
         groups_of_frames=_views(info, poses),
     )
-    verdict = judge_nwire(cal, requirements)
+    verdict = judge_targets(cal, requirements)
     return _target_run(
         "nwire", dataset, info, path, obs, cal, verdict,
         shape=(H, W), spacing=spacing, n_frames=len(images),
@@ -153,7 +157,7 @@ def _target_run(
     path: str | Path,
     obs: NWireObservations,
     cal: NWireCalibration,
-    verdict: NWireVerdict,
+    verdict: TargetVerdict,
     *,
     shape: tuple[int, int],
     spacing: tuple[float, float],
@@ -191,7 +195,7 @@ def _target_run(
     return TargetRun(dataset, info, Path(path), obs, cal, verdict, metrics)
 
 
-def _calibration_metrics(cal: NWireCalibration, verdict: NWireVerdict) -> dict[str, Any]:
+def _calibration_metrics(cal: NWireCalibration, verdict: TargetVerdict) -> dict[str, Any]:
     mean, sd = plus_error_mm(cal.errors_mm)
     return {
         "T_ee_us": cal.T_ee_us.tolist(),
@@ -337,7 +341,7 @@ def calibrate_wire_dataset(
     # The start whose answer the dots agree with best (the others' fits end in a
     # minimum where they scatter by millimetres).
     cal = min(fits, key=lambda c: c.sigma_mm)
-    verdict = judge_nwire(cal, requirements)
+    verdict = judge_targets(cal, requirements)
     return _target_run(
         "wire", dataset, info, path, obs, cal, verdict,
         shape=(H, W), spacing=spacing, n_frames=len(images), patterns=1,
@@ -462,7 +466,7 @@ def calibrate_cone_dataset(
         axial_bias_m=axial_bias_m,
         groups=views,
     )
-    verdict = judge_nwire(cal, requirements)
+    verdict = judge_targets(cal, requirements)
     obs = NWireObservations(
         tobs.frame, tobs.target, tobs.pixel, tobs.phantom_point, (), None, tobs.skew
     )

@@ -63,28 +63,18 @@ from .targets import (
     calibrate_targets,
     correlation_frames,
 )
-from .verdict import (
-    DEFAULT_IMAGE_MM,
-    MAX_DROPPED_SHARE,
-    UNDETERMINED_DEG,
-    UNDETERMINED_MM,
-    Requirements,
-    Status,
-)
 
 __all__ = [
     "MIN_FRAMES",
     "OUTLIER_FLOOR_MM",
     "NWireCalibration",
     "NWireObservations",
-    "NWireVerdict",
     "calibrate_either_side",
     "calibrate_nwire",
     "correlation_frames",
     "dataset_frames",
     "dataset_spacing_m",
     "image_points_in_base",
-    "judge_nwire",
     "observations_of",
     "observe_nwires",
     "plus_error_mm",
@@ -364,62 +354,3 @@ def image_points_in_base(
     P_ee = (uv @ A.T)[:, :3] * 1e-3
     T_k = np.asarray(T_base_ee, dtype=float)[obs.frame]
     return np.einsum("nij,nj->ni", T_k[:, :3, :3], P_ee) + T_k[:, :3, 3]
-
-
-@dataclass(frozen=True)
-class NWireVerdict:
-    """``accepted``, ``suspect`` or ``rejected``, with one line per reason."""
-
-    status: Status
-    reasons: tuple[str, ...]
-
-    def line(self) -> str:
-        return self.status + (": " + "; ".join(self.reasons) if self.reasons else "")
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"status": self.status, "reasons": list(self.reasons)}
-
-
-def judge_nwire(cal: NWireCalibration, requirements: Requirements | None = None) -> NWireVerdict:
-    """The verdict of an N-wire calibration, on the questions :mod:`calib.calibration.verdict` asks
-    of a sphere calibration that apply to it: did the fit converge; do the data
-    determine ``T_ee_us`` (bound within 10° / 10 mm); do the points agree as their own
-    scatter predicts (outliers at most a tenth); is the bound what the user asked (or
-    within a millimetre over the image when nothing was asked)."""
-    requirements = requirements or Requirements()
-    rejected: list[str] = []
-    suspect: list[str] = []
-    b = cal.bound95
-    if not cal.converged:
-        rejected.append(f"the fit did not converge ({cal.message}): the answer is where it stopped")
-    if b["rotation_deg"] > UNDETERMINED_DEG or b["translation_mm"] > UNDETERMINED_MM:
-        rejected.append(
-            f"the data do not determine T_ee_us (95 % bound {b['rotation_deg']:.1f}° / "
-            f"{b['translation_mm']:.1f} mm): tilt and turn the probe more between frames"
-        )
-    share = cal.outliers / len(cal.errors_mm)
-    if share > MAX_DROPPED_SHARE:
-        suspect.append(
-            f"{cal.outliers} of {len(cal.errors_mm)} wire points disagree with the rest "
-            f"beyond their own scatter ({cal.sigma_mm:.2f} mm per axis): "
-            "wrong dots, tracking glitches or wires off the phantom's definition; check the "
-            "frames, the tracker and the phantom"
-        )
-    if requirements.any:
-        over = []
-        if requirements.image_mm is not None and b["image_mm"] > requirements.image_mm:
-            over.append(f"{b['image_mm']:.2f} mm over the image > {requirements.image_mm:g}")
-        if requirements.rotation_deg is not None and b["rotation_deg"] > requirements.rotation_deg:
-            over.append(f"{b['rotation_deg']:.2f}° > {requirements.rotation_deg:g}")
-        if over:
-            rejected.append("95 % bound above the requirement: " + ", ".join(over))
-    elif b["image_mm"] > DEFAULT_IMAGE_MM:
-        suspect.append(
-            f"95 % bound {b['image_mm']:.2f} mm over the image (above {DEFAULT_IMAGE_MM:g} "
-            "mm): record more frames, at more orientations"
-        )
-    if rejected:
-        return NWireVerdict("rejected", tuple(rejected + suspect))
-    if suspect:
-        return NWireVerdict("suspect", tuple(suspect))
-    return NWireVerdict("accepted", ())

@@ -35,6 +35,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,15 +49,25 @@ from ..files.plus_config import image_to_probe_mm
 from ..image import pixel_axes
 from ..targets import Target, TargetObservations, observation_rows, row_mask
 from .uncertainty import _dominating, image_grid
+from .verdict import (
+    DEFAULT_IMAGE_MM,
+    MAX_DROPPED_SHARE,
+    UNDETERMINED_DEG,
+    UNDETERMINED_MM,
+    Requirements,
+    Status,
+)
 
 __all__ = [
     "MIN_FRAMES",
     "OUTLIER_FLOOR_MM",
     "TargetCalibration",
     "TargetModel",
+    "TargetVerdict",
     "calibrate_targets",
     "closed_form",
     "correlation_frames",
+    "judge_targets",
     "nominal_xy",
 ]
 
@@ -521,3 +532,65 @@ def calibrate_targets(
         time.perf_counter() - t0,
         model.n_phantom if estimate_phantom else 0,
     )
+
+
+@dataclass(frozen=True)
+class TargetVerdict:
+    """``accepted``, ``suspect`` or ``rejected``, with one line per reason."""
+
+    status: Status
+    reasons: tuple[str, ...]
+
+    def line(self) -> str:
+        return self.status + (": " + "; ".join(self.reasons) if self.reasons else "")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"status": self.status, "reasons": list(self.reasons)}
+
+
+def judge_targets(
+    cal: TargetCalibration, requirements: Requirements | None = None
+) -> TargetVerdict:
+    """The verdict of a calibration from targets (N-wire, wire, cone tip), on the
+    questions :mod:`calib.calibration.verdict` asks of a sphere calibration that apply:
+    did the fit converge; do the data determine ``T_ee_us`` (bound within 10° / 10 mm);
+    do the points agree as their own scatter predicts (outliers at most a tenth); is the
+    bound what the user asked (or within a millimetre over the image when nothing was
+    asked)."""
+    requirements = requirements or Requirements()
+    rejected: list[str] = []
+    suspect: list[str] = []
+    b = cal.bound95
+    if not cal.converged:
+        rejected.append(f"the fit did not converge ({cal.message}): the answer is where it stopped")
+    if b["rotation_deg"] > UNDETERMINED_DEG or b["translation_mm"] > UNDETERMINED_MM:
+        rejected.append(
+            f"the data do not determine T_ee_us (95 % bound {b['rotation_deg']:.1f}° / "
+            f"{b['translation_mm']:.1f} mm): tilt and turn the probe more between frames"
+        )
+    share = cal.outliers / len(cal.errors_mm)
+    if share > MAX_DROPPED_SHARE:
+        suspect.append(
+            f"{cal.outliers} of {len(cal.errors_mm)} wire points disagree with the rest "
+            f"beyond their own scatter ({cal.sigma_mm:.2f} mm per axis): "
+            "wrong dots, tracking glitches or wires off the phantom's definition; check the "
+            "frames, the tracker and the phantom"
+        )
+    if requirements.any:
+        over = []
+        if requirements.image_mm is not None and b["image_mm"] > requirements.image_mm:
+            over.append(f"{b['image_mm']:.2f} mm over the image > {requirements.image_mm:g}")
+        if requirements.rotation_deg is not None and b["rotation_deg"] > requirements.rotation_deg:
+            over.append(f"{b['rotation_deg']:.2f}° > {requirements.rotation_deg:g}")
+        if over:
+            rejected.append("95 % bound above the requirement: " + ", ".join(over))
+    elif b["image_mm"] > DEFAULT_IMAGE_MM:
+        suspect.append(
+            f"95 % bound {b['image_mm']:.2f} mm over the image (above {DEFAULT_IMAGE_MM:g} "
+            "mm): record more frames, at more orientations"
+        )
+    if rejected:
+        return TargetVerdict("rejected", tuple(rejected + suspect))
+    if suspect:
+        return TargetVerdict("suspect", tuple(suspect))
+    return TargetVerdict("accepted", ())
