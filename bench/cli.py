@@ -206,18 +206,20 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
 
 
 def _run_target(args: argparse.Namespace, scenario, out: Path, console: Console) -> int:
-    """``uscal run`` of an N-wire scenario: the acquisition, the N-wire calibration and
-    its errors against the twin's truth (:func:`bench.jobs.targets.run_target`); no rerun
-    recording yet."""
+    """``uscal run`` of a wire, N-wire or cone-tip scenario: the acquisition, the
+    calibration from its target and its errors against the twin's truth
+    (:func:`bench.jobs.targets.run_target`), with its rerun recording."""
     if _until(args) is not None:
         raise UscalError(
             "--until-rotation-deg / --until-translation-mm: the sequential acquisition "
-            "plans sphere sweeps; an N-wire scenario (phantom.kind: nwire) runs its protocol"
+            f"plans sphere sweeps; a {scenario.phantom.kind} scenario runs its protocol"
         )
-    with atomic_output_dir(out, force=args.force) as tmp:
+    with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
-            result = run(scenario, None, None, args.save_dataset)
-        written = write_target(tmp, result.nwire)
+            result = run(scenario, None, directory.recording, args.save_dataset)
+        written = write_target(directory.tmp, result.nwire)
+        if directory.recording is not None and directory.rrd is None:
+            written.append("recording.rrd")
     print_target(result.nwire, console)
     cal = result.metrics["calibration"][result.metrics["dataset"]["target"]]
     e, covers = cal["true_error"], cal["bound_covers"]
@@ -232,7 +234,11 @@ def _run_target(args: argparse.Namespace, scenario, out: Path, console: Console)
     print_written(out, written, console)
     if args.save_dataset:
         console.print(f"wrote the dataset {args.save_dataset} (uscal calibrate reads it)")
-    return _gate_status(scenario, "the N-wire calibration", result.nwire.verdict.status, console)
+    if args.spawn and directory.recording_path is not None:
+        spawn_viewer(directory.recording_path, console)
+    what = {"nwire": "the N-wire", "wire": "the single-wire", "cone_tip": "the cone-tip"}
+    label = what[result.metrics["dataset"]["target"]] + " calibration"
+    return _gate_status(scenario, label, result.nwire.verdict.status, console)
 
 
 def _until(args: argparse.Namespace) -> StopRule | None:

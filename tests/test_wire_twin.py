@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from .rrd import Recording
 from .test_cli import uscal, uscal_here
 
 # Two twin runs of 945 frames (≈ 30 s each): the slow tier.
@@ -67,3 +68,24 @@ def test_with_every_error_source_off_the_wire_gives_the_mount(tmp_path):
     assert e["rotation_deg"] < 0.2 and e["translation_mm"] < 0.1 and e["image_mm"] < 0.1
     assert all(w["bound_covers"].values())
     assert w["verdict"]["status"] == "accepted"
+
+
+def test_its_recording_shows_the_frames_the_dots_and_the_wire_where_fit_and_truth_put_it(
+    wire_run,
+):
+    """The run's rerun recording, read back: B-mode frames, every observation through
+    the answer, and the wire where the fit and the truth put it — the same line (the
+    fit's wire is the truth's within a few tenths of a millimetre across it)."""
+    base, m, _ = wire_run
+    rec = Recording(base / "run" / "recording.rrd")
+    assert rec.rows("/run/bmode/image") > 100
+    observed = rec.values("/run/world/targets/observed", "Points3D:positions", static=True)
+    assert len(observed[0]) == m["detection"]["points"]
+    fitted = np.array(
+        rec.values("/run/world/targets/fitted", "LineStrips3D:strips", static=True)[0][0]
+    )
+    true = np.array(rec.values("/run/world/targets/true", "LineStrips3D:strips", static=True)[0][0])
+    d = (true[1] - true[0]) / np.linalg.norm(true[1] - true[0])
+    for p in fitted:  # each fitted end lies on the true line
+        off = (p - true[0]) - ((p - true[0]) @ d) * d
+        assert np.linalg.norm(off) < 0.5e-3

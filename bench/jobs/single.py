@@ -40,7 +40,7 @@ from ..config.method import (
     stated_radius,
 )
 from ..config.scenario import Scenario
-from ..recording.logs import log_acquisition, merge_parts
+from ..recording.logs import log_acquisition, log_target, merge_parts
 from ..recording.options import RecordingOptions
 from ..recording.recorder import Recorder
 from ..results import RunResult, calibration_entry
@@ -135,6 +135,39 @@ def _calibration_metrics(
     return out | entry
 
 
+def _record_target(options: RecordingOptions, twin, acq: SimulatedAcquisition, result) -> int:
+    """A run calibrated from wires or a cone's tip in rerun (see :mod:`bench.recording`):
+    its frames, the observations through the answer, and the targets where the fit and
+    the truth put them; returns the number of B-mode frames logged."""
+    cal, truth = result.calibration, twin.truth
+    if twin.phantom_cad.wires:
+        names = [w.name for w in twin.phantom_cad.wires]
+        fitted = [
+            se3.apply(cal.T_base_phantom, np.array([w.front, w.back]))
+            for w in twin.phantom_cad.wires
+        ]
+        true = [
+            np.array([truth.landmarks_base[f"{n}_front"], truth.landmarks_base[f"{n}_back"]])
+            for n in names
+        ]
+    else:  # the cone's tip
+        fitted = [se3.apply(cal.T_base_phantom, twin.phantom_cad.landmarks["apex"])[None]]
+        true = [truth.landmarks_base["apex"][None]]
+    rec = Recorder(options)
+    logged = log_target(
+        rec,
+        "run",
+        acoustic_scene(twin.robot.scene.scene).parts,
+        twin.scene.model,
+        acq.dataset,
+        cal,
+        fitted,
+        truth=(acq.T_base_ee_true, truth.T_ee_us, true),
+    )
+    merge_parts(options, [], ["run"], main=rec)
+    return logged
+
+
 def _record_run(
     options: RecordingOptions,
     scenario: Scenario,
@@ -207,6 +240,10 @@ def run(
         acq, scans = acquire_until(scenario, twin, imager, until, progress="acquire sweeps")
     if scenario.phantom.kind in TARGET_PHANTOMS:
         nwire = run_target(scenario, twin, acq, t_start)
+        if recording is not None:
+            t0 = time.perf_counter()
+            frames = _record_target(recording, twin, acq, nwire)
+            nwire.metrics["recording"] = {"frames": frames, "seconds": time.perf_counter() - t0}
         if save_dataset is not None:
             save_dataset_files(save_dataset, scenario, twin, acq)
         return RunResult(nwire.metrics, acq, nwire=nwire)

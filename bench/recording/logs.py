@@ -23,7 +23,7 @@ from calib.localize import LocalizerConfig, SweepLocalization, frame_offsets, sp
 from calib.records import Sweep
 
 from .options import RecordingOptions, sweeps_to_log
-from .recorder import Recorder
+from .recorder import GREEN, RED, Recorder
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -234,3 +234,48 @@ def merge_parts(
         with contextlib.suppress(OSError):  # other runs' parts may share it
             parts[0].parent.rmdir()
     return options.path
+
+
+def log_target(
+    rec: Recorder,
+    session: str,
+    scene_parts: Sequence,
+    model: mujoco.MjModel,
+    dataset,
+    calibration,
+    targets_fitted: Sequence[Array],
+    truth: tuple[Mapping[tuple[str, int], Array], Array, Sequence[Array]] | None = None,
+) -> int:
+    """A run calibrated from wires or a cone's tip: the scene, the robot, a spread of
+    sweeps (frames at their true poses, the estimated outline), the observations' image
+    points through the answer (red), and the targets (each a line strip (k, 3) in the
+    base frame: a wire, or a point's single vertex) where the fit puts them (red) and,
+    in simulation, where the truth does (green). ``truth`` = (true flange poses per
+    (target, pose id), true ``T_ee_us``, true targets). Returns the frames logged."""
+    rec.scene(session, scene_parts)
+    data = mujoco.MjData(model)
+    ids = rec.robot_shapes(session, model)
+    T_true, targets_true = None, ()
+    if truth is not None:
+        T_flange_true, T_ee_us_true, targets_true = truth
+        T_true = {
+            (s.target, s.pose_id): T_flange_true[(s.target, s.pose_id)] @ T_ee_us_true
+            for s in dataset.sweeps
+        }
+    logged = log_sweeps(
+        rec, session, list(dataset.sweeps), model, data, ids, calibration.T_ee_us,
+        T_base_us_true=T_true,
+    )  # fmt: skip
+    if calibration.points_base is not None and len(calibration.points_base):
+        rec.points(f"/{session}/world/targets/observed", calibration.points_base, radius=0.0002)
+    shown = [("fitted", targets_fitted, RED)]
+    if truth is not None:
+        shown.append(("true", targets_true, GREEN))
+    for name, strips, colour in shown:
+        lines = [s for s in strips if len(s) > 1]
+        points = [s[0] for s in strips if len(s) == 1]
+        if lines:
+            rec.lines(f"/{session}/world/targets/{name}", lines, colour)
+        if points:
+            rec.points(f"/{session}/world/targets/{name}_points", np.array(points), colour)
+    return logged

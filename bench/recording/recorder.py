@@ -49,12 +49,13 @@ from calib.image import pixel_to_us, sphere_section, us_to_pixel
 
 from .options import RecordingOptions
 
-__all__ = ["Recorder"]
+__all__ = ["GREEN", "RED", "Recorder"]
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-_RED, _GREEN = (230, 40, 40), (40, 200, 80)
+#: The colours of what the pipeline found (red) and of the truth (green).
+RED, GREEN = (230, 40, 40), (40, 200, 80)
 _MATERIAL_COLOURS = {
     "pla": (200, 200, 190),
     "acrylic": (150, 190, 220, 90),
@@ -206,7 +207,7 @@ class Recorder:
             )
             s.log(
                 f"/{session}/world/image/estimated",
-                rr.LineStrips3D([se3.apply(T_base_us_estimated, corners)], colors=[_RED]),
+                rr.LineStrips3D([se3.apply(T_base_us_estimated, corners)], colors=[RED]),
             )
 
     def sections(
@@ -221,7 +222,7 @@ class Recorder:
         """Sphere sections in the current frame: (centre in the frame's ``us`` coordinates,
         radius), metres; a circle where the sphere cuts the image plane. ``with_truth``
         False (recorded data): no true section is logged at all."""
-        for name, value, colour in (("detected", detected, _RED), ("true", true, _GREEN)):
+        for name, value, colour in (("detected", detected, RED), ("true", true, GREEN)):
             if name == "true" and not with_truth:
                 continue
             path = f"/{session}/bmode/section/{name}"
@@ -238,10 +239,17 @@ class Recorder:
     def boundary(self, session: str, samples: Array) -> None:
         """Boundary samples (column, row) of the current frame (cone/prism scans)."""
         self.stream.log(
-            f"/{session}/bmode/boundary", rr.Points2D(samples, colors=[_RED], radii=[1.0])
+            f"/{session}/bmode/boundary", rr.Points2D(samples, colors=[RED], radii=[1.0])
         )
 
-    def points(self, path: str, P: Array, colour=_RED, radius: float = 0.0005) -> None:
+    def lines(self, path: str, strips: Sequence[Array], colour=RED, radius=0.0002) -> None:
+        """Line strips (each (k, 3)), static (a phantom's wires)."""
+        self.stream.reset_time()
+        self.stream.log(
+            path, rr.LineStrips3D(list(strips), colors=[colour], radii=[radius]), static=True
+        )
+
+    def points(self, path: str, P: Array, colour=RED, radius: float = 0.0005) -> None:
         """Points (n, 3), static (touches, localized centres)."""
         self.stream.reset_time()
         self.stream.log(path, rr.Points3D(P, colors=[colour], radii=[radius]), static=True)
@@ -265,7 +273,7 @@ class Recorder:
             f"{base}/crossings",
             rr.Points2D(
                 np.column_stack([np.array(xs) * 1e3, -10.0 * np.array(ys)]),
-                colors=[_RED],
+                colors=[RED],
                 radii=[0.15],
                 labels=[
                     label if crossed else f"{label} (fall-back)"

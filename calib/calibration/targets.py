@@ -114,7 +114,8 @@ class TargetCalibration:
     scale per axis; ``information_eigenvalues`` (6,) of the information about the mount
     (rotation rad, translation mm), the phantom's pose and the scale profiled out,
     descending; ``phantom_dof`` how many directions of the phantom's pose the data
-    determined (6 unless a lone wire's symmetry leaves some)."""
+    determined (6 unless a lone wire's symmetry leaves some); ``points_base`` each
+    observation's image point through the answer and its pose (base frame, metres)."""
 
     T_ee_us: Array
     spacing_m: tuple[float, float]
@@ -135,6 +136,7 @@ class TargetCalibration:
     information_eigenvalues: Array
     seconds: float = 0.0
     phantom_dof: int = 6
+    points_base: Array | None = None  # (n, 3) the observations through the answer, m
 
     def image_to_probe_mm(self) -> Array:
         """PLUS's ``ImageToProbe``: pixel (column, row, 0, 1) → probe (ee) millimetres,
@@ -531,6 +533,7 @@ def calibrate_targets(
         eig,
         time.perf_counter() - t0,
         model.n_phantom if estimate_phantom else 0,
+        model.points(fit.x)[0],
     )
 
 
