@@ -68,10 +68,11 @@ class PhantomConfig:
     kind: Literal["spheres", "cone", "prism", "nwire", "wire"] = field(
         default="spheres",
         metadata={
-            "doc": "Phantom in the tank: four-sphere calibration phantom, cone, prism, "
-            "the N-wire phantom (PLUS's fCal 2.0 geometry: three N patterns of wires "
-            "between two printed end plates), or a single wire (one straight wire between "
-            "the same plates, through the N patterns' centre)."
+            "doc": "Phantom in the tank: four-sphere calibration phantom, cone (`uscal "
+            "run` calibrates from its tip), prism, the N-wire phantom (PLUS's fCal 2.0 "
+            "geometry: three N patterns of wires between two printed end plates), or a "
+            "single wire (one straight wire between the same plates, through the N "
+            "patterns' centre)."
         },
     )
     position_mm: tuple[float, float, float] = field(
