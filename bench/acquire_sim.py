@@ -24,7 +24,7 @@ from calib.acquisition.protocol import (
     touch_plan,
 )
 from calib.calibration.markers import CalibrationConfig
-from calib.files.dataset import AcquisitionInfo, DatasetWriter, WirePhantom
+from calib.files.dataset import AcquisitionInfo, ConeTipPhantom, DatasetWriter, WirePhantom
 from calib.files.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.records import Dataset, Sweep, Touch
 from twin.arm_errors import robot_stream
@@ -283,6 +283,9 @@ def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> Acquisi
     if scenario.phantom.kind == "wire":
         (w,) = twin.phantom_cad.wires
         wire = WirePhantom(NWire(w.name, w.front, w.back))
+    cone_tip = None
+    if scenario.phantom.kind == "cone":
+        cone_tip = ConeTipPhantom(np.asarray(twin.phantom_cad.landmarks["apex"], dtype=float))
     return AcquisitionInfo(
         T_ee_us_coarse=np.asarray(T_ee_us_coarse, dtype=float),
         landmarks={k: np.asarray(v, dtype=float) for k, v in twin.phantom_cad.landmarks.items()},
@@ -297,6 +300,7 @@ def acquisition_info(scenario: Scenario, twin, T_ee_us_coarse: Array) -> Acquisi
         extra={"scenario": scenario.source, "seed": scenario.seed},
         nwire=nwire,
         wire=wire,
+        cone_tip=cone_tip,
     )
 
 

@@ -61,6 +61,7 @@ from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_res
 from .jobs.single import run
 from .jobs.sweep import load_sweep, run_sweep
 from .jobs.targets import (
+    calibrate_cone_dataset,
     calibrate_nwire_dataset,
     calibrate_wire_dataset,
     echo_depth_bias_m,
@@ -329,7 +330,7 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     settings = load_scenario(args.settings, _with_requirements(args))
     dataset = Path(args.dataset)
     out = Path(args.out) if args.out else dataset.with_name(dataset.name + "-calibration")
-    if dataset_kind(dataset) in WIRED:
+    if dataset_kind(dataset) in (*WIRED, "cone_tip"):
         return _calibrate_target(args, settings, dataset, out, console)
     markers = (int(args.markers),) if args.markers else (1, 3)
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
@@ -347,7 +348,13 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
 def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console) -> int:
     """``uscal calibrate`` of an N-wire or single-wire dataset (:mod:`bench.jobs.targets`)."""
     data, info = read_dataset(dataset)
-    calibrate = calibrate_wire_dataset if info.wire is not None else calibrate_nwire_dataset
+    calibrate = (
+        calibrate_wire_dataset
+        if info.wire is not None
+        else calibrate_cone_dataset
+        if info.cone_tip is not None
+        else calibrate_nwire_dataset
+    )
     with atomic_output_dir(out, force=args.force) as tmp:
         with console.status(f"finding the wires in {dataset}"):
             result = calibrate(
@@ -355,15 +362,17 @@ def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console
                 info,
                 dataset,
                 requirements(settings),
-                estimate_scale=not args.fixed_pixel_scale,
+                # A cone's tips alone barely move in the image: its scale is held.
+                estimate_scale=not args.fixed_pixel_scale and info.cone_tip is None,
                 wire_tolerance_m=settings.phantom.tolerance_position_mm * 1e-3,
                 axial_bias_m=echo_depth_bias_m(settings),
             )
         written = write_target(tmp, result)
     print_target(result, console)
     print_written(out, written, console)
-    what = "the single-wire" if info.wire is not None else "the N-wire"
-    return _gate_status(settings, f"{what} calibration", result.verdict.status, console)
+    what = {"nwire": "the N-wire", "wire": "the single-wire", "cone_tip": "the cone-tip"}
+    label = what[result.metrics["dataset"]["target"]] + " calibration"
+    return _gate_status(settings, label, result.verdict.status, console)
 
 
 def _cmd_validate(args: argparse.Namespace, console: Console) -> int:

@@ -2,7 +2,7 @@
 target of calib/calibration/targets.py): the twin's printed cone swept over its apex
 (scenarios/cone_tip.yaml), the apex of every sweep against the twin's truth, the
 calibration against its ground truth with its bounds covering it, every error source
-off as the sanity case, and a cone dataset refused in one line."""
+off as the sanity case, and the dataset a run saves calibrated again by `uscal calibrate`."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from calib import se3
 from calib.calibration.nwire import dataset_spacing_m
 from calib.localize.cone_tip import locate_cone_tip
 
-from .test_cli import uscal
+from .test_cli import uscal, uscal_here
 
 pytestmark = pytest.mark.slow  # twin acquisitions of 945 frames
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,10 +76,16 @@ def test_with_every_error_source_off_the_tip_gives_the_mount(tmp_path):
     assert e["image_mm"] < 0.8 and all(c["bound_covers"].values())
 
 
-def test_a_cone_run_cannot_save_a_dataset_yet(tmp_path):
-    r = uscal(
-        "run", str(CONE), "--out", str(tmp_path / "run"), "--save-dataset", str(tmp_path / "d")
+def test_its_dataset_calibrates_as_the_run_did_and_validate_refuses_it(tmp_path, capsys):
+    run, data = tmp_path / "run", tmp_path / "d"
+    r = uscal("run", str(CONE), "--out", str(run), "--save-dataset", str(data), "--no-rrd")
+    assert r.returncode == 0, r.stderr
+    m = json.loads((run / "metrics.json").read_text())["calibration"]["cone_tip"]
+    r = uscal_here(capsys, "calibrate", str(data), "--out", str(tmp_path / "cal"))
+    assert r.returncode == 0, r.stderr
+    again = json.loads((tmp_path / "cal" / "metrics.json").read_text())["calibration"]
+    np.testing.assert_allclose(again["cone_tip"]["T_ee_us"], m["T_ee_us"], atol=1e-6)
+    r = uscal_here(
+        capsys, "validate", str(data), "--calibration", str(tmp_path / "cal" / "calibration.yaml")
     )
-    assert r.returncode == 2 and "no dataset format yet" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1
-    assert not (tmp_path / "d").exists() and not (tmp_path / "run").exists()
+    assert r.returncode == 2 and "a cone-tip dataset" in r.stderr

@@ -226,11 +226,6 @@ def run(
         ev = run_evaluation(scenario, progress, recording, save)
         return RunResult(ev.metrics, evaluation=ev, snapshot=ev.outcomes[0].snapshot)
     t_start = time.perf_counter()
-    if save_dataset is not None and scenario.phantom.kind == "cone":
-        raise UscalError(
-            "--save-dataset: a cone's sweeps have no dataset format yet (sphere, "
-            "N-wire and single-wire datasets do); run the cone scenario without it"
-        )
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
     scans = []

@@ -387,9 +387,9 @@ def calibrate_cone_dataset(
     and the cone's position (:func:`calib.calibration.targets.calibrate_targets`, a
     point target: three constraints per sweep; the pixel scale held unless asked),
     from the coarse mount as start. ``wire_tolerance_m``: the apex's print tolerance."""
-    apex = info.landmarks.get("apex")
-    if apex is None:
-        raise UscalError("not a cone dataset: its manifest has no apex landmark")
+    if info.cone_tip is None:
+        raise UscalError("not a cone-tip dataset: its manifest has no acquisition.phantom apex")
+    apex = info.cone_tip.apex
     target = PointTarget("apex", np.asarray(apex, dtype=float), "cone_tip")
     t0 = time.perf_counter()
     spacing = dataset_spacing_m(dataset, info)

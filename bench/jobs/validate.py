@@ -117,10 +117,11 @@ def validate_dataset(
     dataset, info = read_dataset(directory)
     if info.nwire is not None:
         return _validate_nwire(dataset, info, calibration)
-    if info.wire is not None:
+    if info.wire is not None or info.cone_tip is not None:
+        what = "single-wire" if info.wire is not None else "cone-tip"
         raise UscalError(
-            f"{directory}: a single-wire dataset; validate checks calibrations on N-wire "
-            "and sphere datasets (a lone wire's pose along itself is not seen, so its "
+            f"{directory}: a {what} dataset; validate checks calibrations on N-wire and "
+            "sphere datasets (a lone wire or point does not fix its phantom's pose, so its "
             "points cannot score another calibration on their own)"
         )
     return _validate_spheres(dataset, info, calibration, settings)

@@ -59,6 +59,7 @@ __all__ = [
     "FORMAT",
     "VERSION",
     "AcquisitionInfo",
+    "ConeTipPhantom",
     "DatasetWriter",
     "WirePhantom",
     "dataset_kind",
@@ -111,6 +112,25 @@ class WirePhantom:
 
 
 @dataclass(frozen=True)
+class ConeTipPhantom:
+    """A cone whose tip is the target (the paper's printed cone): its apex in the
+    phantom frame (metres); the phantom's pose in the base is unknown and estimated with
+    ``T_ee_us`` as far as a point tells it."""
+
+    apex: Array
+
+    def to_yaml(self) -> dict[str, Any]:
+        """The manifest's ``acquisition.phantom`` (millimetres)."""
+        return {"kind": "cone_tip", "apex_mm": [round(float(v) * 1e3, 6) for v in self.apex]}
+
+    @classmethod
+    def from_yaml(cls, path: Path, doc: Any) -> ConeTipPhantom:
+        """Read :meth:`to_yaml`'s mapping; one line naming what is wrong."""
+        apex = doc.get("apex_mm") if isinstance(doc, dict) else None
+        return cls(_vector(path, "acquisition.phantom.apex_mm", apex, 3) * 1e-3)
+
+
+@dataclass(frozen=True)
 class AcquisitionInfo:
     """What a reader needs besides the frames and poses (the manifest's settings).
 
@@ -139,6 +159,7 @@ class AcquisitionInfo:
     extra: dict[str, Any] = field(default_factory=dict)
     nwire: NWirePhantom | None = None
     wire: WirePhantom | None = None
+    cone_tip: ConeTipPhantom | None = None
 
     def to_yaml(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -152,6 +173,8 @@ class AcquisitionInfo:
             out["phantom"] = self.nwire.to_yaml()
         elif self.wire is not None:
             out["phantom"] = self.wire.to_yaml()
+        elif self.cone_tip is not None:
+            out["phantom"] = self.cone_tip.to_yaml()
         else:
             out["sphere_radius_mm"] = float(self.sphere_radius_mm)
         if self.T_ee_us_coarse is not None:
@@ -381,11 +404,13 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
         raise DatasetError(f"{path}: acquisition must be a mapping")
     landmarks = _get(path, acq, "landmarks_mm", dict)
     tip = acq.get("stylus_tip_cad_mm")
-    nwire = wire = None
+    nwire = wire = cone_tip = None
     if acq.get("phantom") is not None:
         doc = acq["phantom"]
         if isinstance(doc, dict) and doc.get("kind") == "wire":
             wire = WirePhantom.from_yaml(path, doc)
+        elif isinstance(doc, dict) and doc.get("kind") == "cone_tip":
+            cone_tip = ConeTipPhantom.from_yaml(path, doc)
         else:
             nwire = NWirePhantom.from_yaml(path, doc)
         radius = float("nan")  # no sphere
@@ -429,13 +454,15 @@ def _info(path: Path, acq: Any) -> AcquisitionInfo:
         extra=dict(acq.get("extra") or {}),
         nwire=nwire,
         wire=wire,
+        cone_tip=cone_tip,
     )
 
 
 def dataset_kind(directory: str | os.PathLike[str]) -> str:
     """``"nwire"`` for a dataset of an N-wire phantom, ``"wire"`` of a single wire,
-    ``"spheres"`` otherwise (from the manifest alone; a directory that is not a dataset
-    reads as spheres and :func:`read_dataset` says what is wrong)."""
+    ``"cone_tip"`` of a cone's tip, ``"spheres"`` otherwise (from the manifest alone; a
+    directory that is not a dataset reads as spheres and :func:`read_dataset` says what
+    is wrong)."""
     manifest = Path(directory) / MANIFEST
     if not manifest.is_file():
         return "spheres"
@@ -443,7 +470,8 @@ def dataset_kind(directory: str | os.PathLike[str]) -> str:
     phantom = acq.get("phantom") if isinstance(acq, dict) else None
     if phantom is None:
         return "spheres"
-    return "wire" if isinstance(phantom, dict) and phantom.get("kind") == "wire" else "nwire"
+    kind = phantom.get("kind") if isinstance(phantom, dict) else None
+    return kind if kind in ("wire", "cone_tip") else "nwire"
 
 
 def read_dataset(
