@@ -91,6 +91,7 @@ def test_twin_export_writes_loadable_mjcf_and_prints_landmarks(tmp_path):
     assert truth["dh_true"]["a_m"][1] == pytest.approx(-0.24365, abs=1e-15)
 
 
+@pytest.mark.slow  # ten seconds or more on this machine
 def test_twin_export_refuses_to_overwrite_and_failed_export_leaves_nothing(tmp_path):
     out = tmp_path / "twin"
     out.mkdir()

@@ -199,6 +199,7 @@ def test_hostile_or_broken_manifests_are_refused(tmp_path, rng):
 # ------------------------------------------------------------------ uscal calibrate
 
 
+@pytest.mark.slow  # ten seconds or more on this machine
 def test_calibrate_reproduces_the_runs_calibration_from_the_saved_dataset(quick_run, tmp_path):
     out, _, m, _ = quick_run
     dataset = out.parent / "dataset"

@@ -769,6 +769,7 @@ def test_elevation_is_not_tilted_by_the_floor_the_sphere_raises(monkeypatch):
     assert abs(errors.mean()) < 0.05 and errors.std() < tilted.std()
 
 
+@pytest.mark.slow  # ten seconds or more on this machine
 def test_cap_depth_does_not_follow_the_gain(monkeypatch):
     """The top's echo rises sharply and trails off below (the rest of the cap within the
     slice thickness is deeper): its weighted mean lies in the tail, by as much as the

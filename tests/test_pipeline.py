@@ -72,6 +72,7 @@ def test_a_recorded_dataset_with_touches_runs_the_papers_folds(two_spheres_with_
     assert result.metrics["dh_table_refined"] and result.dh_table is not None
 
 
+@pytest.mark.slow  # ten seconds or more on this machine
 def test_folds_against_the_true_centres_measure_the_method_alone(two_spheres_with_touches):
     """With the twin's true sphere centres as the references (the touches' role), a
     fold's accuracy is the localization and calibration error alone: under a millimetre

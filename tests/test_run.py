@@ -67,6 +67,7 @@ def test_all_error_sources_off_is_near_perfect():
     assert m["calibration"]["single"]["true_error"]["image_mm"] <= 0.1
 
 
+@pytest.mark.slow  # ten seconds or more on this machine
 def test_converges_from_a_bad_coarse_estimate(tmp_path):
     out = tmp_path / "run"
     r = uscal(
@@ -98,6 +99,7 @@ def test_speed_of_sound_correction_removes_a_real_bias():
     assert err_off > 0.3  # water at 20 °C: depths 3.9 % too large
 
 
+@pytest.mark.slow  # ten seconds or more on this machine
 def test_localizing_spheres_on_threads_changes_nothing():
     """`alternate(threads=2)` (the re-calibration's last task) localizes the spheres side
     by side: the same estimate, bit for bit, as one after the other."""

@@ -127,6 +127,7 @@ def test_layout_mismatch_the_data_show_is_taken_even_if_undeclared():
     assert 0.1 < np.median(sigmas) < 0.6
 
 
+@pytest.mark.slow  # ten seconds or more on this machine
 def test_bound_of_an_estimated_layout_covers_the_truth():
     """A layout printed 0.3 mm (1 σ) off its CAD, estimated with the CAD as its prior at
     that tolerance: the bound, whose covariance holds the layout's uncertainty through
