@@ -32,6 +32,7 @@ from calib.calibration.targets import (
     calibrate_targets,
     judge_targets,
     nominal_xy,
+    wire_starts,
 )
 from calib.calibration.uncertainty import pose_orientation_groups
 from calib.calibration.verdict import Requirements
@@ -229,33 +230,6 @@ def _calibration_metrics(cal: NWireCalibration, verdict: TargetVerdict) -> dict[
     }
 
 
-def _wire_starts(obs: TargetObservations, target: WireTarget, T_k, T_X0, width_px, spacing):
-    """Where a single wire's fit may start: the dots through the coarse mount, and the
-    wire's CAD line laid through their centre along (a) the mean normal of the image
-    planes (the probe is taught across the wire, so the wire runs along the image's
-    elevation axis) and (b) the dots' principal axis (the sweeps slide along the wire).
-    With a coarse mount degrees off, (b) can follow the mount's error instead; with
-    sweeps turned far about the axial axis, (a) can: both are tried. The phantom's pose
-    about and along the wire is not needed."""
-    xy = nominal_xy(obs.pixel, width_px, spacing)
-    P_us = np.column_stack([xy, np.zeros(len(xy))])
-    T = T_k[obs.frame] @ T_X0
-    pts = np.einsum("nij,nj->ni", T[:, :3, :3], P_us) + T[:, :3, 3]
-    centre = pts.mean(axis=0)
-    normal = T[:, :3, 2].mean(axis=0)
-    axes = (normal / np.linalg.norm(normal), np.linalg.svd(pts - centre, full_matrices=False)[2][0])
-    d = target.direction
-    mid = (np.asarray(target.front) + np.asarray(target.back)) / 2
-    starts = []
-    for axis in axes:
-        axis = axis if axis @ d >= 0 else -axis
-        v, c = np.cross(d, axis), float(d @ axis)
-        K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-        R = np.eye(3) + K + K @ K / (1.0 + c)  # the least rotation taking d onto the axis
-        starts.append(se3.make(R, centre - R @ mid))
-    return starts
-
-
 def _wire_tolerance(obs: TargetObservations, target: WireTarget, tolerance: float):
     """The build tolerance as declared errors: each coordinate of each wire end at 1 σ,
     moving the line where each observation meets it (by its place along the wire)."""
@@ -320,7 +294,7 @@ def calibrate_wire_dataset(
     starts = [None]
     if len(found):
         X0 = info.T_ee_us_coarse
-        starts = [(X0, P0) for P0 in _wire_starts(tobs, target, poses, X0, W, spacing)]
+        starts = [(X0, P0) for P0 in wire_starts(tobs, target, poses, X0, W, spacing)]
     views = _views(info, poses)
     fits = [
         calibrate_targets(

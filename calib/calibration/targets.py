@@ -47,7 +47,7 @@ from .. import se3
 from ..errors import CalibrationError
 from ..files.plus_config import image_to_probe_mm
 from ..image import pixel_axes
-from ..targets import Target, TargetObservations, observation_rows, row_mask
+from ..targets import Target, TargetObservations, WireTarget, observation_rows, row_mask
 from .uncertainty import _dominating, image_grid
 from .verdict import (
     DEFAULT_IMAGE_MM,
@@ -67,8 +67,10 @@ __all__ = [
     "calibrate_targets",
     "closed_form",
     "correlation_frames",
+    "fit_phantom_pose",
     "judge_targets",
     "nominal_xy",
+    "wire_starts",
 ]
 
 Array = NDArray[np.float64]
@@ -354,6 +356,85 @@ def _phantom_basis(model: TargetModel) -> Array | None:
     _, s, Vt = np.linalg.svd(J, full_matrices=False)
     seen = s > _GAUGE_RTOL * s[0]
     return None if seen.all() else Vt[seen].T.copy()
+
+
+def wire_starts(
+    obs: TargetObservations,
+    target: WireTarget,
+    T_k: Array,
+    T_X0: Array,
+    width_px: int,
+    spacing: tuple[float, float],
+) -> list[Array]:
+    """Where a single wire's fit may start: the dots through the coarse mount, and the
+    wire's CAD line laid through their centre along (a) the mean normal of the image
+    planes (the probe is taught across the wire, so the wire runs along the image's
+    elevation axis) and (b) the dots' principal axis (the sweeps slide along the wire).
+    With a coarse mount degrees off, (b) can follow the mount's error instead; with
+    sweeps turned far about the axial axis, (a) can: both are tried. The phantom's pose
+    about and along the wire is not needed. ``T_k`` every frame's flange pose, ``T_X0``
+    the mount the dots are mapped through. Returns the phantom poses to start from."""
+    xy = nominal_xy(obs.pixel, width_px, spacing)
+    P_us = np.column_stack([xy, np.zeros(len(xy))])
+    T = T_k[obs.frame] @ T_X0
+    pts = np.einsum("nij,nj->ni", T[:, :3, :3], P_us) + T[:, :3, 3]
+    centre = pts.mean(axis=0)
+    normal = T[:, :3, 2].mean(axis=0)
+    axes = (normal / np.linalg.norm(normal), np.linalg.svd(pts - centre, full_matrices=False)[2][0])
+    d = target.direction
+    mid = (np.asarray(target.front) + np.asarray(target.back)) / 2
+    starts = []
+    for axis in axes:
+        axis = axis if axis @ d >= 0 else -axis
+        v, c = np.cross(d, axis), float(d @ axis)
+        K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+        R = np.eye(3) + K + K @ K / (1.0 + c)  # the least rotation taking d onto the axis
+        starts.append(se3.make(R, centre - R @ mid))
+    return starts
+
+
+def fit_phantom_pose(
+    obs: TargetObservations,
+    targets: Sequence[Target],
+    T_base_ee: Array,
+    *,
+    T_ee_us: Array,
+    spacing_m: tuple[float, float],
+    width_px: int,
+    start: Array,
+) -> tuple[Array, Array]:
+    """The phantom's pose that a given calibration (``T_ee_us`` and the pixel spacing,
+    held) puts the observations on, robustly (soft-L1 at the residuals' own scale), along
+    the directions the targets' constraints see; and each observation's error there (mm).
+    What :func:`calibrate_targets` does with the calibration free: a calibration checked
+    on a dataset whose phantom no tracker measured."""
+    xy = nominal_xy(obs.pixel, width_px, spacing_m)
+    T_k = np.asarray(T_base_ee, dtype=float)[obs.frame]
+    rows, mask = observation_rows(obs, targets), row_mask(obs, targets)
+    model = TargetModel(
+        xy, T_k, obs.phantom_point, rows, mask, T_ee_us, start, True, False, (1.0, 1.0)
+    )
+    basis = _phantom_basis(model)
+    if basis is not None:
+        model = TargetModel(
+            xy, T_k, obs.phantom_point, rows, mask, T_ee_us, start, True, False, (1.0, 1.0),
+            basis,
+        )  # fmt: skip
+    k = model.n_phantom
+
+    def residuals(z: Array) -> Array:
+        x = np.zeros(model.n)
+        x[6 : 6 + k] = z
+        return model.residuals(x)
+
+    z = np.zeros(k)
+    for loss in ("linear", "soft_l1"):
+        scale = _robust_sigma(residuals(z))
+        z = least_squares(residuals, z, loss=loss, f_scale=scale, x_scale="jac").x
+    x = np.zeros(model.n)
+    x[6 : 6 + k] = z
+    _, T_P, _ = model.unpack(x)
+    return T_P, np.linalg.norm(model.residual_vectors(x), axis=1)
 
 
 #: A declared error shared by every frame: given the model and the solution, the
