@@ -414,12 +414,7 @@ def fit_phantom_pose(
     model = TargetModel(
         xy, T_k, obs.phantom_point, rows, mask, T_ee_us, start, True, False, (1.0, 1.0)
     )
-    basis = _phantom_basis(model)
-    if basis is not None:
-        model = TargetModel(
-            xy, T_k, obs.phantom_point, rows, mask, T_ee_us, start, True, False, (1.0, 1.0),
-            basis,
-        )  # fmt: skip
+    model = _seen_directions_only(model)
     k = model.n_phantom
 
     def residuals(z: Array) -> Array:
@@ -435,6 +430,18 @@ def fit_phantom_pose(
     x[6 : 6 + k] = z
     _, T_P, _ = model.unpack(x)
     return T_P, np.linalg.norm(model.residual_vectors(x), axis=1)
+
+
+def _seen_directions_only(model: TargetModel) -> TargetModel:
+    """``model`` with the phantom's pose moved only along the directions its targets'
+    constraints see (:func:`_phantom_basis`); itself when they see all six."""
+    basis = _phantom_basis(model)
+    if basis is None:
+        return model
+    return TargetModel(
+        model.xy, model.T_k, model.p, model.rows, model.mask, model.T_X0, model.T_P0,
+        True, model.estimate_scale, model.scale0, basis,
+    )  # fmt: skip
 
 
 #: A declared error shared by every frame: given the model and the solution, the
@@ -503,9 +510,8 @@ def calibrate_targets(
     model = TargetModel(
         xy, T_k, p, rows, mask, T_X0, T_P0, estimate_phantom, estimate_scale, scale0
     )
-    basis = _phantom_basis(model) if estimate_phantom else None
-    if basis is not None:
-        model = TargetModel(xy, T_k, p, rows, mask, T_X0, T_P0, True, estimate_scale, scale0, basis)
+    if estimate_phantom:
+        model = _seen_directions_only(model)
     sigma = _robust_sigma(model.residuals(model.x0()))
     fit = _fit(model, model.x0(), sigma)
     # Then at the data's own scale at that solution, with a loss whose influence fades

@@ -53,9 +53,7 @@ class ConeTip:
     elevations given); ``half_angle_deg`` the cone's as fitted; ``scatter_px`` the
     envelope's robust scatter about the fit; ``frames`` the frames it rests on; the
     ``reason`` when not ok; ``slice_half_m`` the slice's half thickness at the apex as
-    fitted (the apex's elevation is not resolved within it: a view-dependent bias);
-    ``echo_half_m`` half the surface echo's thickness along the beam near the apex
-    (where within it the surface lies depends on the view's incidence)."""
+    fitted (the apex's elevation is not resolved within it: a view-dependent bias)."""
 
     ok: bool
     x_m: float = float("nan")
@@ -66,27 +64,25 @@ class ConeTip:
     frames: int = 0
     reason: str = ""
     slice_half_m: float = float("nan")
-    echo_half_m: float = float("nan")
 
 
-def _envelope(frame: NDArray[np.uint8]) -> tuple[Array, Array, Array]:
+def _envelope(frame: NDArray[np.uint8]) -> tuple[Array, Array]:
     """(columns, rows) of each column's surface echo in the frame's largest bright region
     (bright: above the frame's mean): the peak of the column's first bright run, where
     the surface's echo is drawn (its leading edge lies half a pulse above the surface,
     its grey-weighted centre below it where speckle trails; measured on the twin's cone
     against its truth: depth 0.23 mm off at the peak, −0.59 at the edge, 0.38 at the
-    centre). Also each column's echo thickness (rows of the run)."""
+    centre)."""
     smooth = ndimage.uniform_filter(frame.astype(np.float32), 3)
     bright = smooth > float(frame.mean())
     labels, n = ndimage.label(bright)
     if n == 0:
-        return np.zeros(0), np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0)
     sizes = ndimage.sum_labels(np.ones_like(labels), labels, index=np.arange(1, n + 1))
     region = labels == int(np.argmax(sizes)) + 1
     cols = np.flatnonzero(region.any(axis=0))
     first = np.argmax(region[:, cols], axis=0)
     rows = np.empty(len(cols))
-    thick = np.empty(len(cols))
     H = frame.shape[0]
     for i, (c, r0) in enumerate(zip(cols, first, strict=True)):
         r1 = r0
@@ -94,8 +90,7 @@ def _envelope(frame: NDArray[np.uint8]) -> tuple[Array, Array, Array]:
             r1 += 1
         w = smooth[r0 : r1 + 1, c]
         rows[i] = r0 + float(np.argmax(w))
-        thick[i] = r1 - r0 + 1
-    return cols.astype(float), rows, thick
+    return cols.astype(float), rows
 
 
 def locate_cone_tip(
@@ -108,21 +103,19 @@ def locate_cone_tip(
     (n,) along the image normal; see the module doc. Lateral ``x`` about the image's
     centre column, as the image frame has it."""
     sx, sy = spacing_m
-    xs, ds, es, ts = [], [], [], []
+    xs, ds, es = [], [], []
     seen = 0
     for frame, e in zip(images, elevations_m, strict=True):
-        cols, rows, thick = _envelope(frame)
+        cols, rows = _envelope(frame)
         if len(cols) < 5:
             continue
         seen += 1
         xs.append((cols - (width_px - 1) / 2) * sx)
         ds.append(rows * sy)
         es.append(np.full(len(cols), e))
-        ts.append(thick * sy)
     if seen < MIN_FRAMES:
         return ConeTip(False, frames=seen, reason=f"the cone in {seen} frames; {MIN_FRAMES} needed")
     x, d, e = np.concatenate(xs), np.concatenate(ds), np.concatenate(es)
-    thickness = np.concatenate(ts)
     top = int(np.argmin(d))
     # (x₀, d₀, e₀) the apex; (a_x, a_z) the axis's tilt (it points up, −depth, tilted by
     # the frames' own turn and the cone's mount); c = cot α; w the slice's half thickness.
@@ -158,9 +151,6 @@ def locate_cone_tip(
         )
     if not (abs(x0) <= (width_px - 1) / 2 * sx and d0 >= 0):
         return ConeTip(False, frames=seen, reason="the apex lies outside the image")
-    # The echo's thickness near the apex (within a few millimetres of it, laterally).
-    near = np.abs(x - x0) < 3 * max(abs(w), 1e-3) + 0.002
-    echo = float(np.median(thickness[near])) if near.any() else float(np.median(thickness))
     return ConeTip(
         True,
         float(x0),
@@ -171,5 +161,4 @@ def locate_cone_tip(
         seen,
         "",
         float(abs(w)),
-        echo / 2,
     )
