@@ -32,7 +32,7 @@ from twin.imager import SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
-from .config.geometry import WIRED, lateral_axis
+from .config.geometry import acquisition_targets, lateral_axis
 from .config.method import stated_radius
 from .config.plan_file import spare_poses, sphere_poses, sweeps_about
 from .config.scenario import Scenario
@@ -43,7 +43,6 @@ from .sessions import stage_rngs
 __all__ = [
     "SimulatedAcquisition",
     "acquisition_info",
-    "acquisition_targets",
     "coarse_estimate",
     "dataset_meta",
     "image_meta",
@@ -164,16 +163,6 @@ def teach_at(
     return twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), label)
 
 
-def acquisition_targets(scenario: Scenario) -> list[str]:
-    """What an acquisition sweeps: the protocol's spheres, the wires' centre (one
-    target, ``nwire`` or ``wire``), or the cone's tip (``apex``)."""
-    if scenario.phantom.kind in WIRED:
-        return [scenario.phantom.kind]
-    if scenario.phantom.kind == "cone":
-        return ["apex"]
-    return [f"sphere_{i}" for i in scenario.protocol.spheres]
-
-
 def simulate_acquisition(
     scenario: Scenario,
     twin: Twin,
@@ -206,7 +195,7 @@ def simulate_acquisition(
     sweeps: list[Sweep] = []
     replaced: list[Replacement] = []
     truth: dict[tuple[str, int], list[NDArray[np.float64]]] = {}
-    targets = acquisition_targets(scenario)
+    targets = acquisition_targets(scenario.phantom.kind, proto)
     total = sum(sweeps_about(proto, t) for t in targets)
     label = progress or f"{name}: acquire sweeps"
     report(label, 0, total)

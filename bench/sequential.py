@@ -34,7 +34,7 @@ from twin.imager import SimImager
 from twin.world import Twin
 
 from .acquire_sim import SimulatedAcquisition, coarse_estimate, dataset_meta
-from .candidates import candidate_sweeps, clear, observations, taught_sphere
+from .candidates import candidate_sweeps, clear, observations, taught_target
 from .config.method import axial_scale, image_points, stated_radius
 from .config.scenario import Scenario
 from .progress import report
@@ -167,7 +167,7 @@ def acquire_until(
     scans = []
     for index in proto.spheres:
         target = f"sphere_{index}"
-        sphere = taught_sphere(scenario, twin, coarse, target, 0, rngs["protocol"])
+        sphere = taught_target(scenario, twin, coarse, target, 0, rngs["protocol"])
         found, _ = candidate_sweeps(scenario, twin, [sphere], coarse, lambda s: dense, True)
         cands = observations(scenario, coarse, [sphere], found, False)
         chooser = Chooser(target, cands, [pose for _, pose, _ in found], rule, M, bias)

@@ -28,11 +28,24 @@ def test_a_plan_file_round_trips(tmp_path):
     assert read_plan(path) == POSES
     doc = yaml.safe_load(path.read_text())
     assert doc["kind"] == "uscal-plan" and doc["criterion"] == "D"
-    assert doc["spheres"]["sphere_1"][0] == {
+    assert doc["targets"]["sphere_1"][0] == {
         "rotation_xyz_deg": [10.0, -20.0, 0.0],
         "lateral_mm": 4.0,
         "axial_mm": -2.0,
     }
+
+
+def test_a_plan_file_of_spheres_only_still_reads_and_wires_are_targets(tmp_path):
+    """Files written before other targets had their sweeps under ``spheres``; a plan
+    about a wire, an N-wire phantom or a cone's tip names that target."""
+    path = write_plan(tmp_path / "plan.yaml", POSES, {})
+    doc = yaml.safe_load(path.read_text())
+    doc["spheres"] = doc.pop("targets")
+    path.write_text(yaml.safe_dump(doc))
+    assert read_plan(path) == POSES
+    for name in ("wire", "nwire", "apex"):
+        wired = {name: POSES["sphere_1"]}
+        assert read_plan(write_plan(tmp_path / f"{name}.yaml", wired, {})) == wired
 
 
 @pytest.mark.parametrize(
@@ -41,6 +54,10 @@ def test_a_plan_file_round_trips(tmp_path):
         ("kind: something\n", "not a plan file"),
         ("kind: uscal-plan\nspheres: {}\n", "no sweeps"),
         ("kind: uscal-plan\nspheres:\n  ball: [{}]\n", "spheres.ball"),
+        (
+            "kind: uscal-plan\ntargets:\n  wires: [{}]\n",
+            "targets.wires.*sphere_N, wire, nwire, apex",
+        ),
         (
             "kind: uscal-plan\nspheres:\n  sphere_1:\n    - {rotation_xyz_deg: [0, 0, 90], "
             "lateral_mm: 0, axial_mm: 0}\n",
@@ -93,6 +110,17 @@ def test_plan_mistakes_on_the_command_line_are_one_line(tmp_path, capsys):
         capsys, "plan", str(QUICK), "--set", "protocol.spheres=[1]", "--optimize", "--markers", "3"
     )
     assert r.returncode == 2 and "three-marker plans need three" in r.stderr
+    # A wire phantom has one target: no three-marker plan of it.
+    wire = QUICK.parent.parent / "scenarios" / "wire.yaml"
+    r = uscal_here(capsys, "plan", str(wire), "--optimize", "--markers", "3")
+    assert r.returncode == 2 and "a wire phantom has one target" in r.stderr
+    assert r.stderr.count("\n") == 1
+    # A plan of spheres does not fit a wire scenario.
+    write_plan(tmp_path / "spheres.yaml", POSES, {})
+    r = uscal_here(
+        capsys, "check", str(wire), "--set", f"protocol.plan={tmp_path / 'spheres.yaml'}"
+    )
+    assert r.returncode == 2 and "a plan made for this phantom" in r.stderr
 
 
 def test_uscal_plan_optimize_writes_a_plan_that_beats_the_papers(tmp_path):
@@ -104,7 +132,7 @@ def test_uscal_plan_optimize_writes_a_plan_that_beats_the_papers(tmp_path):
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     doc = yaml.safe_load(plan.read_text())
-    assert len(doc["spheres"]["sphere_1"]) == 15 == len(read_plan(plan)["sphere_1"])
+    assert len(doc["targets"]["sphere_1"]) == 15 == len(read_plan(plan)["sphere_1"])
     opt, paper = doc["predicted"], doc["paper_plan"]
     assert paper["sweeps"] == 45
     # A third of the sweeps: better determined, in at most 40 % of the robot time.

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from bench.acquire_sim import coarse_estimate, make_twin, teach_at
-from bench.candidates import in_image, sweep_of, taught_sphere
+from bench.candidates import in_image, sweep_of, taught_target
 from bench.config.plan_file import read_plan, read_spares, spare_poses, sphere_poses, write_plan
 from bench.config.scenario import load_scenario
 from bench.sessions import stage_rngs
@@ -49,7 +49,7 @@ def session():
     twin = make_twin(scenario)
     rngs = stage_rngs(scenario)
     coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
-    sphere = taught_sphere(scenario, twin, coarse, "sphere_1", 0, rngs["protocol"])
+    sphere = taught_target(scenario, twin, coarse, "sphere_1", 0, rngs["protocol"])
     grid = [p for p in scenario.planning.candidates()[::7] if in_image(scenario, p)]
     ends = np.array([sweep_of(scenario, sphere, coarse, p)[[0, 10, 20]] for p in grid])
     room = twin.robot.clearances(ends.reshape(-1, 4, 4), 0.01).reshape(len(grid), 3).min(axis=1)

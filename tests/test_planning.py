@@ -191,3 +191,27 @@ def test_a_three_marker_plan_sees_every_sphere_and_a_loose_layout_informs_less()
     assert exact <= predict(loose, chosen, M).rotation_deg <= predict(free, chosen, M).rotation_deg
     with pytest.raises(ValueError, match="cannot give"):
         select_sweeps(cands, 12, criterion="D", M=M, min_per_target=5)
+
+
+def test_candidates_of_many_rows_keep_each_sweeps_information_with_its_shared_error():
+    """A sweep of many observations (a wire's frames) enters the plan as the square root
+    of its information: the sums equal JᵀΣ⁻¹J with Σ = I + KKᵀ (the error its
+    observations share), computed densely, sweep by sweep; without a shared error, JᵀJ."""
+    rng = np.random.default_rng(3)
+    n, R, m = 4, 12, 5
+    Jt, Jn, K = rng.normal(size=(n, R, 6)), rng.normal(size=(n, R, m)), rng.normal(size=(n, R, 2))
+    cands = Candidates.from_rows(Jt, Jn, np.zeros(n), shared=K)
+    assert cands.A.shape == (n, 6 + m, 6) and cands.B.shape == (n, 6 + m, m)
+    S_AA, S_AB, S_BB = cands.sums([0, 2, 3])
+    dense = np.zeros((6 + m, 6 + m))
+    for k in (0, 2, 3):
+        J = np.concatenate([Jt[k], Jn[k]], axis=1)
+        dense += J.T @ np.linalg.solve(np.eye(R) + K[k] @ K[k].T, J)
+    np.testing.assert_allclose(S_AA, dense[:6, :6], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(S_AB, dense[:6, 6:], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(S_BB, dense[6:, 6:], rtol=1e-9, atol=1e-9)
+    # The shared error costs information: less than the same rows independent.
+    plain = Candidates.from_rows(Jt, Jn, np.zeros(n)).sums([0, 2, 3])[0]
+    np.testing.assert_allclose(plain, np.einsum("nri,nrj->ij", Jt[[0, 2, 3]], Jt[[0, 2, 3]]))
+    assert np.linalg.eigvalsh(plain - S_AA).min() > -1e-9
+    assert np.trace(plain - S_AA) > 0.1 * np.trace(plain)

@@ -22,7 +22,14 @@ from twin.ik import solve_ik
 from twin.phantoms import build_phantom, build_tank
 from twin.scene import Scene, SceneModel
 
-__all__ = ["World", "check_geometry"]
+__all__ = [
+    "TARGET_PHANTOMS",
+    "WIRED",
+    "World",
+    "acquisition_targets",
+    "check_geometry",
+    "lateral_axis",
+]
 
 
 class World(Protocol):
@@ -49,6 +56,17 @@ WIRED = ("nwire", "wire")
 #: The phantoms `uscal run` calibrates from their own target, not from spheres: the wires
 #: and the cone (its tip, :mod:`calib.localize.cone_tip`).
 TARGET_PHANTOMS = (*WIRED, "cone")
+
+
+def acquisition_targets(kind: str, protocol: ProtocolConfig) -> list[str]:
+    """What an acquisition of a ``kind`` phantom sweeps about (and a plan file names):
+    the protocol's spheres, the wires' centre (one target, ``nwire`` or ``wire``), or
+    the cone's tip (``apex``)."""
+    if kind in WIRED:
+        return [kind]
+    if kind == "cone":
+        return ["apex"]
+    return [f"sphere_{i}" for i in protocol.spheres]
 
 
 def _targets(s: World) -> dict[str, np.ndarray]:

@@ -30,7 +30,8 @@ from calib.files.dataset import AcquisitionInfo
 from hw.config import GrabberConfig, URRobotConfig
 from twin.phantoms import PhantomConfig, build_phantom
 
-from .plan_file import check_plan_spheres, plan_beside
+from .geometry import acquisition_targets
+from .plan_file import check_plan_targets, plan_beside
 from .schema import apply_overrides, build_section, read_yaml
 
 __all__ = ["HwConfig", "RigConfig", "load_hw_config"]
@@ -156,7 +157,7 @@ def load_hw_config(path: str | os.PathLike[str], overrides: list[str] | tuple = 
     if "host" not in (data.get("robot") or {}):
         raise ScenarioError("the controller's address is required", source=source, key="robot.host")
     cfg = HwConfig(**sections, source=source)
-    check_plan_spheres(cfg.protocol, source)
+    check_plan_targets(cfg.protocol, source, acquisition_targets(cfg.phantom.kind, cfg.protocol))
     lo, hi = np.array(cfg.robot.workspace_min_mm), np.array(cfg.robot.workspace_max_mm)
     if np.any(lo >= hi):
         raise ScenarioError(

@@ -1,10 +1,11 @@
-"""Plan files: the sweeps to acquire about each sphere, relative to its taught nominal
+"""Plan files: the sweeps to acquire about each target, relative to its taught nominal
 pose (``uscal plan --optimize --out PLAN.yaml``; used through ``protocol.plan: PLAN.yaml``
-by ``uscal run`` and ``uscal acquire``). A plain YAML list per sphere, units in the key
-names::
+by ``uscal run`` and ``uscal acquire``). A plain YAML list per target (a sphere
+``sphere_N``, the wires' centre ``wire`` or ``nwire``, the cone's tip ``apex``), units
+in the key names::
 
     kind: uscal-plan
-    spheres:
+    targets:                     # files before targets other than spheres: spheres
       sphere_1:
         - {rotation_xyz_deg: [10, -20, 0], lateral_mm: 4, axial_mm: -2}
         - ...
@@ -13,7 +14,7 @@ names::
         - {rotation_xyz_deg: [-5, 15, 0], lateral_mm: 0, axial_mm: 3}
 
 At acquisition a sweep that no longer clears (another session's taught pose or mount
-moves the arm by millimetres) is replaced by the first spare of its sphere that does
+moves the arm by millimetres) is replaced by the first spare of its target that does
 (:func:`calib.acquisition.protocol.clear_sweeps`). Everything else in the file (how it was chosen,
 what it predicts) is for the reader.
 Problems give one :class:`~calib.errors.ScenarioError` naming the file and the entry.
@@ -39,7 +40,8 @@ from .schema import read_yaml
 __all__ = [
     "MAX_ROTATION_DEG",
     "MAX_SHIFT_MM",
-    "check_plan_spheres",
+    "TARGET_NAMES",
+    "check_plan_targets",
     "plan_beside",
     "read_plan",
     "read_spares",
@@ -54,6 +56,14 @@ KIND = "uscal-plan"
 MAX_ROTATION_DEG = 45.0
 MAX_SHIFT_MM = 30.0
 _KEYS = ("rotation_xyz_deg", "lateral_mm", "axial_mm")
+#: The targets a plan may name besides the spheres (``sphere_N``).
+TARGET_NAMES = ("wire", "nwire", "apex")
+#: The section of the planned sweeps (``spheres`` in files that knew only spheres).
+_PLAN_KEY, _OLD_PLAN_KEY = "targets", "spheres"
+
+
+def _is_target(name: object) -> bool:
+    return isinstance(name, str) and (name.startswith("sphere_") or name in TARGET_NAMES)
 
 
 def _number(value: Any, where: str, source: str, limit: float, key: str) -> float:
@@ -80,16 +90,25 @@ def _read_doc(path: str | os.PathLike[str]) -> tuple[str, dict]:
 
 
 def _sweep_lists(doc: dict, key: str, source: str) -> dict[str, tuple[SweepPose, ...]]:
-    """{sphere name: its sweeps} of one section (``spheres`` or ``spares``)."""
-    spheres = doc.get(key)
-    if not isinstance(spheres, dict) or not spheres:
-        raise ScenarioError("no sweeps", source=source, key=key, allowed="sphere_N: [sweeps...]")
+    """{target name: its sweeps} of one section (``targets`` or ``spares``)."""
+    if key == _PLAN_KEY and _PLAN_KEY not in doc and _OLD_PLAN_KEY in doc:
+        key = _OLD_PLAN_KEY
+    targets = doc.get(key)
+    if not isinstance(targets, dict) or not targets:
+        raise ScenarioError(
+            "no sweeps", source=source, key=key, allowed="<target>: [sweeps...] per target"
+        )
     out: dict[str, tuple[SweepPose, ...]] = {}
-    for name, sweeps in spheres.items():
+    for name, sweeps in targets.items():
         where = f"{key}.{name}"
-        if not (isinstance(name, str) and name.startswith("sphere_")):
-            raise ScenarioError("not a sphere's name", source=source, key=where, allowed="sphere_N")
-        if not isinstance(sweeps, list) or (key == "spheres" and not sweeps):
+        if not _is_target(name):
+            raise ScenarioError(
+                "not a target's name",
+                source=source,
+                key=where,
+                allowed=f"sphere_N, {', '.join(TARGET_NAMES)}",
+            )
+        if not isinstance(sweeps, list) or (key != "spares" and not sweeps):
             raise ScenarioError("expected a list of sweeps", source=source, key=where)
         poses = []
         for k, sweep in enumerate(sweeps):
@@ -122,19 +141,19 @@ def _sweep_lists(doc: dict, key: str, source: str) -> dict[str, tuple[SweepPose,
 
 
 def read_plan(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]]:
-    """{sphere name: its sweeps, in acquisition order} of a plan file."""
+    """{target name: its sweeps, in acquisition order} of a plan file."""
     source, doc = _read_doc(path)
-    return _sweep_lists(doc, "spheres", source)
+    return _sweep_lists(doc, _PLAN_KEY, source)
 
 
 def read_spares(path: str | os.PathLike[str]) -> dict[str, tuple[SweepPose, ...]]:
-    """{sphere name: its spare sweeps, best first} of a plan file (none: an empty dict):
+    """{target name: its spare sweeps, best first} of a plan file (none: an empty dict):
     what the acquisition puts in place of a sweep that no longer clears."""
     source, doc = _read_doc(path)
     if "spares" not in doc:
         return {}
     spares = _sweep_lists(doc, "spares", source)
-    plan = _sweep_lists(doc, "spheres", source)
+    plan = _sweep_lists(doc, _PLAN_KEY, source)
     extra = sorted(set(spares) - set(plan))
     if extra:
         raise ScenarioError(
@@ -153,7 +172,7 @@ def write_plan(
     spares: Mapping[str, Sequence[SweepPose]] | None = None,
 ) -> Path:
     """Write a plan file (atomically); ``about`` goes in as the reader's information,
-    ``spares`` (per sphere, best first) as the sweeps an acquisition may put in place of
+    ``spares`` (per target, best first) as the sweeps an acquisition may put in place of
     one that no longer clears."""
 
     def plain(x: float) -> float:
@@ -172,15 +191,15 @@ def write_plan(
     doc = {
         "kind": KIND,
         **dict(about),
-        "spheres": {name: listed(sweeps) for name, sweeps in poses.items()},
+        _PLAN_KEY: {name: listed(sweeps) for name, sweeps in poses.items()},
     }
     if spares:
         doc["spares"] = {name: listed(sweeps) for name, sweeps in spares.items()}
     header = (
-        "# uscal plan: the sweeps about each sphere, relative to its taught nominal pose\n"
+        "# uscal plan: the sweeps about each target, relative to its taught nominal pose\n"
         "# (turned about the target by rotation_xyz_deg about the image axes, then shifted\n"
         "# in the image plane). Use it with protocol.plan: <this file>. A sweep that no\n"
-        "# longer clears in a session is replaced by the first of its sphere's spares that does.\n"
+        "# longer clears in a session is replaced by the first of its target's spares that does.\n"
     )
     text = header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
     write_text_atomic(Path(path), text)
@@ -225,17 +244,19 @@ def plan_beside(data: Any, folder: Path) -> Any:
     return {**data, "protocol": {**protocol, "plan": str(folder / plan)}}
 
 
-def check_plan_spheres(protocol: ProtocolConfig, source: str) -> None:
-    """A plan file holds sweeps for exactly the spheres the protocol scans."""
+def check_plan_targets(protocol: ProtocolConfig, source: str, targets: Sequence[str]) -> None:
+    """A plan file holds sweeps for exactly the ``targets`` the protocol scans."""
     if protocol.plan is None:
         return
     poses = read_plan(protocol.plan)
-    wanted = [f"sphere_{i}" for i in protocol.spheres]
-    if sorted(poses) != sorted(wanted):
+    if sorted(poses) != sorted(targets):
+        spheres = all(t.startswith("sphere_") for t in targets)
         raise ScenarioError(
-            f"the plan has sweeps for {', '.join(poses)}; the protocol scans {', '.join(wanted)}",
+            f"the plan has sweeps for {', '.join(poses)}; the protocol scans {', '.join(targets)}",
             source=source,
             key="protocol.plan",
             value=protocol.plan,
-            allowed="a plan of the protocol's spheres (or set protocol.spheres to the plan's)",
+            allowed="a plan of the protocol's spheres (or set protocol.spheres to the plan's)"
+            if spheres
+            else "a plan made for this phantom (uscal plan --optimize on this scenario)",
         )

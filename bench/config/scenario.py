@@ -34,8 +34,8 @@ from calib.localize import LocalizerConfig
 from sim_us import MediumConfig, ProbeConfig
 from twin import PhantomConfig, RobotConfig, ToolsConfig
 
-from .geometry import check_geometry
-from .plan_file import check_plan_spheres, plan_beside, read_plan
+from .geometry import TARGET_PHANTOMS, acquisition_targets, check_geometry
+from .plan_file import check_plan_targets, plan_beside, read_plan
 from .schema import apply_overrides, build_section, did_you_mean, read_yaml
 
 __all__ = [
@@ -201,18 +201,19 @@ def load_scenario(
 
 
 def _check_plan(s: Scenario) -> None:
-    """A plan file names the spheres the protocol scans, and each of its sweeps keeps the
-    sphere inside the image (as the plan puts it)."""
-    check_plan_spheres(s.protocol, s.source)
+    """A plan file names the targets the protocol scans, and each of its sweeps keeps the
+    target inside the image (as the plan puts it; a sphere wholly)."""
+    check_plan_targets(s.protocol, s.source, acquisition_targets(s.phantom.kind, s.protocol))
     poses = read_plan(s.protocol.plan)
-    depth, r = s.protocol.target_depth_mm * 1e-3, s.phantom.sphere_radius_mm * 1e-3
+    radius = 0.0 if s.phantom.kind in TARGET_PHANTOMS else s.phantom.sphere_radius_mm
+    depth, r = s.protocol.target_depth_mm * 1e-3, radius * 1e-3
     half_width, image_depth = s.imaging.width_mm * 5e-4, s.imaging.depth_mm * 1e-3
     for name, sweeps in poses.items():
         for k, pose in enumerate(sweeps):
             x, y, _ = pose.target_in_image(depth)
             if abs(x) + r > half_width or y - r < 0 or y + r > image_depth:
                 raise ScenarioError(
-                    f"sweep {k} of {name} puts the sphere at ({-pose.lateral_mm:g}, "
+                    f"sweep {k} of {name} puts the {'sphere' if radius else 'target'} at ({-pose.lateral_mm:g}, "
                     f"{y * 1e3:g}) mm, not wholly inside the {s.imaging.width_mm:g} × "
                     f"{s.imaging.depth_mm:g} mm image",
                     source=s.source,

@@ -107,12 +107,11 @@ def print_plan(scenario: Scenario, reports: Sequence, noise_mm: float, console: 
 def print_plan_comparison(c, scenario: Scenario, console: Console) -> None:
     """``uscal plan --optimize``: the chosen plan beside the paper's."""
     o = c.optimized
-    per_sphere = ", ".join(f"{k}: {len(v)}" for k, v in o.poses.items())
+    per_target = ", ".join(f"{k}: {len(v)}" for k, v in o.poses.items())
     left = ", ".join(f"{n} {k}" for k, n in (o.left_out or {}).items())
-    kind = "three-marker" if len(c.spheres) >= 3 else "single-marker"
     console.print(
-        f"chose {o.n_sweeps} sweeps ({per_sphere}) from {o.candidates} candidates ({left}), "
-        f"criterion {c.criterion}, for {kind} calibration"
+        f"chose {o.n_sweeps} sweeps ({per_target}) from {o.candidates} candidates ({left}), "
+        f"criterion {c.criterion}, for {c.calibration}"
     )
     spares = ", ".join(f"{k}: {len(v)}" for k, v in (o.spares or {}).items()) or "none"
     console.print(
@@ -120,13 +119,7 @@ def print_plan_comparison(c, scenario: Scenario, console: Console) -> None:
         f"phantom here and in {o.sessions} other sessions (their taught pose and coarse "
         f"mount); spares {spares}"
     )
-    noise = scenario.planning.localization_noise_mm
-    table = Table(
-        title="predicted for localization noise "
-        f"{noise[0]:g} / {noise[1]:g} / {noise[2]:g} mm (lateral / axial / elevation, 1 σ) "
-        f"and the arm's {scenario.planning.pose_noise_mm:g} mm, "
-        "fitted as calib.calibration.markers fits"
-    )
+    table = Table(title=f"predicted for {c.noise}")
     for col in ("plan", "sweeps", "rot° 1σ", "mm 1σ", "image mm", "cond.", "robot time"):
         table.add_column(col, justify="left" if col == "plan" else "right")
     for name, p in (("paper", c.paper), ("optimized", o)):

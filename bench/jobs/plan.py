@@ -22,8 +22,8 @@ from calib.acquisition.observability import (
 )
 from calib.acquisition.protocol import check_plan, plan_sweeps
 
-from ..acquire_sim import acquisition_targets, coarse_estimate, make_twin, teach_at
-from ..config.geometry import lateral_axis
+from ..acquire_sim import coarse_estimate, make_twin, teach_at
+from ..config.geometry import acquisition_targets, lateral_axis
 from ..config.scenario import Scenario
 from ..sessions import stage_rngs
 
@@ -50,7 +50,7 @@ def plan_report(scenario: Scenario, noise_mm: float = 0.1) -> list[PlanReport]:
     coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
     depth = proto.target_depth_mm * 1e-3
     out = []
-    for name in acquisition_targets(scenario):
+    for name in acquisition_targets(scenario.phantom.kind, scenario.protocol):
         taught = teach_at(
             twin,
             twin.truth.landmarks_base[name],

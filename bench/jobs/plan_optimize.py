@@ -48,15 +48,16 @@ from twin.robot import RobotConfig
 from ..acquire_sim import coarse_estimate, make_twin
 from ..candidates import (
     NOT_CLEAR,
-    PlanSphere,
+    PlanTarget,
+    candidate_set,
     candidate_sweeps,
     clear,
     observations,
     path_clear,
     sweep_of,
-    taught_sphere,
+    taught_target,
 )
-from ..config.geometry import TARGET_PHANTOMS
+from ..config.geometry import TARGET_PHANTOMS, acquisition_targets
 from ..config.method import image_points
 from ..config.scenario import Scenario
 from ..sessions import PLAN_SESSIONS_KEY, stage_rngs, stream
@@ -96,7 +97,47 @@ class PlanComparison:
     optimized: PlanChoice
     paper: PlanChoice
     criterion: Criterion
-    spheres: list[str]
+    spheres: list[str]  # the targets planned (spheres, or the one wire/cone target)
+    calibration: str = ""  # what the plan is chosen for, as the reader meets it
+    noise: str = ""  # the noise it is chosen for, in words
+
+
+def noise_about(scenario: Scenario, markers: int) -> tuple[str, str, dict]:
+    """What a plan of ``scenario`` is chosen for: the calibration (in words), the noise
+    model (in words) and the same for the plan file."""
+    p = scenario.planning
+    arm = f"the arm's {p.pose_noise_mm:g} mm"
+    kind = scenario.phantom.kind
+
+    def axes(v) -> str:
+        return " / ".join(f"{x:g}" for x in v)
+
+    if kind in ("wire", "nwire"):
+        what = "a single-wire" if kind == "wire" else "an N-wire"
+        return (
+            f"{what} calibration (phantom pose and pixel scale unknown)",
+            f"a dot's noise {axes(p.dot_noise_mm)} mm per frame and "
+            f"{axes(p.dot_sweep_noise_mm)} mm shared by a sweep's dots (lateral / axial, "
+            f"1 σ), {arm}",
+            {
+                "dot_noise_mm": list(p.dot_noise_mm),
+                "dot_sweep_noise_mm": list(p.dot_sweep_noise_mm),
+            },
+        )
+    if kind == "cone":
+        return (
+            "a cone-tip calibration (the tip's position unknown)",
+            f"a tip's noise {axes(p.cone_tip_noise_mm)} mm per sweep (lateral / axial / "
+            f"elevation, 1 σ), {arm}",
+            {"cone_tip_noise_mm": list(p.cone_tip_noise_mm)},
+        )
+    return (
+        ("three-marker" if markers >= 3 else "single-marker")
+        + " calibration, fitted as calib.calibration.markers fits",
+        f"localization noise {axes(p.localization_noise_mm)} mm (lateral / axial / "
+        f"elevation, 1 σ), {arm}",
+        {"localization_noise_mm": list(p.localization_noise_mm)},
+    )
 
 
 def plan_time_s(plan: Sequence[PlannedSweep], robot: RobotConfig, start: Array) -> float:
@@ -144,7 +185,7 @@ class OtherSession:
     coarse: Array
 
 
-def other_sessions(scenario: Scenario, spheres: Sequence[PlanSphere], coarse: Array, n: int):
+def other_sessions(scenario: Scenario, spheres: Sequence[PlanTarget], coarse: Array, n: int):
     """``n`` sessions drawn as the twin draws a session's (:mod:`bench.acquire_sim`):
     the taught pose off this one's by the difference of two teaching errors
     (``protocol.teaching_error_mm`` 1 σ each), the coarse mount off this one's by the
@@ -161,7 +202,7 @@ def other_sessions(scenario: Scenario, spheres: Sequence[PlanSphere], coarse: Ar
     return out
 
 
-def _unclear_in(scenario, twin, sessions, s: PlanSphere, poses: Sequence[SweepPose]) -> set[int]:
+def _unclear_in(scenario, twin, sessions, s: PlanTarget, poses: Sequence[SweepPose]) -> set[int]:
     """Indices of ``poses`` (one sphere's sweeps, in acquisition order with their
     transits) that do not keep the clearance on the way in one of ``sessions``."""
     proto = scenario.protocol
@@ -183,7 +224,7 @@ def _clear_elsewhere(scenario, twin, sessions, found):
     need = scenario.planning.clearance_mm * 1e-3
     memo: dict[int, bool] = {}
 
-    def ends(s: PlanSphere, o: OtherSession, pose: SweepPose) -> Array:
+    def ends(s: PlanTarget, o: OtherSession, pose: SweepPose) -> Array:
         return sweep_of(scenario, replace(s, taught=o.taught[s.name]), o.coarse, pose, 3)
 
     def admissible(k: int) -> bool:
@@ -239,29 +280,33 @@ def optimize_plan(
     them (see the module docstring)."""
     proto = scenario.protocol
     if scenario.phantom.kind in TARGET_PHANTOMS:
-        raise UscalError(
-            "--optimize: the planner chooses sphere sweeps by what they tell of the mount; "
-            f"a {scenario.phantom.kind} scenario runs its protocol's sweeps as they "
-            "are (`uscal plan` without --optimize checks them)"
-        )
-    if markers is None:
-        markers = 3 if len(proto.spheres) >= 3 else 1
-    if markers == 3 and n_sweeps < 3 * MIN_SWEEPS_PER_SPHERE:
-        raise UscalError(
-            f"--sweeps {n_sweeps}: a three-marker plan needs at least "
-            f"{3 * MIN_SWEEPS_PER_SPHERE} ({MIN_SWEEPS_PER_SPHERE} of each sphere)"
-        )
-    if markers == 3 and len(proto.spheres) < 3:
-        raise UscalError(
-            f"--markers 3: the protocol scans {len(proto.spheres)} sphere(s); three-marker "
-            "plans need three (protocol.spheres)"
-        )
-    names = [f"sphere_{i}" for i in proto.spheres[:markers]]
+        # One target (the wires' centre or the cone's tip): the phantom's pose is unknown
+        # whatever the plan, as the fit estimates it.
+        if markers not in (None, 1):
+            raise UscalError(
+                f"--markers {markers}: a {scenario.phantom.kind} phantom has one target to "
+                "sweep about; plan it with --markers 1 (or without --markers)"
+            )
+        markers, names = 1, acquisition_targets(scenario.phantom.kind, proto)
+    else:
+        if markers is None:
+            markers = 3 if len(proto.spheres) >= 3 else 1
+        if markers == 3 and n_sweeps < 3 * MIN_SWEEPS_PER_SPHERE:
+            raise UscalError(
+                f"--sweeps {n_sweeps}: a three-marker plan needs at least "
+                f"{3 * MIN_SWEEPS_PER_SPHERE} ({MIN_SWEEPS_PER_SPHERE} of each sphere)"
+            )
+        if markers == 3 and len(proto.spheres) < 3:
+            raise UscalError(
+                f"--markers 3: the protocol scans {len(proto.spheres)} sphere(s); "
+                "three-marker plans need three (protocol.spheres)"
+            )
+        names = [f"sphere_{i}" for i in proto.spheres[:markers]]
     twin = make_twin(scenario)
     rngs = stage_rngs(scenario)
     coarse = coarse_estimate(twin.truth.T_ee_us, scenario.calibration, rngs["calibration"])
     spheres = [
-        taught_sphere(scenario, twin, coarse, name, k, rngs["protocol"])
+        taught_target(scenario, twin, coarse, name, k, rngs["protocol"])
         for k, name in enumerate(names)
     ]
     M = image_metric(coarse, image_points(scenario))
@@ -274,7 +319,10 @@ def optimize_plan(
         lambda s: default_poses(proto), check=False,
     )  # fmt: skip
     paper_pred = predict(
-        observations(scenario, coarse, spheres, paper, multi), range(len(paper)), M, bias=bias
+        observations(scenario, coarse, spheres, paper, multi, twin),
+        range(len(paper)),
+        M,
+        bias=bias,
     )
     paper_plan = [p for s in spheres for p in plan_sweeps(s.name, s.taught, coarse, proto)]
     paper_choice = PlanChoice(
@@ -283,11 +331,11 @@ def optimize_plan(
         plan_time_s(paper_plan, scenario.robot, start),
     )
 
-    dense = scenario.planning.candidates()
+    dense = candidate_set(scenario)
     found, left = candidate_sweeps(scenario, twin, spheres, coarse, lambda s: dense, check=True)
     if not found:
         raise UscalError(
-            "no candidate sweep keeps the sphere in the image and is reachable without a "
+            "no candidate sweep keeps the target in the image and is reachable without a "
             f"collision ({left}); widen the image or lower planning.image_margin_mm"
         )
     sessions = other_sessions(scenario, spheres, coarse, scenario.planning.session_draws)
@@ -298,7 +346,7 @@ def optimize_plan(
     def admissible(k: int) -> bool:
         return k not in refused and clear_elsewhere(k)
 
-    cands = observations(scenario, coarse, spheres, found, multi)
+    cands = observations(scenario, coarse, spheres, found, multi, twin)
     least = MIN_SWEEPS_PER_SPHERE if multi else 0
     for _ in range(20):  # replace chosen sweeps that fail the frame-by-frame check
         try:
@@ -357,7 +405,8 @@ def optimize_plan(
         spares,
         len(sessions),
     )
-    return PlanComparison(optimized, paper_choice, criterion, names)
+    what, noise, _ = noise_about(scenario, markers)
+    return PlanComparison(optimized, paper_choice, criterion, names, what, noise)
 
 
 def plan_about(comparison: PlanComparison, scenario: Scenario) -> dict:
@@ -379,7 +428,9 @@ def plan_about(comparison: PlanComparison, scenario: Scenario) -> dict:
         "scenario": scenario.source,
         "criterion": comparison.criterion,
         "markers": len(comparison.spheres),
-        "localization_noise_mm": list(scenario.planning.localization_noise_mm),
+        "targets": list(comparison.spheres),
+        "calibration": comparison.calibration,
+        **noise_about(scenario, len(comparison.spheres))[2],
         "pose_noise_mm": scenario.planning.pose_noise_mm,
         "clearance_mm": scenario.planning.clearance_mm,
         "checked_in_other_sessions": comparison.optimized.sessions,

@@ -514,6 +514,7 @@ def run_target(scenario, twin, acq, t_start: float) -> TargetRun:
         "sweeps": len(acq.dataset.sweeps),
         "frames": int(sum(s.n_frames for s in acq.dataset.sweeps)),
         "robot_time_s": acq.robot_time_s,
+        "plan": scenario.protocol.plan or "paper",
         "replaced": [r.line() for r in acq.replaced],
     }
     kind = m["dataset"]["target"]

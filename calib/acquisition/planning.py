@@ -189,6 +189,42 @@ class PlanningConfig:
         },
     )
 
+    dot_noise_mm: tuple[float, float] = field(
+        default=(0.01, 0.02),
+        metadata={
+            "doc": "Wire and N-wire plans: 1 σ of a wire's dot in one frame along the "
+            "image's lateral and axial axes, independent between frames "
+            "(benchmarks/target_noise.py on the twin's wire: 0.009, 0.018 mm).",
+            "len": 2,
+            "ge": 0,
+            "le": 5,
+        },
+    )
+    dot_sweep_noise_mm: tuple[float, float] = field(
+        default=(0.003, 0.15),
+        metadata={
+            "doc": "Wire and N-wire plans: 1 σ of an offset every dot of one sweep shares "
+            "(lateral, axial; where in the wire's echo its dot lands depends on the view), "
+            "independent between sweeps: it makes a sweep's many frames worth less than "
+            "as many sweeps (benchmarks/target_noise.py on the twin's wire: 0.002, "
+            "0.13 mm).",
+            "len": 2,
+            "ge": 0,
+            "le": 5,
+        },
+    )
+    cone_tip_noise_mm: tuple[float, float, float] = field(
+        default=(0.2, 0.2, 0.2),
+        metadata={
+            "doc": "Cone-tip plans: 1 σ of a sweep's tip along the image's lateral, axial "
+            "and elevational axes, independent between sweeps "
+            "(benchmarks/target_noise.py on the twin's cone).",
+            "len": 3,
+            "ge": 0,
+            "le": 5,
+        },
+    )
+
     def noise(self) -> NoiseModel:
         """Each sweep's centre noise in the image frame: the localizer's and the arm's
         (isotropic, so the same in every frame)."""
@@ -390,6 +426,38 @@ class Candidates:
             prior = np.zeros((6 + free, 6 + free))
             prior[6:, 6:] = np.eye(free) / layout_sigma_mm**2
         return cls(A, -W @ D, idx, prior, G, -D, S)
+
+    @classmethod
+    def from_rows(
+        cls,
+        J_theta: ArrayLike,
+        J_nuisance: ArrayLike,
+        target: ArrayLike,
+        *,
+        shared: ArrayLike | None = None,
+    ) -> Candidates:
+        """Candidates that each give many observations (a sweep's frames of wires, each
+        with its constraint rows): ``J_theta`` (n, R, 6) and ``J_nuisance`` (n, R, m) the
+        whitened rows of every observation of each sweep (unit variance, independent
+        between observations; zero rows pad a sweep with fewer); ``shared`` (n, R, s)
+        the rows' response to errors every observation of a sweep shares, one column per
+        error at its 1 σ (what makes a sweep's many frames worth less than as many
+        sweeps). Each sweep's information is
+        JᵀJ − JᵀK (I + KᵀK)⁻¹ KᵀJ (J = [J_theta | J_nuisance], K = ``shared``: the
+        Woodbury form of JᵀΣ⁻¹J, Σ = I + KKᵀ), kept as its square root (6 + m rows
+        per sweep, not R): the sums are the same."""
+        J = np.concatenate(
+            [np.asarray(J_theta, dtype=float), np.asarray(J_nuisance, dtype=float)], axis=2
+        )
+        H = np.einsum("nri,nrj->nij", J, J)
+        if shared is not None:
+            K = np.asarray(shared, dtype=float)
+            KtJ = np.einsum("nrs,nrj->nsj", K, J)
+            inner = np.eye(K.shape[2]) + np.einsum("nrs,nrt->nst", K, K)
+            H = H - np.einsum("nsi,nst,ntj->nij", KtJ, np.linalg.inv(inner), KtJ)
+        w, V = np.linalg.eigh(0.5 * (H + np.swapaxes(H, 1, 2)))
+        L = np.sqrt(np.clip(w, 0.0, None))[:, :, None] * np.swapaxes(V, 1, 2)  # LᵀL = H
+        return cls(L[:, :, :6], L[:, :, 6:], np.asarray(target, dtype=int))
 
 
 def _skew(v: Array) -> Array:
