@@ -18,11 +18,17 @@ the sphere's centres with their sphere's position unknown, the wires' points wit
 phantom's pose and the scale unknown), and what was not used (sweeps rejected by the
 localizer, frames without every wire, sweeps whose apex was not found).
 
+``--plan N``: each target's sweeps chosen by ``uscal plan --optimize`` (N sweeps, made
+once per target in a session of its own, on a seed and conditions no run shares) and that
+plan reused by every run, as a lab reuses a plan day after day: its robot time and errors
+beside the paper's plan's. A plan a run cannot use (a sweep that no longer clears, no
+spare left) is a failure of the plan and is counted.
+
 Last line: ``runs=<n>`` then, per target, ``<target>_image_mm``,
 ``<target>_rotation_deg`` (medians) and ``<target>_covered`` (share); the targets
 ``sphere``, ``wire``, ``nwire``, ``cone_tip``.
 
-Run: python benchmarks/targets.py [--runs 6] [--seed 0] [--workers 2] [--json FILE]
+Run: python benchmarks/targets.py [--runs 6] [--seed 0] [--workers 2] [--plan N] [--json FILE]
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ import argparse  # noqa: E402
 import concurrent.futures as cf  # noqa: E402
 import json  # noqa: E402
 import multiprocessing  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
@@ -66,21 +73,48 @@ def draw(rng: np.random.Generator, k: int) -> dict[str, Any]:
     }
 
 
-def _run(target: str, conditions: dict[str, Any]) -> dict[str, Any]:
+def _overrides(target: str, conditions: dict[str, Any]) -> list[str]:
+    overrides = [f"{k}={json.dumps(v)}" for k, v in {**conditions, **PROBE}.items()]
+    if target == "sphere":
+        overrides += ["protocol.spheres=[1]"]
+    return overrides
+
+
+def _plan(target: str, conditions: dict[str, Any], n_sweeps: int, path: str) -> str:
+    """``uscal plan --optimize`` of ``target`` in a session of ``conditions``: the plan
+    file at ``path``."""
+    sys.path.insert(0, str(ROOT))
+    from bench.config.plan_file import write_plan
+    from bench.config.scenario import load_scenario
+    from bench.jobs.plan_optimize import optimize_plan, plan_about
+
+    scenario = load_scenario(str(SCENARIO[target]), _overrides(target, conditions))
+    comparison = optimize_plan(scenario, n_sweeps, "D", 1)
+    o = comparison.optimized
+    write_plan(path, o.poses, plan_about(comparison, scenario), o.spares)
+    return path
+
+
+def _run(target: str, conditions: dict[str, Any], plan: str | None = None) -> dict[str, Any]:
     sys.path.insert(0, str(ROOT))
     from bench.config.scenario import load_scenario
     from bench.jobs.single import run
     from bench.outputs.figures import observability_eigenvalues
+    from calib.errors import UscalError
 
-    overrides = [f"{k}={json.dumps(v)}" for k, v in {**conditions, **PROBE}.items()]
-    if target == "sphere":
-        overrides += ["protocol.spheres=[1]"]
+    overrides = _overrides(target, conditions)
+    if plan is not None:
+        overrides += [f"protocol.plan={plan}"]
     scenario = load_scenario(str(SCENARIO[target]), overrides)
     t0 = time.perf_counter()
-    result = run(scenario)
+    try:
+        result = run(scenario)
+    except UscalError as e:  # the plan no longer fits this session
+        return {"target": target, "plan": plan, "failed": str(e)}
     m = result.metrics
     out: dict[str, Any] = {
         "target": target,
+        "plan": plan,
         "robot_time_s": m["acquisition"]["robot_time_s"],
         "frames": m["acquisition"]["frames"],
         "seconds": time.perf_counter() - t0,
@@ -118,15 +152,33 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0, help="draw of the runs' conditions")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--plan", type=int, metavar="N", help="also run each target's N-sweep plan")
     ap.add_argument("--json", help="write every run's figures here")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     conditions = [draw(rng, k) for k in range(args.runs)]
-    jobs = [(t, c) for c in conditions for t in TARGETS]
+    jobs: list[tuple[str, dict[str, Any], str | None]] = [
+        (t, c, None) for c in conditions for t in TARGETS
+    ]
     t0 = time.perf_counter()
     ctx = multiprocessing.get_context("spawn")
     with cf.ProcessPoolExecutor(args.workers, mp_context=ctx) as pool:
-        results = list(pool.map(_run, *zip(*jobs, strict=True)))
+        if args.plan:
+            # Each plan made in a session of its own: conditions drawn apart from the runs'.
+            tmp = Path(tempfile.mkdtemp(prefix="uscal_target_plans_"))
+            session = draw(np.random.default_rng(args.seed + 10**6), 0)
+            plans = dict(zip(TARGETS, pool.map(
+                _plan, TARGETS, [session] * len(TARGETS), [args.plan] * len(TARGETS),
+                [str(tmp / f"{t}.yaml") for t in TARGETS],
+            ), strict=True))  # fmt: skip
+            print(f"plans of {args.plan} sweeps made in a session of their own ({session})")
+            jobs += [(t, c, plans[t]) for c in conditions for t in TARGETS]
+        everything = list(pool.map(_run, *zip(*jobs, strict=True)))
+    failed = [r for r in everything if "failed" in r]
+    for r in failed:
+        print(f"PLAN FAILED for {r['target']}: {r['failed']}")
+    results = [r for r in everything if "failed" not in r and r["plan"] is None]
+    planned = [r for r in everything if "failed" not in r and r["plan"] is not None]
     print(f"{args.runs} rigs drawn (seed {args.seed}), {len(jobs)} runs in "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     head = (f"{'target':7s} {'rig':>3s} {'robot s':>8s} {'rot °':>7s} {'trans mm':>8s} "
@@ -152,9 +204,27 @@ def main() -> None:
             print(f"  {target:6s} {key:15s} {np.median(v):.3f} ({v.min():.3f}–{v.max():.3f})")
         summary[f"{target}_covered"] = float(np.mean([r["covered"] for r in mine]))
         summary[f"{target}_condition"] = float(np.median([r["condition_number"] for r in mine]))
+    if planned:
+        print(f"\nthe {args.plan}-sweep plans reused, median (spread) over the rigs:")
+        print(f"  {'target':6s} {'robot s':>8s} {'rot °':>17s} {'image mm':>17s} {'covered':>8s}")
+        for target in TARGETS:
+            mine = [r for r in planned if r["target"] == target]
+            if not mine:
+                continue
+            rot = np.array([r["true_error"]["rotation_deg"] for r in mine])
+            img = np.array([r["true_error"]["image_mm"] for r in mine])
+            paper_t = np.median([r["robot_time_s"] for r in results if r["target"] == target])
+            plan_t = np.median([r["robot_time_s"] for r in mine])
+            print(
+                f"  {target:6s} {plan_t:8.0f} {np.median(rot):6.3f} ({rot.min():.3f}–"
+                f"{rot.max():.3f}) {np.median(img):6.3f} ({img.min():.3f}–{img.max():.3f}) "
+                f"{np.mean([r['covered'] for r in mine]):8.2f}   (paper's plan {paper_t:.0f} s)"
+            )
+            summary[f"{target}_planned_image_mm"] = float(np.median(img))
+            summary[f"{target}_planned_covered"] = float(np.mean([r["covered"] for r in mine]))
     if args.json:
         Path(args.json).write_text(
-            json.dumps({"conditions": conditions, "runs": results}, indent=2)
+            json.dumps({"conditions": conditions, "runs": everything}, indent=2)
         )
     print(
         f"runs={len(results)} "
@@ -164,6 +234,7 @@ def main() -> None:
             f"{t}_covered={summary[f'{t}_covered']:.2f}"
             for t in TARGETS
         )
+        + (f" plan_failures={len(failed)}" if args.plan else "")
     )
 
 
