@@ -51,16 +51,24 @@ def test_each_sweep_s_apex_lies_where_the_truth_puts_it():
     assert errors.max(axis=0)[2] < 0.8 and np.median(errors[:, 2]) < 0.3
 
 
-def test_the_cone_tip_calibrates_within_its_bound(tmp_path):
-    r = uscal("run", str(CONE), "--out", str(tmp_path / "run"))
+@pytest.fixture(scope="module")
+def cone_run(tmp_path_factory):
+    """One `uscal run` of the cone scenario, its dataset saved (≈ 30 s: shared)."""
+    base = tmp_path_factory.mktemp("cone")
+    run, data = base / "run", base / "d"
+    r = uscal("run", str(CONE), "--out", str(run), "--save-dataset", str(data), "--no-rrd")
     assert r.returncode == 0, r.stderr
-    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    return base, json.loads((run / "metrics.json").read_text()), r.stdout
+
+
+def test_the_cone_tip_calibrates_within_its_bound(cone_run):
+    _, m, stdout = cone_run
     c = m["calibration"]["cone_tip"]
     assert m["dataset"]["target"] == "cone_tip" and m["detection"]["sweeps_found"] == 45
     e = c["true_error"]
     assert e["rotation_deg"] < 1.5 and e["translation_mm"] < 1.0 and e["image_mm"] < 1.0
     assert all(c["bound_covers"].values()), (e, c["bound95"])
-    assert "against the twin's truth" in r.stdout
+    assert "against the twin's truth" in stdout
 
 
 def test_with_every_error_source_off_the_tip_gives_the_mount(tmp_path):
@@ -76,11 +84,9 @@ def test_with_every_error_source_off_the_tip_gives_the_mount(tmp_path):
     assert e["image_mm"] < 0.8 and all(c["bound_covers"].values())
 
 
-def test_its_dataset_calibrates_as_the_run_did_and_validate_refuses_it(tmp_path, capsys):
-    run, data = tmp_path / "run", tmp_path / "d"
-    r = uscal("run", str(CONE), "--out", str(run), "--save-dataset", str(data), "--no-rrd")
-    assert r.returncode == 0, r.stderr
-    m = json.loads((run / "metrics.json").read_text())["calibration"]["cone_tip"]
+def test_its_dataset_calibrates_as_the_run_did_and_validate_refuses_it(cone_run, tmp_path, capsys):
+    base, metrics, _ = cone_run
+    m, data = metrics["calibration"]["cone_tip"], base / "d"
     r = uscal_here(capsys, "calibrate", str(data), "--out", str(tmp_path / "cal"))
     assert r.returncode == 0, r.stderr
     again = json.loads((tmp_path / "cal" / "metrics.json").read_text())["calibration"]
