@@ -213,7 +213,8 @@ def _check_plan(s: Scenario) -> None:
             x, y, _ = pose.target_in_image(depth)
             if abs(x) + r > half_width or y - r < 0 or y + r > image_depth:
                 raise ScenarioError(
-                    f"sweep {k} of {name} puts the {'sphere' if radius else 'target'} at ({-pose.lateral_mm:g}, "
+                    f"sweep {k} of {name} puts the {'sphere' if radius else 'target'} at "
+                    f"({-pose.lateral_mm:g}, "
                     f"{y * 1e3:g}) mm, not wholly inside the {s.imaging.width_mm:g} × "
                     f"{s.imaging.depth_mm:g} mm image",
                     source=s.source,

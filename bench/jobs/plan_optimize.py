@@ -428,7 +428,6 @@ def plan_about(comparison: PlanComparison, scenario: Scenario) -> dict:
         "scenario": scenario.source,
         "criterion": comparison.criterion,
         "markers": len(comparison.spheres),
-        "targets": list(comparison.spheres),
         "calibration": comparison.calibration,
         **noise_about(scenario, len(comparison.spheres))[2],
         "pose_noise_mm": scenario.planning.pose_noise_mm,
