@@ -36,6 +36,12 @@ __all__ = ["URRobot", "check_reachable", "describe_tcp"]
 Array = NDArray[np.float64]
 _RTDE_PORT = 30004
 _SAFETY_WAIT_S = 0.5
+#: After a move the arm is within a few hundredths of a millimetre of the commanded pose;
+#: a reading farther than this is read again (see ``URRobot._settled``), for up to
+#: this long.
+_FRESH_TOLERANCE_M = 0.5e-3
+_FRESH_TOLERANCE_RAD = 1e-3
+_FRESH_TIMEOUT_S = 0.5
 # A TCP offset below 1 µm and 1 µrad is zero (the controller stores what was typed).
 _TCP_ZERO_TOL = 1e-6
 
@@ -177,7 +183,7 @@ class URRobot:
         )
         self._after_move(ok, pose_label)
         self._last = T
-        return self._settled()
+        return self._settled(T_base_ee=T)
 
     def move_joints(self, q: ArrayLike, pose_label: str = "") -> RobotReading:
         """Joint move (to a taught configuration, radians); returns the settled reading."""
@@ -188,7 +194,7 @@ class URRobot:
         travel = float(np.max(np.abs(np.asarray(q) - self.read().q)))
         ok = self._call("control", "moveJ", q, w, a, what=pose_label, duration_s=travel / w + w / a)
         self._after_move(ok, pose_label)
-        reading = self._settled()
+        reading = self._settled(q=np.asarray(q))
         self._last = reading.T_base_ee
         return reading
 
@@ -279,7 +285,23 @@ class URRobot:
         except RobotConnectionError:
             return False
 
-    def _settled(self) -> RobotReading:
+    def _settled(
+        self, T_base_ee: NDArray[np.float64] | None = None, q: NDArray[np.float64] | None = None
+    ) -> RobotReading:
+        """The reading after a move (its settle time waited): read again while it is still
+        off the commanded pose ``T_base_ee`` or joints ``q`` by more than the arm ever is
+        after a completed move, for up to ``_FRESH_TIMEOUT_S`` — such a reading is the
+        receive stream's last packet from before the move ended (a loaded host), not the
+        arm. A pose the arm really missed is returned as read once the time is up."""
         if self.cfg.settle_s:
             time.sleep(self.cfg.settle_s)
-        return self.read()
+        deadline = time.monotonic() + _FRESH_TIMEOUT_S
+        while True:
+            reading = self.read()
+            near = (
+                T_base_ee is None
+                or se3.translation_distance(reading.T_base_ee, T_base_ee) < _FRESH_TOLERANCE_M
+            ) and (q is None or float(np.max(np.abs(reading.q - q))) < _FRESH_TOLERANCE_RAD)
+            if near or time.monotonic() > deadline:
+                return reading
+            time.sleep(0.005)
