@@ -27,8 +27,10 @@ between views), and the covariance adds:
   bias of the localized centres along the beam common to every sweep (the cap's echo is
   a pulse: up to half the axial resolution), the
   kinematic model's residual after a DH refinement (1 σ per axis of each view's
-  reconstructed point, from the touch fit's residual), and the uncertainty of the axial
-  scale (speed of sound).
+  reconstructed point, from the touch fit's residual; shared by a view's sweeps and
+  independent between views, so the jackknife measures it: declared, it is that
+  measurement's floor — the statistical covariance is at least the first order plus it —
+  not a term added on top), and the uncertainty of the axial scale (speed of sound).
 
 The bounds are the 95th percentiles, over draws from that covariance, of the three
 error measures the twin scores: rotation angle of ``T_est⁻¹ T``, translation distance,
@@ -452,7 +454,10 @@ def bound95(
         cov_sys += c
     if inputs.kinematic_sigma_m > 0:
         # Shared by the sweeps of one view of one sphere (a smooth function of the
-        # configuration), independent between views and spheres.
+        # configuration), independent between views and spheres: an error the jackknife
+        # over views measures from the data. Declared, it is the floor of that
+        # measurement (first order plus the kinematic residual, where few views leave
+        # the jackknife short), not an addition to it, which would count it twice.
         keys = sorted({(o.target, gk) for o, gk in zip(obs, groups, strict=True)})
         D = np.empty((len(r0), 3 * len(keys)))
         for j, key in enumerate(keys):
@@ -463,7 +468,8 @@ def bound95(
                 D[:, 3 * j + a] = (f(x0, e_pt=e) - r0) / h
         c = propagate(D, inputs.kinematic_sigma_m)
         terms["kinematics"] = _rss(c, A_rt)
-        cov_sys += c
+        floor = cov_fo * t_scale + c if np.all(np.isfinite(cov_fo)) else c
+        cov_stat = _dominating(cov_stat, floor)
     if inputs.axial_scale_sigma > 0:
         D = ((f(x0, e_scale=h) - r0) / h)[:, None]
         c = propagate(D, inputs.axial_scale_sigma)
