@@ -73,7 +73,7 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True, eq=False)
 class PlanChoice:
-    """A plan (its sweeps about each sphere, in acquisition order) and what it
+    """A plan (its sweeps about each target, in acquisition order) and what it
     predicts; ``candidates`` how many sweeps it was chosen from, and why the others
     were left out."""
 

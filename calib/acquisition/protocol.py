@@ -128,7 +128,8 @@ class ProtocolConfig:
         default=None,
         metadata={
             "doc": "A plan file (`uscal plan --optimize --out PLAN.yaml`): the sweeps about "
-            "each sphere, relative to its taught pose, instead of the paper's 9 orientations "
+            "each target (sphere, wire, N-wire, cone tip), relative to its taught pose, instead "
+            "of the paper's 9 orientations "
             "× 5 positions (rotation_deg and translation_mm then do not apply); a relative "
             "path is read from the scenario file's folder."
         },
