@@ -341,9 +341,7 @@ def _wire_observations(scenario, twin, coarse, targets, found) -> Candidates:
         # shift): the constraint moves with it, so the residual by minus as much.
         rel = (point - s.centre) * 1e3  # mm
         D = np.zeros((n, m, 3, 6))
-        D[..., 0, 1], D[..., 0, 2] = rel[..., 2], -rel[..., 1]
-        D[..., 1, 0], D[..., 1, 2] = -rel[..., 2], rel[..., 0]
-        D[..., 2, 0], D[..., 2, 1] = rel[..., 1], -rel[..., 0]
+        D[..., :3] = -se3.hat(rel)  # ω × rel
         D[..., 3:] = np.eye(3)
         J_phantom = -np.einsum("nmri,nmij->nmrj", W, D).reshape(n, m * r, 6)
         # The pixel scales: a dot's lateral (axial) coordinate stretched.

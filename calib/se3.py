@@ -23,6 +23,7 @@ __all__ = [
     "check",
     "euler_from_matrix",
     "exp",
+    "hat",
     "identity",
     "invert",
     "kabsch",
@@ -209,8 +210,9 @@ def pose6_from_matrix(T: ArrayLike) -> Array:
     return np.concatenate([T[..., :3, 3], rotvec_from_matrix(T[..., :3, :3])], axis=-1)
 
 
-def _hat(w: Array) -> Array:
+def hat(w: ArrayLike) -> Array:
     """Skew-symmetric matrices (..., 3, 3) with ``hat(w) @ v == cross(w, v)``."""
+    w = np.asarray(w, dtype=float)
     W = np.zeros((*w.shape[:-1], 3, 3))
     W[..., 0, 1], W[..., 0, 2] = -w[..., 2], w[..., 1]
     W[..., 1, 0], W[..., 1, 2] = w[..., 2], -w[..., 0]
@@ -255,7 +257,7 @@ def exp(xi: ArrayLike) -> Array:
     xi = np.asarray(xi, dtype=float)
     rho, omega = xi[..., :3], xi[..., 3:]
     theta = np.linalg.norm(omega, axis=-1)
-    W = _hat(omega)
+    W = hat(omega)
     b, c = _left_jacobian_coeffs(theta)
     V = np.eye(3) + b[..., None, None] * W + c[..., None, None] * (W @ W)
     return make(matrix_from_rotvec(omega), np.einsum("...ij,...j->...i", V, rho))
@@ -272,7 +274,7 @@ def log(T: ArrayLike) -> Array:
     T = np.asarray(T, dtype=float)
     omega = rotvec_from_matrix(T[..., :3, :3])
     theta = np.linalg.norm(omega, axis=-1)
-    W = _hat(omega)
+    W = hat(omega)
     small = theta < _SMALL_ANGLE
     th = np.where(small, 1.0, theta)
     # V^-1 = I - W/2 + d W², d = (1 - θ sinθ / (2 (1 - cosθ))) / θ²

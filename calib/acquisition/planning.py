@@ -419,7 +419,7 @@ class Candidates:
         D = np.zeros((len(T), 3, 6 + free))
         for j, name in enumerate(names):
             rows = idx == name
-            D[rows, :, :3] = -_skew(np.asarray(layout[name], dtype=float)) * _MM
+            D[rows, :, :3] = -se3.hat(np.asarray(layout[name], dtype=float)) * _MM
             D[rows, :, 3:6] = np.eye(3)
             if free:
                 D[rows, :, 6 + 3 * j : 9 + 3 * j] = np.eye(3)
@@ -460,10 +460,6 @@ class Candidates:
         w, V = np.linalg.eigh(0.5 * (H + np.swapaxes(H, 1, 2)))
         L = np.sqrt(np.clip(w, 0.0, None))[:, :, None] * np.swapaxes(V, 1, 2)  # LᵀL = H
         return cls(L[:, :, :6], L[:, :, 6:], np.asarray(target, dtype=int))
-
-
-def _skew(v: Array) -> Array:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def image_metric(T_ee_us: ArrayLike, points_us: ArrayLike) -> Array:
