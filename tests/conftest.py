@@ -10,6 +10,7 @@ import pytest
 
 from calib.dh import NOMINAL_TABLES, DHDeltas, DHTable
 
+from .loopback import Controller
 from .rrd import Recording
 from .test_cli import uscal
 
@@ -45,3 +46,12 @@ def quick_run(tmp_path_factory):
     assert r.returncode == 0, r.stderr
     (base / "stdout.txt").write_text(r.stdout, encoding="utf-8")
     return out, rrd, json.loads((out / "metrics.json").read_text()), Recording(rrd)
+
+
+@pytest.fixture
+def controller(tmp_path, request):
+    """A loopback controller (tests/loopback.py) on ``request.param``: (address, *flags)."""
+    host, *extra = request.param
+    c = Controller(tmp_path, host, *extra)
+    yield c
+    c.stop()

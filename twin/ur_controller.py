@@ -305,37 +305,43 @@ class LoopbackController:
         with self._lock:
             self._q, self._pose = q, pose
 
-    def _value(self, name: str) -> Any:
-        """The current value of an output variable."""
+    def _getter(self, name: str) -> Callable[[], Any]:
+        """How to read an output variable's current value. Resolved once per output
+        recipe, not per packet: two sessions stream dozens of variables at 500 Hz, and
+        the name lookups per packet were most of the controller's CPU."""
         if name in ("actual_q", "target_q", "actual_target_q"):
-            return self._q
+            return lambda: self._q
         if name in ("actual_TCP_pose", "target_TCP_pose"):
-            return self._pose
+            return lambda: self._pose
         if name == "timestamp":
-            return time.monotonic() - self._t0
+            return lambda: time.monotonic() - self._t0
         if name == "runtime_state":
-            return self._runtime
+            return lambda: self._runtime
         if name == "robot_status_bits":
-            running = _ROBOT_PROGRAM_RUNNING if self._runtime == _RUNTIME_PLAYING else 0
-            return _ROBOT_POWER_ON | running
+            return lambda: (
+                _ROBOT_POWER_ON
+                | (_ROBOT_PROGRAM_RUNNING if self._runtime == _RUNTIME_PLAYING else 0)
+            )
         if name == "safety_status_bits":
-            return self._safety
+            return lambda: self._safety
         if name == "safety_mode":
-            return 3 if self._safety & _SAFETY_PROTECTIVE_STOP else 1
-        if name == "robot_mode":
-            return 7  # RUNNING
-        if name == "joint_mode":
-            return (253,) * 6  # RUNNING
+            return lambda: 3 if self._safety & _SAFETY_PROTECTIVE_STOP else 1
         if name.startswith("output_int_register_"):
-            return self._out_int[int(name.rsplit("_", 1)[1])]
+            i = int(name.rsplit("_", 1)[1])
+            return lambda: self._out_int[i]
         if name.startswith("output_double_register_"):
-            return self._out_double[int(name.rsplit("_", 1)[1])]
-        if name == "speed_scaling" or name == "target_speed_fraction":
-            return 1.0
-        kind = _rtde_type(name)
-        if kind.startswith("VECTOR"):
-            return (0,) * int(_FORMATS[kind][0])
-        return 0
+            i = int(name.rsplit("_", 1)[1])
+            return lambda: self._out_double[i]
+        if name == "robot_mode":
+            constant: Any = 7  # RUNNING
+        elif name == "joint_mode":
+            constant = (253,) * 6  # RUNNING
+        elif name == "speed_scaling" or name == "target_speed_fraction":
+            constant = 1.0
+        else:
+            kind = _rtde_type(name)
+            constant = (0,) * int(_FORMATS[kind][0]) if kind.startswith("VECTOR") else 0
+        return lambda: constant
 
     def _register(self, kind: str, i: int, default: Any = 0) -> Any:
         """An input register as the client last wrote it (either register range)."""
@@ -540,6 +546,7 @@ class _RtdeSession:
         self.send_lock = threading.Lock()
         self.outputs: list[str] = []
         self.output_fmt = ""
+        self.getters: list[Callable[[], Any]] = []
         self.period = 1.0 / _MAX_STREAM_HZ
         self.inputs: dict[int, tuple[list[str], str]] = {}
         self.streaming = threading.Event()
@@ -581,6 +588,7 @@ class _RtdeSession:
             self.outputs = [n for n in payload[8:].decode().split(",") if n]
             types = [_rtde_type(n) for n in self.outputs]
             self.output_fmt = ">B" + "".join(_FORMATS[t] for t in types)
+            self.getters = [self.ctl._getter(n) for n in self.outputs]
             self.period = 1.0 / min(max(hz, 1.0), _MAX_STREAM_HZ)
             self.send(_O, struct.pack(">B", 1) + ",".join(types).encode())
         elif kind == _I:
@@ -614,13 +622,13 @@ class _RtdeSession:
 
     def stream(self) -> None:
         while not self.closed.is_set() and not self.ctl._stop.is_set():
-            if not self.streaming.wait(0.05) or not self.outputs:
+            if not self.streaming.wait(0.05) or not self.getters:
                 continue
             t = time.monotonic()
             values: list[Any] = []
             with self.ctl._lock:
-                for name in self.outputs:
-                    v = self.ctl._value(name)
+                for get in self.getters:
+                    v = get()
                     values.extend(v if isinstance(v, tuple) else (v,))
             try:
                 self.send(_U, struct.pack(self.output_fmt, 1, *values))
