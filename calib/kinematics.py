@@ -46,6 +46,7 @@ __all__ = [
     "fit_reference",
     "identifiability",
     "kinematic_gauge",
+    "kinematic_modes",
     "refine_dh",
     "tip_positions",
     "with_kinematics",
@@ -175,6 +176,46 @@ def _set_jacobian(table: DHTable, ts: _TouchSet, x: Array, T0: Array) -> tuple[A
 # ----------------------------------------------------------------------------- step 1
 
 
+def _z_covariance(J: Array, r: Array, n_touch: int) -> Array:
+    """:attr:`DHRefinement.covariance` from the fit's Jacobian ``J`` and residuals ``r``
+    at the solution (the first ``n_touch`` rows the touches', the last 24 the
+    regulariser's)."""
+    J = np.asarray(J, dtype=float)
+    JtJ_inv = np.linalg.pinv(J.T @ J)
+    Jt = J[:n_touch]
+    leverage = float(np.einsum("ij,jk,ik->", Jt, JtJ_inv, Jt))
+    rt = np.asarray(r[:n_touch], dtype=float)
+    s2 = float(rt @ rt) / max(n_touch - leverage, 1.0)
+    return (s2 * JtJ_inv)[:24, :24]
+
+
+def kinematic_modes(
+    table: DHTable, covariance: ArrayLike, sweeps: Sequence[Sweep]
+) -> dict[tuple[str, int], Array]:
+    """How an estimated DH model's own error moves each sweep's reference flange pose:
+    for each sweep (by ``(target, pose_id)``) the (k, 4, 4) derivatives of
+    ``T_base_ee`` at its reference frame's joint angles along ``k`` independent
+    1 σ directions of ``covariance`` (of z, :attr:`DHRefinement.covariance`). One draw
+    of the model's error moves every sweep at once: an error the sweeps share, not
+    noise between them (:class:`calib.calibration.uncertainty.UncertaintyInputs`)."""
+    cov = np.asarray(covariance, dtype=float)
+    w, V = np.linalg.eigh((cov + cov.T) / 2)
+    keep = w > 1e-12 * max(float(w.max()), 1e-300)
+    L = V[:, keep] * np.sqrt(w[keep])  # (24, k): cov = L Lᵀ
+    q = np.array([s.q[s.reference_index] for s in sweeps], dtype=float)
+    base = table.as_array()
+    h = 1e-3  # of z: 0.001° / 0.001 mm, central differences
+    dT = np.empty((24, len(q), 4, 4))
+    for j in range(24):
+        step = np.zeros(24)
+        step[j] = h
+        hi = DHTable.from_array(base + step.reshape(6, 4) * _Z_TO_SI)
+        lo = DHTable.from_array(base - step.reshape(6, 4) * _Z_TO_SI)
+        dT[j] = (forward_kinematics(hi, q) - forward_kinematics(lo, q)) / (2 * h)
+    modes = np.einsum("jk,jnab->nkab", L, dT)
+    return {(s.target, int(s.pose_id)): modes[i] for i, s in enumerate(sweeps)}
+
+
 @dataclass(frozen=True, eq=False)
 class DHRefinement:
     """Result of Step 1.
@@ -195,6 +236,14 @@ class DHRefinement:
         Final loss of each deterministic start.
     residuals_mm : (n,) float
         Distance of each training touch from its model vertex.
+    covariance : (24, 24) float or None
+        Of z (units of 1° and 1 mm, as ``z``): the fit's first-order covariance,
+        ``s² (JᵀJ)⁻¹`` with the regulariser's rows in ``J`` (its prior: z ~ N(0, s²/λ))
+        and ``s²`` the touch residuals' variance per coordinate over their degrees of
+        freedom (the touch rows' leverage subtracted), marginal over the tip offsets and
+        phantom poses. Directions the touches cannot see keep the prior's spread;
+        :func:`kinematic_modes` carries it to the probe's poses, where a rigid change of
+        the base and flange frames is no error of a mount measured through the model.
     """
 
     z: Array
@@ -205,6 +254,7 @@ class DHRefinement:
     start_losses: Array
     residuals_mm: Array
     regularizer: float = 0.0
+    covariance: Array | None = None
     info: dict[str, object] = field(default_factory=dict)
 
     @property
@@ -334,6 +384,7 @@ def refine_dh(
         start_losses=np.array(losses),
         residuals_mm=np.concatenate(dists),
         regularizer=regularizer,
+        covariance=_z_covariance(sol.jac, sol.fun, len(sol.fun) - 24),
         info={"n_touches": int(sum(len(ts.q) for ts in sets)), "n_datasets": n_sets},
     )
 

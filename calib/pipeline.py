@@ -47,7 +47,14 @@ from .dh import DHTable
 from .errors import DatasetError
 from .evaluation.cross_validation import EvaluationConfig, FoldResult, evaluate_fold, folds
 from .files.dataset import AcquisitionInfo
-from .kinematics import DHRefinement, TouchReference, fit_reference, refine_dh, with_kinematics
+from .kinematics import (
+    DHRefinement,
+    TouchReference,
+    fit_reference,
+    kinematic_modes,
+    refine_dh,
+    with_kinematics,
+)
 from .localize import LocalizerConfig, localize_sphere
 from .progress import report
 from .records import Dataset, Sweep, Touch
@@ -65,6 +72,7 @@ __all__ = [
     "calibrate_markers",
     "declared_uncertainty",
     "fold_summary",
+    "refinement_modes",
     "residual_rms_mm",
     "run_folds",
     "touch_kinematics",
@@ -339,6 +347,7 @@ def declared_uncertainty(
     kinematic_residual_rms_mm: float = 0.0,
     radius_tolerance_mm: float = 0.0,
     axial_fwhm_mm: float = 0.0,
+    kinematic_modes: Mapping[tuple[str, int], Array] | None = None,
 ) -> UncertaintyInputs:
     """The systematic terms the pipeline knows of (:class:`calib.calibration.uncertainty.
     UncertaintyInputs`): the phantom's print specification (1 σ per axis of a sphere
@@ -348,7 +357,8 @@ def declared_uncertainty(
     one — the localizer's bias along the beam (uniform within ± half the probe's axial
     resolution, as 1 σ: FWHM / (2√3)) and the kinematic model's
     residual after a DH refinement (RMS distance of the touches from the model; per axis
-    it is that over √3)."""
+    it is that over √3; reported, and used only where the refinement's own error at the
+    sweeps' poses, ``kinematic_modes``, is not known)."""
 
     def ratio_at(t_c: float) -> float:
         return speed_ratio(
@@ -366,6 +376,7 @@ def declared_uncertainty(
         axial_bias_m=axial_fwhm_mm * 1e-3 / (2.0 * np.sqrt(3.0)),
         kinematic_sigma_m=kinematic_residual_rms_mm * 1e-3 / np.sqrt(3.0),
         axial_scale_sigma=scale_sigma,
+        kinematic_modes=kinematic_modes,
     )
 
 
@@ -483,6 +494,7 @@ def calibrate_dataset(
         kinematic_residual_rms_mm=_kinematic_rms_mm(refinement),
         radius_tolerance_mm=settings.radius_tolerance_mm,
         axial_fwhm_mm=settings.axial_fwhm_mm,
+        kinematic_modes=refinement_modes(refinement, dataset.sweeps),
     )
     sweep0 = dataset.sweeps[0]
     H, W = sweep0.images.shape[1:]
@@ -520,6 +532,16 @@ def calibrate_dataset(
         folds=fold_run,
         seconds_dh=seconds_dh,
     )
+
+
+def refinement_modes(
+    refinement: DHRefinement | None, sweeps: Sequence[Sweep]
+) -> dict[tuple[str, int], Array] | None:
+    """:func:`calib.kinematics.kinematic_modes` of a DH refinement at the sweeps' poses
+    (None without one, or without its covariance)."""
+    if refinement is None or refinement.covariance is None:
+        return None
+    return kinematic_modes(refinement.table, refinement.covariance, sweeps)
 
 
 def _kinematic_rms_mm(refinement: DHRefinement | None) -> float:

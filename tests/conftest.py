@@ -10,7 +10,6 @@ import pytest
 
 from calib.dh import NOMINAL_TABLES, DHDeltas, DHTable
 
-from .loopback import Controller
 from .rrd import Recording
 from .test_cli import uscal
 
@@ -51,6 +50,8 @@ def quick_run(tmp_path_factory):
 @pytest.fixture
 def controller(tmp_path, request):
     """A loopback controller (tests/loopback.py) on ``request.param``: (address, *flags)."""
+    from .loopback import Controller  # the rig's module takes QUICK from here
+
     host, *extra = request.param
     c = Controller(tmp_path, host, *extra)
     yield c

@@ -18,9 +18,8 @@ import numpy as np
 
 from calib import se3
 
+from .conftest import QUICK
 from .test_cli import uscal
-
-QUICK = Path(__file__).resolve().parents[1] / "scenarios" / "quick.yaml"
 
 # One sphere, the whole 45-sweep protocol: the claim. The fault tests use short sweeps.
 ONE_SPHERE = ["--set", "protocol.spheres=[1]"]

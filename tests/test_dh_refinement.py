@@ -13,6 +13,8 @@ from bench.config.scenario import load_scenario
 from bench.sessions import dataset_rngs, dataset_scenario
 from calib import se3
 from calib.acquisition.protocol import touch_plan
+from calib.calibration.markers import Observation
+from calib.calibration.uncertainty import _gauge_free_displacements
 from calib.dh import NOMINAL_TABLES, forward_kinematics
 from calib.kinematics import (
     _set_jacobian,
@@ -22,10 +24,11 @@ from calib.kinematics import (
     fit_reference,
     identifiability,
     kinematic_gauge,
+    kinematic_modes,
     refine_dh,
     tip_positions,
 )
-from calib.records import Touch
+from calib.records import Sweep, Touch
 
 MM = 1e-3
 TIP_CAD = np.array([0.0, 0.0, 0.165])
@@ -195,3 +198,35 @@ def test_kinematic_gauge_recovers_base_and_flange_motions(rng):
     # A general DH error is not a gauge motion: something remains.
     perturbed = table.with_deltas(deltas_from_z(rng.normal(size=24) * 0.5))
     assert kinematic_gauge(perturbed, table, q, pts).rms_mm > 0.05
+
+
+@pytest.mark.slow
+def test_the_refinements_covariance_predicts_its_error_where_the_probe_works():
+    """The refined model's own error, carried from its covariance to configurations it
+    was not fitted on (another dataset's touches), is about what the model is really
+    off there beyond a rigid change of base and flange — and well below the touch
+    residual, which carries the stylus's seating noise the probe does not share."""
+    actual, predicted, residual = [], [], []
+    for seed in (1, 2, 3):
+        _, sets, twins, cad = touches_of(
+            [*NOISE_FREE, "tools.contact_noise_mm=0.2", f"seed={seed}"]
+        )
+        truth = twins[0].truth
+        ref = refine_dh(NOMINAL_TABLES["ur3"], sets[1:], cad, TIP_CAD, initialisations=3)
+        q = np.array([t.q for t in sets[0]])
+        tip = truth.p_ee_tip
+        tool = tip + np.array([[0, 0, 0], [0.02, 0, 0], [0, 0.02, 0], [0, 0, -0.03]])
+        actual.append(kinematic_gauge(ref.table, truth.dh_table, q, tool).rms_mm)
+        T = forward_kinematics(ref.table, q)
+        sweeps = [
+            Sweep("a", i, np.zeros((1, 1, 1), np.uint8), (1e-4, 1e-4), q[i : i + 1], T[i : i + 1])
+            for i in range(len(q))
+        ]
+        modes = kinematic_modes(ref.table, ref.covariance, sweeps)
+        obs = [Observation("a", i, tip, T[i]) for i in range(len(q))]
+        E = _gauge_free_displacements(obs, modes, np.eye(4), tool)
+        predicted.append(float(np.sqrt(np.mean(np.sum(E**2, axis=(1, 2))))) / MM)
+        residual.append(float(np.sqrt(np.mean(ref.residuals_mm**2))))
+    ratio = np.sqrt(np.mean(np.square(actual)) / np.mean(np.square(predicted)))
+    assert 0.6 < ratio < 1.6, (actual, predicted)
+    assert max(predicted) < 0.6 * min(residual), (predicted, residual)

@@ -226,3 +226,38 @@ def test_a_declared_kinematic_residual_is_the_floor_of_what_the_views_show(seed)
     assert measured <= both <= 1.25 * max(measured, alone)
     assert both < 0.92 * np.hypot(measured, alone)
     assert alone > 10 * quiet
+
+
+def test_a_kinematic_model_error_counts_only_beyond_a_rigid_change_of_base_and_flange():
+    """A DH model's error at the sweeps' poses (kinematic modes) is shared by every
+    sweep: it goes into the bound as a systematic term. The part of it a rigid change of
+    the base frame and of the flange frame explains is the model's gauge — the mount is
+    measured through the model — and costs nothing; an error that depends on the pose
+    does, in proportion to its size."""
+    obs, cal = single(0.05)
+    T = np.array([o.T_base_ee for o in obs])
+    xi_b = np.array([0.0, 0.0, 0.01, 1e-3, -2e-3, 0.5e-3])  # (ω, v): rad, m
+    xi_g = np.array([0.02, -0.01, 0.0, 0.0, 1e-3, 2e-3])
+
+    def twist(xi):
+        return se3.make(se3.hat(xi[:3]), xi[3:]) - np.diag([0.0, 0.0, 0.0, 1.0])
+
+    gauge = twist(xi_b)[None] @ T + T @ twist(xi_g)[None]  # (n, 4, 4)
+    # A pose-dependent error: the flange tilted in proportion to its own heading.
+    posed = np.array([twist(np.r_[2e-3 * t[:3, 2], 0.0, 0.0, 0.0]) @ t for t in T])
+    posed[:, :3, 3] += 1e-3 * T[:, :3, 0]
+
+    def term(modes):
+        keyed = {(o.target, o.pose_id): modes[i] for i, o in enumerate(obs)}
+        assert len(keyed) == len(obs)
+        inputs = UncertaintyInputs(kinematic_modes=keyed)
+        return bound95(obs, cal, IMAGE, inputs=inputs).terms["kinematics"]
+
+    assert term(gauge[:, None])["translation_mm"] < 1e-6
+    assert term(gauge[:, None])["rotation_deg"] < 1e-6
+    small, large = term(posed[:, None]), term(2 * posed[:, None])
+    assert small["translation_mm"] > 0.01
+    assert large["translation_mm"] == pytest.approx(2 * small["translation_mm"], rel=1e-3)
+    # The gauge added to it changes nothing.
+    both = term(np.stack([posed + gauge], axis=1))
+    assert both["translation_mm"] == pytest.approx(small["translation_mm"], rel=1e-3)

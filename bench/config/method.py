@@ -93,10 +93,13 @@ def requirements(scenario: Scenario) -> Requirements:
 
 
 def scenario_uncertainty(
-    scenario: Scenario, kinematic_residual_rms_mm: float = 0.0
+    scenario: Scenario,
+    kinematic_residual_rms_mm: float = 0.0,
+    kinematic_modes: Mapping[tuple[str, int], Array] | None = None,
 ) -> UncertaintyInputs:
     """:func:`calib.pipeline.declared_uncertainty` of a twin's scenario: its phantom's
-    print tolerance as the print specification, its medium and speed-of-sound setting."""
+    print tolerance as the print specification, its medium and speed-of-sound setting,
+    and a DH refinement's residual and error at the sweeps' poses where one was made."""
     return declared_uncertainty(
         print_tolerance_mm=scenario.phantom.tolerance_position_mm,
         sound_speed_correction=scenario.imaging.sound_speed_correction,
@@ -106,4 +109,5 @@ def scenario_uncertainty(
         kinematic_residual_rms_mm=kinematic_residual_rms_mm,
         radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
         axial_fwhm_mm=axial_fwhm_m(scenario.imaging) * 1e3,
+        kinematic_modes=kinematic_modes,
     )

@@ -211,6 +211,7 @@ def _run_evaluation(
             Path(save_dataset) / name if save_dataset is not None else None,
             residual_rms_mm(refinements[name].residuals_mm),
             scratch,
+            refinements[name].covariance,
         )
         for i, (name, sc) in enumerate(zip(names, scans, strict=True))
     ]

@@ -21,6 +21,7 @@ from calib.dh import DHTable
 from calib.kinematics import (
     TouchReference,
     kinematic_gauge,
+    kinematic_modes,
     with_kinematics,
 )
 from calib.pipeline import run_folds
@@ -69,6 +70,7 @@ class DatasetTask:
     save_dir: Path | None = None  # write the acquisition (with its touches) here
     kinematic_rms_mm: float = 0.0  # the DH refinement's residual (RMS touch distance)
     scratch: Path | None = None  # the run's scratch directory: the frames go there
+    kinematic_covariance: Array | None = None  # the DH refinement's (DHRefinement.covariance)
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,7 +184,12 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
     # Each fold's 95 % error bounds (no truth): its own data, the print specification,
     # the medium and the frozen DH model's residual.
     t0 = time.perf_counter()
-    inputs = scenario_uncertainty(scenario, task.kinematic_rms_mm)
+    modes = (
+        None
+        if task.kinematic_covariance is None
+        else kinematic_modes(task.table, task.kinematic_covariance, everything)
+    )
+    inputs = scenario_uncertainty(scenario, task.kinematic_rms_mm, modes)
     grid = image_points(scenario)
     uncertainty = {}
     for r in results:

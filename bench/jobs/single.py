@@ -19,7 +19,12 @@ from calib.calibration.uncertainty import UncertaintyInputs, alternation_bound
 from calib.errors import UscalError
 from calib.kinematics import DHRefinement, with_kinematics
 from calib.localize import localize_sphere
-from calib.pipeline import calibrate_markers, residual_rms_mm, touch_kinematics
+from calib.pipeline import (
+    calibrate_markers,
+    refinement_modes,
+    residual_rms_mm,
+    touch_kinematics,
+)
 from twin.imager import acoustic_scene
 
 from ..acquire_sim import (
@@ -268,7 +273,9 @@ def run(
     # refinement's touch residual where the arm's model was refined (none is known for
     # the controller's own model).
     kinematic_rms = 0.0 if refinement is None else residual_rms_mm(refinement.residuals_mm)
-    inputs = scenario_uncertainty(scenario, kinematic_rms)
+    inputs = scenario_uncertainty(
+        scenario, kinematic_rms, refinement_modes(refinement, acq.dataset.sweeps)
+    )
     X_equiv = equivalent_mount(scenario, acq, truth, refinement and refinement.table)
     extra = (cad, inputs, X_equiv)
     hist = single.history + (three.history if three else [])

@@ -53,6 +53,16 @@ def _bound_doc(cal: CalibrationSummary) -> dict[str, Any]:
     assert b is not None and b.image_mm is not None
     u = cal.uncertainty
     declared = u.declared
+    kin = u.one_sigma_rss.get("kinematics")
+    kinematics = (
+        f"kinematic residual {declared.kinematic_sigma_mm:.3g} mm"
+        if kin is None or declared.kinematic_sigma_mm == 0
+        # The refined arm model's own error at the sweeps' poses (its touch fit's
+        # covariance), 1 σ rss on T_ee_us; its touch residual, per axis, beside it.
+        else f"the refined arm model's own error {kin.translation_mm:.3g} mm / "
+        f"{kin.rotation_deg:.3g}° on T_ee_us (1 σ rss; its touch residual "
+        f"{declared.kinematic_sigma_mm:.3g} mm)"
+    )
     return {
         "rotation_deg": round(b.rotation_deg, 5),
         "translation_mm": round(b.translation_mm, 5),
@@ -65,7 +75,7 @@ def _bound_doc(cal: CalibrationSummary) -> dict[str, Any]:
             f"systematic terms (print tolerance {declared.print_tolerance_mm:g} mm, "
             f"radius tolerance {declared.radius_tolerance_mm:g} mm, "
             f"axial bias {declared.axial_bias_mm:.3g} mm, "
-            f"kinematic residual {declared.kinematic_sigma_mm:.3g} mm, axial scale "
+            f"{kinematics}, axial scale "
             f"{declared.axial_scale_sigma:.2g}; 1 σ per axis)."
         ),
     }

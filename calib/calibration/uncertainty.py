@@ -26,11 +26,15 @@ between views), and the covariance adds:
   sphere's centres move along their beams alike: the localizer fits the CAD radius), a
   bias of the localized centres along the beam common to every sweep (the cap's echo is
   a pulse: up to half the axial resolution), the
-  kinematic model's residual after a DH refinement (1 σ per axis of each view's
-  reconstructed point, from the touch fit's residual; shared by a view's sweeps and
-  independent between views, so the jackknife measures it: declared, it is that
-  measurement's floor — the statistical covariance is at least the first order plus it —
-  not a term added on top), and the uncertainty of the axial scale (speed of sound).
+  kinematic model's error after a DH refinement, and the uncertainty of the axial scale
+  (speed of sound). The kinematic model's error is the refinement's own covariance
+  carried to each sweep's pose (:func:`calib.kinematics.kinematic_modes`), less what a
+  rigid change of base and flange frames absorbs; one draw of it moves every sweep, and
+  the part that differs between views is what the jackknife measures too, so it is not
+  added on top: the statistical covariance is at least the first order plus it. (Where
+  only a residual size is known, 1 σ per axis of each view's point, independent between
+  views, it is that floor alike.) The touch fit's residual itself is not that error: it
+  carries the stylus's seating on each vertex, which the probe's views do not share.
 
 The bounds are the 95th percentiles, over draws from that covariance, of the three
 error measures the twin scores: rotation angle of ``T_est⁻¹ T``, translation distance,
@@ -92,8 +96,18 @@ class UncertaintyInputs:
         half the axial resolution either way.
     kinematic_sigma_m : float
         1 σ per axis of the flange position error left by the kinematic model at each
-        view (e.g. the RMS residual of a DH refinement from touches, per axis); 0 when
-        the controller's own model is trusted.
+        view, independent between views, when nothing better is known of it (the RMS
+        residual of touches, per axis, is an upper estimate: it carries the stylus's
+        seating noise, which the probe's views do not share); 0 when the controller's
+        own model is trusted. Not used when ``kinematic_modes`` is given.
+    kinematic_modes : mapping or None
+        The kinematic model's own estimation error at each sweep's reference flange
+        pose, ``(target, pose_id)`` → (k, 4, 4) derivatives of ``T_base_ee`` along k
+        independent 1 σ directions (:func:`calib.kinematics.kinematic_modes` of a DH
+        refinement's covariance). Shared by every sweep through the model's
+        parameters, so a systematic term; what a rigid change of the base and flange
+        frames would absorb is taken out first (the mount is measured through the
+        model: that part is the model's gauge, not an error of the mount).
     axial_scale_sigma : float
         1 σ of the relative axial (depth) scale of the localized centres (speed of sound:
         the thermometer's uncertainty when corrected, the whole known difference when not).
@@ -104,6 +118,7 @@ class UncertaintyInputs:
     axial_bias_m: float = 0.0
     kinematic_sigma_m: float = 0.0
     axial_scale_sigma: float = 0.0
+    kinematic_modes: Mapping[tuple[str, int], Array] | None = None
 
 
 @dataclass(frozen=True)
@@ -291,6 +306,50 @@ def _layout_mismatch(obs, targets, J: Array, D_cad: Array, r: Array) -> float:
     return float(np.sqrt(max(excess, 0.0) / max(float(np.sum(P_cad[last] ** 2)), 1e-30)))
 
 
+def _gauge_free_displacements(
+    obs: Sequence[Observation],
+    modes: Mapping[tuple[str, int], Array],
+    T_X: Array,
+    image_points_us: Array,
+) -> Array:
+    """(n, k, 3) metres: each observation's reconstructed point moved by each of the
+    kinematic modes (:attr:`UncertaintyInputs.kinematic_modes`), less what one rigid
+    change of the base frame and one of the flange frame explain of that mode over all
+    the observations' poses at the image's points (least squares, to first order)."""
+    M = np.array([modes[(o.target, int(o.pose_id))] for o in obs])  # (n, k, 4, 4)
+    T = np.array([o.T_base_ee for o in obs])  # (n, 4, 4)
+    n, k = M.shape[:2]
+    # Tool points: a few of the image's points (corners and middle) and each
+    # observation's own, in the flange frame.
+    P = np.asarray(image_points_us, dtype=float)
+    pick = np.unique(np.r_[0, len(P) - 1, np.argmin(P[:, 0]), np.argmax(P[:, 0]), len(P) // 2])
+    tool = se3.apply(T_X, P[pick])  # (m, 3)
+    own = se3.apply(T_X, np.array([o.p_us for o in obs]))  # (n, 3)
+
+    def design(z: Array) -> Array:
+        """(n, 3, 12): ∂ of the point T z (z in the flange frame, (n, 3)) by the base
+        twist (ω_B, v_B) and the flange twist (ω_G, v_G)."""
+        y = np.einsum("nij,nj->ni", T[:, :3, :3], z) + T[:, :3, 3]
+        R = T[:, :3, :3]
+        A = np.empty((len(z), 3, 12))
+        A[:, :, 0:3] = -se3.hat(y)
+        A[:, :, 3:6] = np.eye(3)
+        A[:, :, 6:9] = -R @ se3.hat(z)
+        A[:, :, 9:12] = R
+        return A
+
+    def moved(z: Array) -> Array:
+        """(n, k, 3): the point z (n, 3) moved by each mode."""
+        return np.einsum("nkij,nj->nki", M[..., :3, :3], z) + M[..., :3, 3]
+
+    A_fit = np.concatenate([design(np.broadcast_to(p, (n, 3))) for p in tool], axis=1)
+    b_fit = np.concatenate([moved(np.broadcast_to(p, (n, 3))) for p in tool], axis=2)
+    # b_fit: (n, k, 3m) with each point's 3 rows in turn, matching A_fit's (n, 3m, 12).
+    b_fit = b_fit.reshape(n, k, len(tool), 3).transpose(0, 2, 3, 1).reshape(n * 3 * len(tool), k)
+    xi = np.linalg.lstsq(A_fit.reshape(-1, 12), b_fit, rcond=None)[0]  # (12, k)
+    return moved(own) - np.einsum("nij,jk->nki", design(own), xi)
+
+
 def _dominating(A: Array, B: Array) -> Array:
     """A covariance at least as large as ``A`` and ``B`` in every direction: ``A`` with
     the eigenvalues of ``B`` whitened by ``A`` raised to at least 1."""
@@ -391,11 +450,17 @@ def bound95(
         dof_t = m - 1
     else:
         cov_jk, dof_t = np.zeros((6, 6)), max(dof, 1)
-    cov_stat = _dominating(cov_fo, cov_jk) if np.all(np.isfinite(cov_fo)) else cov_jk
+    fo_finite = bool(np.all(np.isfinite(cov_fo)))
+    cov_stat = _dominating(cov_fo, cov_jk) if fo_finite else cov_jk
     # The jackknife estimates the covariance from g views: its 95 % quantile is
-    # Student's, not normal; scale the statistical part accordingly.
+    # Student's, not normal; scale the statistical part accordingly. (The first order
+    # alone has n − p degrees of freedom, near normal; scaling it by the views' t too
+    # keeps a margin for the errors the views share, which neither estimate sees:
+    # measured, it is what keeps an arm model that is slightly off and not refined
+    # inside the bounds — benchmarks/uncertainty.py.)
     t_scale = (stdtrit(dof_t, 0.975) / ndtri(0.975)) ** 2
     cov_stat = cov_stat * t_scale
+    cov_fo_t = cov_fo * t_scale if fo_finite else np.zeros((6, 6))
 
     # ---- declared systematic terms, first-order propagation through the solve.
     def propagate(D: Array, sigma: float) -> Array:
@@ -452,7 +517,17 @@ def bound95(
         c = propagate(D, inputs.radius_tolerance_m)
         terms["sphere_radius"] = _rss(c, A_rt)
         cov_sys += c
-    if inputs.kinematic_sigma_m > 0:
+    if inputs.kinematic_modes is not None:
+        E = _gauge_free_displacements(obs, inputs.kinematic_modes, T_X, image_points_us)
+        D = np.stack([(f(x0, e_pt=h * E[:, j]) - r0) / h for j in range(E.shape[1])], axis=1)
+        c = propagate(D, 1.0)
+        terms["kinematics"] = _rss(c, A_rt)
+        # The model's error and the localization noise are what the views' spread
+        # measures too, where the model's error differs between views (the jackknife
+        # sees that part, not the part common to all): the statistical covariance is
+        # the larger of the jackknife and the two together.
+        cov_stat = _dominating(cov_stat, cov_fo_t + c)
+    elif inputs.kinematic_sigma_m > 0:
         # Shared by the sweeps of one view of one sphere (a smooth function of the
         # configuration), independent between views and spheres: an error the jackknife
         # over views measures from the data. Declared, it is the floor of that
@@ -468,8 +543,7 @@ def bound95(
                 D[:, 3 * j + a] = (f(x0, e_pt=e) - r0) / h
         c = propagate(D, inputs.kinematic_sigma_m)
         terms["kinematics"] = _rss(c, A_rt)
-        floor = cov_fo * t_scale + c if np.all(np.isfinite(cov_fo)) else c
-        cov_stat = _dominating(cov_stat, floor)
+        cov_stat = _dominating(cov_stat, cov_fo_t + c)
     if inputs.axial_scale_sigma > 0:
         D = ((f(x0, e_scale=h) - r0) / h)[:, None]
         c = propagate(D, inputs.axial_scale_sigma)
