@@ -75,6 +75,10 @@ class RunResult:
     evaluation: EvaluationResult | None = None
     snapshot: LocalizationSnapshot | None = None  # what the report shows of one sweep
     nwire: Any = None  # an N-wire scenario's run (bench.jobs.targets.TargetRun)
+    # What the bounds were made from beside the data: the declared terms and the CAD
+    # sphere centres (phantom frame) of a single acquisition's calibrations.
+    uncertainty_inputs: UncertaintyInputs | None = None
+    cad_centres: dict[str, NDArray[np.float64]] | None = None
 
     def alternations(self) -> dict[str, AlternationResult]:
         """The calibrations ``metrics["calibration"]`` describes, by method (in an

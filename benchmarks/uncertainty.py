@@ -92,6 +92,10 @@ def point(label: str, overrides: dict[str, Any], seed: int, dump: str | None) ->
             twin_truth = _truth(scenario)
             doc = {
                 "observations": alt.observations,
+                "result": alt.result,
+                "inputs": result.uncertainty_inputs,
+                "cad_centres": result.cad_centres,
+                "true_equivalent": c.get("true_error_equivalent"),
                 "retained": alt.result.retained,
                 "T_ee_us": alt.result.T_ee_us,
                 "covariance": alt.result.covariance,

@@ -347,4 +347,12 @@ def run(
         save_dataset_files(save_dataset, scenario, twin, acq)
         metrics["timing_s"]["save_dataset"] = time.perf_counter() - t0
     metrics["timing_s"]["total"] = time.perf_counter() - t_start
-    return RunResult(metrics, acq, single, three, snapshot=snapshot)
+    return RunResult(
+        metrics,
+        acq,
+        single,
+        three,
+        snapshot=snapshot,
+        uncertainty_inputs=inputs,
+        cad_centres=cad,
+    )
