@@ -203,15 +203,12 @@ def kinematic_modes(
     keep = w > 1e-12 * max(float(w.max()), 1e-300)
     L = V[:, keep] * np.sqrt(w[keep])  # (24, k): cov = L Lᵀ
     q = np.array([s.q[s.reference_index] for s in sweeps], dtype=float)
-    base = table.as_array()
     h = 1e-3  # of z: 0.001° / 0.001 mm, central differences
     dT = np.empty((24, len(q), 4, 4))
-    for j in range(24):
-        step = np.zeros(24)
-        step[j] = h
-        hi = DHTable.from_array(base + step.reshape(6, 4) * _Z_TO_SI)
-        lo = DHTable.from_array(base - step.reshape(6, 4) * _Z_TO_SI)
-        dT[j] = (forward_kinematics(hi, q) - forward_kinematics(lo, q)) / (2 * h)
+    for j, step in enumerate(h * np.eye(24)):
+        hi = forward_kinematics(table.with_deltas(deltas_from_z(step)), q)
+        lo = forward_kinematics(table.with_deltas(deltas_from_z(-step)), q)
+        dT[j] = (hi - lo) / (2 * h)
     modes = np.einsum("jk,jnab->nkab", L, dT)
     return {(s.target, int(s.pose_id)): modes[i] for i, s in enumerate(sweeps)}
 

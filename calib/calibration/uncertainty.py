@@ -517,22 +517,15 @@ def bound95(
         c = propagate(D, inputs.radius_tolerance_m)
         terms["sphere_radius"] = _rss(c, A_rt)
         cov_sys += c
+    c_kin = None
     if inputs.kinematic_modes is not None:
+        # The model's own error: one draw moves every sweep (gauge taken out).
         E = _gauge_free_displacements(obs, inputs.kinematic_modes, T_X, image_points_us)
         D = np.stack([(f(x0, e_pt=h * E[:, j]) - r0) / h for j in range(E.shape[1])], axis=1)
-        c = propagate(D, 1.0)
-        terms["kinematics"] = _rss(c, A_rt)
-        # The model's error and the localization noise are what the views' spread
-        # measures too, where the model's error differs between views (the jackknife
-        # sees that part, not the part common to all): the statistical covariance is
-        # the larger of the jackknife and the two together.
-        cov_stat = _dominating(cov_stat, cov_fo_t + c)
+        c_kin = propagate(D, 1.0)
     elif inputs.kinematic_sigma_m > 0:
-        # Shared by the sweeps of one view of one sphere (a smooth function of the
-        # configuration), independent between views and spheres: an error the jackknife
-        # over views measures from the data. Declared, it is the floor of that
-        # measurement (first order plus the kinematic residual, where few views leave
-        # the jackknife short), not an addition to it, which would count it twice.
+        # Only a size known: shared by the sweeps of one view of one sphere (a smooth
+        # function of the configuration), independent between views and spheres.
         keys = sorted({(o.target, gk) for o, gk in zip(obs, groups, strict=True)})
         D = np.empty((len(r0), 3 * len(keys)))
         for j, key in enumerate(keys):
@@ -541,9 +534,13 @@ def bound95(
                 e = np.zeros((len(obs), 3))
                 e[rows, a] = h
                 D[:, 3 * j + a] = (f(x0, e_pt=e) - r0) / h
-        c = propagate(D, inputs.kinematic_sigma_m)
-        terms["kinematics"] = _rss(c, A_rt)
-        cov_stat = _dominating(cov_stat, cov_fo_t + c)
+        c_kin = propagate(D, inputs.kinematic_sigma_m)
+    if c_kin is not None:
+        terms["kinematics"] = _rss(c_kin, A_rt)
+        # What differs between views of it the jackknife over views measures too:
+        # declared, it is the floor of that measurement (first order plus it, where few
+        # views leave the jackknife short), not an addition, which would count it twice.
+        cov_stat = _dominating(cov_stat, cov_fo_t + c_kin)
     if inputs.axial_scale_sigma > 0:
         D = ((f(x0, e_scale=h) - r0) / h)[:, None]
         c = propagate(D, inputs.axial_scale_sigma)
