@@ -24,7 +24,6 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import correlate1d
 
 from calib import se3
 from calib.image import pixel_to_us, us_to_pixel
@@ -700,8 +699,7 @@ class BmodeSimulator:
             # The surfaces' speckle through the amplitude PSF h = √(|h|²) of the same
             # kernels: one scatterer alone draws exactly the smooth model's echo.
             k_rows, k_cols = self._amplitude_kernels
-            occupied = surface.any(axis=2)  # (n, H): rows holding surface scatterers
-            _add_blurred_surface_speckle(image, surface, occupied, k_rows, k_cols)
+            _add_blurred_surface_speckle(image, surface, k_rows, k_cols)
         if medium.backscatter_db is not None:
             sp = self._speckle(T, medium_end, medium)
             _add_blurred_intensity(image, sp, *self._speckle_kernels, self._speckle_norm)
@@ -870,50 +868,106 @@ def _add_blurred_intensity(image, field, k_rows, k_cols, norm):  # pragma: no co
                 image[f, r, c] += g * (acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c])
 
 
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _row_extents(frame, lo, hi):  # pragma: no cover - compiled
+    """First and last column of each row of ``frame`` (H, W) holding a non-zero value
+    (``lo = W``, ``hi = -1`` for an empty row). Branch-free (vectorized) scans."""
+    H, W = frame.shape
+    for r in range(H):
+        row = frame[r]
+        first, last = W, -1
+        for c in range(W):
+            nz = row[c] != 0
+            first = min(first, c if nz else W)
+            last = max(last, c if nz else -1)
+        lo[r], hi[r] = first, last
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _reach(lo, hi, k_rows, r):  # pragma: no cover - compiled
+    """Column range (c0, c1) of the rows within the axial taps' reach of row r that hold
+    values (c0 > c1: none)."""
+    H = lo.shape[0]
+    R = len(k_rows) // 2
+    c0, c1 = np.int64(1 << 30), np.int64(-1)
+    for t in range(len(k_rows)):
+        rr = r + t - R
+        if 0 <= rr < H and k_rows[t] != 0.0 and hi[rr] >= 0:
+            c0 = min(c0, lo[rr])
+            c1 = max(c1, hi[rr])
+    return c0, c1
+
+
+# The loops below run over slices from 0, not over ranges from an offset: numba's
+# compiler vectorizes the former only (8× faster here).
+@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def _add_scaled(out, w, src):  # pragma: no cover - compiled
+    """``out += w · src`` (same length)."""
+    for c in range(out.shape[0]):
+        out[c] += w * src[c]
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def _correlate_span(out, taps, src, o0, o1):  # pragma: no cover - compiled
+    """``out[o0..o1] = Σ_t taps[t] · src[o0 + t ..]`` (correlation with the centred taps
+    of a source padded by half their length on each side)."""
+    m = o1 + 1 - o0
+    acc = out[o0 : o1 + 1]
+    acc[:] = 0.0
+    for t in range(taps.shape[0]):
+        w = taps[t]
+        if w != 0.0:
+            _add_scaled(acc, w, src[o0 + t : o0 + t + m])
+
+
 # Written by hand and compiled with numba: blurring the real and imaginary parts as two
 # stacks of whole frames, squaring and adding them made five full-frame temporaries per
-# frame; here only the rows within reach of a surface's scatterers are touched.
+# frame; here only the rows within reach of a surface's scatterers are touched, and in
+# each only the columns within the lateral taps' reach of them (an oblique floor crosses
+# many rows, a few columns in each).
 @numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
-def _add_blurred_surface_speckle(image, field, occupied, k_rows, k_cols):  # pragma: no cover
+def _add_blurred_surface_speckle(image, field, k_rows, k_cols):  # pragma: no cover
     """``image += |h * field|²`` for frames (n, H, W): the complex ``field`` through the
     separable amplitude PSF (correlation taps ``k_rows`` along rows, zeros outside; row
-    r's taps ``k_cols[r]`` along columns), computed only on rows within reach of an
-    ``occupied`` row."""
+    r's taps ``k_cols[r]`` along columns), computed only within reach of its non-zero
+    values."""
     n, H, W = field.shape
     R = len(k_rows) // 2
     C = k_cols.shape[1] // 2
+    re = np.zeros((H, W), np.float32)
+    im = np.zeros((H, W), np.float32)
     col = np.zeros((2, W + 2 * C), np.float32)
     acc = np.zeros((2, W), np.float32)
+    lo = np.empty(H, np.int64)
+    hi = np.empty(H, np.int64)
     for f in range(n):
+        _row_extents(field[f], lo, hi)
         for r in range(H):
-            near = False
-            for t in range(len(k_rows)):
-                rr = r + t - R
-                if 0 <= rr < H and occupied[f, rr] and k_rows[t] != 0.0:
-                    near = True
-                    break
-            if not near:
+            if hi[r] >= 0:
+                for c in range(lo[r], hi[r] + 1):
+                    re[r, c] = field[f, r, c].real
+                    im[r, c] = field[f, r, c].imag
+        for r in range(H):
+            c0, c1 = _reach(lo, hi, k_rows, r)
+            if c0 > c1:
                 continue
-            col[:] = 0.0
+            # Output columns o0..o1 read col[o0 .. o1 + 2C]: the axial pass over c0..c1
+            # and zeros beside it.
+            o0, o1 = max(c0 - C, 0), min(c1 + C, W - 1)
+            col[:, o0 : o1 + 2 * C + 1] = 0.0
             for t in range(len(k_rows)):
                 rr = r + t - R
                 w = k_rows[t]
-                if rr < 0 or rr >= H or w == 0.0 or not occupied[f, rr]:
+                if rr < 0 or rr >= H or w == 0.0 or hi[rr] < 0:
                     continue
-                for c in range(W):
-                    v = field[f, rr, c]
-                    col[0, C + c] += w * v.real
-                    col[1, C + c] += w * v.imag
-            acc[:] = 0.0
-            for t in range(k_cols.shape[1]):
-                w = k_cols[r, t]
-                if w == 0.0:
-                    continue
-                for c in range(W):
-                    acc[0, c] += w * col[0, c + t]
-                    acc[1, c] += w * col[1, c + t]
-            for c in range(W):
-                image[f, r, c] += acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c]
+                a, b = lo[rr], hi[rr] + 1
+                _add_scaled(col[0, C + a : C + b], w, re[rr, a:b])
+                _add_scaled(col[1, C + a : C + b], w, im[rr, a:b])
+            _correlate_span(acc[0], k_cols[r], col[0], o0, o1)
+            _correlate_span(acc[1], k_cols[r], col[1], o0, o1)
+            out = image[f, r]
+            for c in range(o0, o1 + 1):
+                out[c] += acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c]
 
 
 def _ring_down_kernel(sigma: float, probe: ProbeConfig, spacing: float) -> NDArray[np.float32]:
@@ -1047,65 +1101,41 @@ def _splat_points(
     np.add.at(image, index, value.astype(image.dtype))
 
 
-def _blur_where_nonzero(
-    image: NDArray[np.float32], k_rows: NDArray[np.float32], k_cols: NDArray[np.float32]
-) -> None:
-    """Separable blur of frames (n, H, W) with correlation taps along rows and, along
-    columns, row r's taps ``k_cols[r]`` (the lateral beam changes with depth), in place,
-    limited in each frame to the row bands that hold echoes (plus the kernel radius) and
-    to their columns: surface echoes are sparse (a sphere's cap, a floor line), and
-    blurring zeros would cost most of the time. Frame by frame: the frames of a sweep hold
-    their echoes at different depths, and a band common to the sweep blurred twice the
-    pixels (the result is the same: outside its echoes a frame is zero)."""
-    n, _, W = image.shape
-    pad_r, pad_c = len(k_rows) // 2 + 1, k_cols.shape[1] // 2 + 1
-    # The ring-down kernel is one-sided: a third of its taps are zeros.
-    k_rows, o_rows = _without_zero_taps(k_rows)
-    window = np.ones(2 * pad_r + 1)
+# Written by hand and compiled with numba: each row has its own lateral taps, which no
+# scipy filter takes, and surface echoes are sparse (a sphere's cap, a floor line): only
+# the rows within the axial taps' reach of an echo are blurred, and in each only the
+# columns within the lateral taps' reach of one (blurring zeros cost most of the time).
+@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def _blur_where_nonzero(image, k_rows, k_cols):  # pragma: no cover - compiled
+    """Separable blur of frames (n, H, W), in place: correlation taps ``k_rows`` along
+    rows and row r's taps ``k_cols[r]`` along columns (the lateral beam changes with
+    depth), zeros outside."""
+    n, H, W = image.shape
+    R = len(k_rows) // 2
+    C = k_cols.shape[1] // 2
+    source = np.empty((H, W), np.float32)
+    col = np.zeros(W + 2 * C, np.float32)
+    lo = np.empty(H, np.int64)
+    hi = np.empty(H, np.int64)
     for f in range(n):
         frame = image[f]
-        occupied = frame.any(axis=1)
-        if not occupied.any():
-            continue
-        band = np.convolve(occupied, window, mode="same") > 0
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], band.astype(np.int8), [0]])))
-        for r0, r1 in zip(edges[::2], edges[1::2], strict=True):
-            cols = np.flatnonzero(frame[r0:r1].any(axis=0))
-            c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, W)
-            block = correlate1d(frame[r0:r1, c0:c1], k_rows, axis=0, mode="constant", origin=o_rows)
-            _correlate_rows(block, k_cols[r0:r1], frame[r0:r1, c0:c1])
-
-
-# Written by hand and compiled with numba: each row has its own lateral taps, which no
-# scipy filter takes; one pass over the row per tap, as in _add_blurred_intensity.
-@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
-def _correlate_rows(block, kernels, out):  # pragma: no cover - compiled
-    """``out[r] = block[r] ⋆ kernels[r]`` (correlation, centred taps, zeros outside)."""
-    h, w = block.shape
-    C = kernels.shape[1] // 2
-    buf = np.zeros(w + 2 * C, np.float32)
-    acc = np.zeros(w, np.float32)
-    for r in range(h):
-        buf[C : C + w] = block[r]
-        acc[:] = 0.0
-        for t in range(kernels.shape[1]):
-            k = kernels[r, t]
-            if k == 0.0:
+        _row_extents(frame, lo, hi)
+        for r in range(H):
+            if hi[r] >= 0:
+                source[r, lo[r] : hi[r] + 1] = frame[r, lo[r] : hi[r] + 1]
+                frame[r, lo[r] : hi[r] + 1] = 0.0
+        for r in range(H):
+            c0, c1 = _reach(lo, hi, k_rows, r)
+            if c0 > c1:
                 continue
-            for c in range(w):
-                acc[c] += k * buf[c + t]
-        out[r, :] = acc
-
-
-def _without_zero_taps(kernel: NDArray[np.float32]) -> tuple[NDArray[np.float32], int]:
-    """(taps, origin) for ``scipy.ndimage.correlate1d`` that correlate exactly as the
-    centred ``kernel`` does, without its leading and trailing zero taps (a zero tap adds
-    exactly 0)."""
-    nz = np.flatnonzero(kernel)
-    if len(nz) == 0:
-        return kernel, 0
-    taps = kernel[nz[0] : nz[-1] + 1]
-    origin = (len(kernel) // 2 - int(nz[0])) - len(taps) // 2
-    if not -(len(taps) // 2) <= origin <= (len(taps) - 1) // 2:
-        return kernel, 0  # the centre lies outside the non-zero taps
-    return taps, origin
+            o0, o1 = max(c0 - C, 0), min(c1 + C, W - 1)
+            col[o0 : o1 + 2 * C + 1] = 0.0
+            for t in range(len(k_rows)):
+                rr = r + t - R
+                w = k_rows[t]
+                if rr < 0 or rr >= H or w == 0.0 or hi[rr] < 0:
+                    continue
+                a, b = lo[rr], hi[rr] + 1
+                _add_scaled(col[C + a : C + b], w, source[rr, a:b])
+            # Nothing of this row is left in the frame: the output overwrites o0..o1.
+            _correlate_span(frame[r], k_cols[r], col, o0, o1)
