@@ -102,6 +102,9 @@ class PlanComparison:
     noise: str = ""  # the noise it is chosen for, in words
 
 
+_MAX_REPLAN_ROUNDS = 60  # see optimize_plan
+
+
 def noise_about(scenario: Scenario, markers: int) -> tuple[str, str, dict]:
     """What a plan of ``scenario`` is chosen for: the calibration (in words), the noise
     model (in words) and the same for the plan file."""
@@ -348,7 +351,11 @@ def optimize_plan(
 
     cands = observations(scenario, coarse, spheres, found, multi, twin)
     least = MIN_SWEEPS_PER_SPHERE if multi else 0
-    for _ in range(20):  # replace chosen sweeps that fail the frame-by-frame check
+    # Replace chosen sweeps that fail the frame-by-frame check. A sweep refused on the way
+    # is often followed by a neighbour with the same transit, so this can take a few dozen
+    # rounds (24 for quick.yaml's sphere 1 with the A criterion in one session, where 20
+    # rounds gave up on a plan that exists); each round costs seconds, a refusal a user.
+    for _ in range(_MAX_REPLAN_ROUNDS):
         try:
             chosen_idx = select_sweeps(
                 cands,
@@ -387,7 +394,11 @@ def optimize_plan(
         left[NOT_CLEAR] += len(bad)
         refused |= bad
     else:
-        raise UscalError("could not find a plan whose every pose is reachable and clear")
+        raise UscalError(
+            f"could not find a plan whose every pose is reachable and clear in "
+            f"{_MAX_REPLAN_ROUNDS} rounds ({len(refused)} sweeps refused on the way); lower "
+            "planning.clearance_mm or planning.session_draws, or ask for fewer sweeps"
+        )
     prediction = predict(cands, chosen_idx, M, bias=bias)
     poses: dict[str, tuple[SweepPose, ...]] = {
         s.name: tuple(o[2] for o in ordered if o[1].name == s.name) for s in spheres
