@@ -16,67 +16,21 @@ import sys
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 from rich.console import Console
-from rich.logging import RichHandler
 
 from calib.errors import UscalError
-from calib.files.dataset import dataset_kind, read_dataset
-from calib.files.plus_config import read_plus_config
-from calib.files.plus_import import import_plus
-from twin.ur_controller import ControllerFaults
 
-from .acquire_rig import acquire_dataset, console_operator, dashboard_operator
 from .cli_parser import parser
-from .config.docs import scenarios_markdown
-from .config.geometry import TARGET_PHANTOMS, WIRED
-from .config.hw import load_hw_config
-from .config.method import requirements
-from .config.plan_file import write_plan
-from .config.scenario import load_scenario
-from .console import (
-    print_cached_run,
-    print_evaluation,
-    print_import,
-    print_plan,
-    print_plan_comparison,
-    print_reconstruction,
-    print_recorded,
-    print_run,
-    print_scenario_summary,
-    print_target,
-    print_truth,
-    print_workload,
-    print_written,
-    progress_bars,
-    spawn_viewer,
-)
-from .files import atomic_output_dir, check_new_directory, write_text_atomic
-from .jobs.budget import plan_budget, run_budget
-from .jobs.gallery import write_gallery
-from .jobs.plan import plan_report
-from .jobs.plan_optimize import optimize_plan, plan_about
-from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
-from .jobs.single import run
-from .jobs.sweep import load_sweep, run_sweep
-from .jobs.targets import (
-    calibrate_cone_dataset,
-    calibrate_nwire_dataset,
-    calibrate_wire_dataset,
-    echo_depth_bias_m,
-    run_target,
-)
-from .jobs.twin_serve import export_twin, landmarks_mm, serve_twin
-from .jobs.validate import read_calibration, validate_dataset
-from .outputs.budget_report import write_budget
-from .outputs.run_files import run_directory
-from .outputs.sweep_report import write_sweep
-from .outputs.target_files import write_target
-from .progress import reporting
-from .sequential import StopRule
-from .summaries import RecordedSummary, RunSummary
-from .summaries.calibration import Calibrations
+
+if TYPE_CHECKING:
+    from .sequential import StopRule
+    from .summaries.calibration import Calibrations
+
+# Each command imports what it runs when it runs: the simulator, the twin, the recorder
+# and their libraries take seconds to import, which ``uscal --help``, ``uscal check`` or a
+# mistyped option should not wait for.
 
 __all__ = ["main"]
 
@@ -98,6 +52,8 @@ def _with_requirements(args: argparse.Namespace) -> list[str]:
 def _gate(scenario, calibrations: Calibrations, console: Console) -> int:
     """Exit code 3 when the scenario states requirements and the calibration to use is
     not accepted within them (the verdict says why); 0 otherwise."""
+    from .config.method import requirements
+
     if not requirements(scenario).any:
         return 0
     chosen = calibrations.chosen if calibrations.single or calibrations.three else None
@@ -108,6 +64,8 @@ def _gate(scenario, calibrations: Calibrations, console: Console) -> int:
 
 def _gate_status(scenario, what: str, status: str, console: Console) -> int:
     """:func:`_gate` of one calibration's verdict status, named ``what``."""
+    from .config.method import requirements
+
     if not requirements(scenario).any or status == "accepted":
         return 0
     console.print(
@@ -118,11 +76,20 @@ def _gate_status(scenario, what: str, status: str, console: Console) -> int:
 
 
 def _cmd_check(args: argparse.Namespace, console: Console) -> int:
+    from .config.scenario import load_scenario
+    from .console import print_scenario_summary
+
     print_scenario_summary(load_scenario(args.scenario, args.overrides), console)
     return 0
 
 
 def _cmd_plan(args: argparse.Namespace, console: Console) -> int:
+    from .config.plan_file import write_plan
+    from .config.scenario import load_scenario
+    from .console import print_plan, print_plan_comparison
+    from .jobs.plan import plan_report
+    from .jobs.plan_optimize import optimize_plan, plan_about
+
     scenario = load_scenario(args.scenario, args.overrides)
     if not args.optimize:
         print_plan(scenario, plan_report(scenario, args.noise_mm), args.noise_mm, console)
@@ -142,6 +109,13 @@ def _cmd_plan(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_twin_serve(args: argparse.Namespace, console: Console) -> int:
+    import numpy as np
+
+    from twin.ur_controller import ControllerFaults
+
+    from .config.scenario import load_scenario
+    from .jobs.twin_serve import serve_twin
+
     scenario = load_scenario(args.scenario, args.overrides)
     faults = ControllerFaults(args.fault_drop_at_move, args.fault_protective_stop_at_move)
     tcp = [*(v * 1e-3 for v in args.tcp_offset[:3]), *np.radians(args.tcp_offset[3:])]
@@ -162,6 +136,10 @@ def _cmd_twin_serve(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_twin_export(args: argparse.Namespace, console: Console) -> int:
+    from .config.scenario import load_scenario
+    from .console import print_truth
+    from .jobs.twin_serve import export_twin, landmarks_mm
+
     scenario = load_scenario(args.scenario, args.overrides)
     files, truth = export_twin(scenario, args.outdir, args.force)
     print_truth(landmarks_mm(truth), truth.T_ee_us, console)
@@ -171,6 +149,10 @@ def _cmd_twin_export(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_image(args: argparse.Namespace, console: Console) -> int:
+    from .config.scenario import load_scenario
+    from .files import atomic_output_dir
+    from .jobs.gallery import write_gallery
+
     scenario = load_scenario(args.scenario, args.overrides)
     with atomic_output_dir(args.out, force=args.force) as tmp:
         files = write_gallery(scenario, tmp)
@@ -180,6 +162,22 @@ def _cmd_image(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_run(args: argparse.Namespace, console: Console) -> int:
+    from .config.geometry import TARGET_PHANTOMS
+    from .config.scenario import load_scenario
+    from .console import (
+        print_evaluation,
+        print_reconstruction,
+        print_run,
+        print_written,
+        progress_bars,
+        spawn_viewer,
+    )
+    from .files import check_new_directory
+    from .jobs.single import run
+    from .outputs.run_files import run_directory
+    from .progress import reporting
+    from .summaries import RunSummary
+
     scenario = load_scenario(args.scenario, _with_requirements(args))
     out = Path(args.out or scenario.output.dir)
     if args.save_dataset:
@@ -210,6 +208,12 @@ def _run_target(args: argparse.Namespace, scenario, out: Path, console: Console)
     """``uscal run`` of a wire, N-wire or cone-tip scenario: the acquisition, the
     calibration from its target and its errors against the twin's truth
     (:func:`bench.jobs.targets.run_target`), with its rerun recording."""
+    from .console import print_target, print_written, progress_bars, spawn_viewer
+    from .jobs.single import run
+    from .outputs.run_files import run_directory
+    from .outputs.target_files import write_target
+    from .progress import reporting
+
     if _until(args) is not None:
         raise UscalError(
             "--until-rotation-deg / --until-translation-mm: the sequential acquisition "
@@ -244,6 +248,8 @@ def _run_target(args: argparse.Namespace, scenario, out: Path, console: Console)
 
 def _until(args: argparse.Namespace) -> StopRule | None:
     """The sequential acquisition's stop rule, when a limit is given."""
+    from .sequential import StopRule
+
     if args.until_rotation_deg is None and args.until_translation_mm is None:
         return None
     inf = float("inf")
@@ -267,6 +273,8 @@ def _confirm_at_terminal(console: Console):
 def _operator(args: argparse.Namespace, host: str, console: Console):
     """Who makes the stylus touches: the loopback rig's emulated operator, or a person
     at this terminal."""
+    from .acquire_rig import console_operator, dashboard_operator
+
     if args.touches == "loopback":
         return dashboard_operator(host)
     if args.touches == "console":
@@ -280,6 +288,13 @@ def _operator(args: argparse.Namespace, host: str, console: Console):
 
 
 def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
+    from .acquire_rig import acquire_dataset
+    from .config.hw import load_hw_config
+    from .config.scenario import load_scenario
+    from .console import progress_bars
+    from .files import check_new_directory
+    from .progress import reporting
+
     cfg = load_hw_config(args.hw_config, args.overrides)
     if not args.resume and not args.dry_run:
         check_new_directory(args.out, "--out")
@@ -327,6 +342,16 @@ def _cmd_acquire(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
+    from calib.files.dataset import dataset_kind
+
+    from .config.geometry import WIRED
+    from .config.scenario import load_scenario
+    from .console import print_recorded, print_written, progress_bars
+    from .jobs.recorded import calibrate_recorded, record_recorded, recorded_run_result
+    from .outputs.run_files import run_directory
+    from .progress import reporting
+    from .summaries import RecordedSummary
+
     settings = load_scenario(args.settings, _with_requirements(args))
     dataset = Path(args.dataset)
     out = Path(args.out) if args.out else dataset.with_name(dataset.name + "-calibration")
@@ -347,6 +372,19 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
 
 def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console) -> int:
     """``uscal calibrate`` of an N-wire or single-wire dataset (:mod:`bench.jobs.targets`)."""
+    from calib.files.dataset import read_dataset
+
+    from .config.method import requirements
+    from .console import print_target, print_written
+    from .files import atomic_output_dir
+    from .jobs.targets import (
+        calibrate_cone_dataset,
+        calibrate_nwire_dataset,
+        calibrate_wire_dataset,
+        echo_depth_bias_m,
+    )
+    from .outputs.target_files import write_target
+
     data, info = read_dataset(dataset)
     calibrate = (
         calibrate_wire_dataset
@@ -376,6 +414,10 @@ def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console
 
 
 def _cmd_validate(args: argparse.Namespace, console: Console) -> int:
+    from .config.scenario import load_scenario
+    from .files import write_text_atomic
+    from .jobs.validate import read_calibration, validate_dataset
+
     settings = load_scenario(args.settings, args.overrides)
     given = read_calibration(args.calibration)
     with console.status(f"validating on {args.dataset}"):
@@ -388,6 +430,11 @@ def _cmd_validate(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_import_plus(args: argparse.Namespace, console: Console) -> int:
+    from calib.files.plus_config import read_plus_config
+    from calib.files.plus_import import import_plus
+
+    from .console import print_import
+
     config = read_plus_config(args.config) if args.config else None
     if config is None and args.temperature_c is None and not args.no_speed_correction:
         raise UscalError(
@@ -413,6 +460,12 @@ def _cmd_import_plus(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
+    from .console import print_cached_run, print_workload, progress_bars
+    from .jobs.sweep import load_sweep, run_sweep
+    from .jobs.targets import run_target
+    from .outputs.sweep_report import write_sweep
+    from .progress import reporting
+
     with console.status(f"validating {args.sweep_file}"):
         spec = load_sweep(args.sweep_file)
     workers = args.workers or os.cpu_count() or 1
@@ -427,6 +480,12 @@ def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
+    from .console import print_cached_run, progress_bars
+    from .jobs.budget import plan_budget, run_budget
+    from .jobs.single import run
+    from .outputs.budget_report import write_budget
+    from .progress import reporting
+
     sources = [n.strip() for n in args.sources.split(",") if n.strip()] if args.sources else None
     spec = plan_budget(args.scenario, args.overrides, sources, args.seeds)
     out = Path(args.out or Path("out") / f"{Path(args.scenario).stem}-budget")
@@ -438,6 +497,8 @@ def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
 
 
 def _cmd_docs(args: argparse.Namespace, console: Console) -> int:
+    from .config.docs import scenarios_markdown
+
     text = scenarios_markdown()
     if args.output:
         Path(args.output).write_text(text, encoding="utf-8")
@@ -451,6 +512,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     console = Console(quiet=args.quiet)
     if args.debug:
+        from rich.logging import RichHandler
+
         # Verbose logs of this project's packages only (libraries stay at warnings).
         logging.basicConfig(
             level=logging.WARNING,
