@@ -117,6 +117,7 @@ def test_docs_command_prints_the_scenario_reference():
     assert r.stdout == (ROOT / "docs" / "scenarios.md").read_text(encoding="utf-8")
 
 
+@pytest.mark.slow
 def test_image_gallery(tmp_path):
     out = tmp_path / "gallery"
     r = uscal("image", QUICK, "--out", str(out))
@@ -132,6 +133,7 @@ def test_image_gallery(tmp_path):
     assert len(list(out.glob("frame_*.png"))) == len(poses) == 10
 
 
+@pytest.mark.slow
 def test_quiet_prints_nothing_before_or_after_the_command():
     for args in (("--quiet", "check", QUICK), ("check", QUICK, "-q")):
         r = uscal(*map(str, args))

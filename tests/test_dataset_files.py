@@ -231,6 +231,7 @@ def test_calibrate_reproduces_the_runs_calibration_from_the_saved_dataset(quick_
     assert np.allclose([v[0] for v in loss], [h["cost_mm2"] for h in history])
 
 
+@pytest.mark.slow
 def test_calibrate_errors_are_one_line(tmp_path):
     r = uscal("calibrate", str(tmp_path / "nowhere"))
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "no such dataset" in r.stderr

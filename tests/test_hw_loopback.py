@@ -161,6 +161,7 @@ def test_protective_stop_mid_move_ends_the_acquisition_cleanly(controller, tmp_p
 
 
 @pytest.mark.parametrize("controller", [("127.0.0.7",)], indirect=True)
+@pytest.mark.slow
 def test_a_grabber_without_frames_fails_with_one_line(controller, tmp_path):
     # Without --yes the first motion waits for a confirmation: none can be given here.
     line = one_line_error(

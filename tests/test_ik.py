@@ -22,6 +22,7 @@ def pose_error(table, q, T):
 
 
 @pytest.mark.parametrize("model", ["ur3", "ur3e"])
+@pytest.mark.slow
 def test_round_trip_on_random_reachable_poses(rng, model):
     table = NOMINAL_TABLES[model]
     assert is_ur_structured(table)

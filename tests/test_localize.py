@@ -421,6 +421,7 @@ def test_the_plan_window_bounds_the_search(small_sphere_scan):
     assert all("no sphere found" in r.reason for r in far)
 
 
+@pytest.mark.slow
 def test_saturated_cap_centre_is_unbiased():
     """The saturation case, reproduced small: at +20 dB the cap clips at 255 in several
     frames, where the vertex of the peak grey levels across elevation is undefined (it
@@ -730,6 +731,7 @@ def test_elevation_uncertainty_rejects_a_flat_weak_cap():
     assert np.all(flagged[np.array(flat_err) > 1e-3])  # none a millimetre off gets through
 
 
+@pytest.mark.slow
 def test_elevation_is_not_tilted_by_the_floor_the_sphere_raises(monkeypatch):
     """An 8 mm sphere 45 mm deep at 0 dB: its own echoes raise the depth's noise floor
     about the cap, and the sweep's axis, a little off the image normal (the mount), slides

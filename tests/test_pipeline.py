@@ -46,6 +46,7 @@ def two_spheres_with_touches(tmp_path_factory):
     return sc, twin.truth, acq, directory
 
 
+@pytest.mark.slow
 def test_a_recorded_dataset_with_touches_runs_the_papers_folds(two_spheres_with_touches):
     sc, truth, _, directory = two_spheres_with_touches
     result = calibrate_recorded(directory, sc, (1,))

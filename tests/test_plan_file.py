@@ -123,6 +123,7 @@ def test_plan_mistakes_on_the_command_line_are_one_line(tmp_path, capsys):
     assert r.returncode == 2 and "a plan made for this phantom" in r.stderr
 
 
+@pytest.mark.slow
 def test_uscal_plan_optimize_writes_a_plan_that_beats_the_papers(tmp_path):
     plan = tmp_path / "plan.yaml"
     r = uscal(

@@ -30,6 +30,7 @@ def errors_off():
 
 
 @pytest.mark.parametrize("kind", ["cone", "prism"])
+@pytest.mark.slow
 def test_with_every_error_source_off_the_reconstruction_fits_the_cad(errors_off, kind):
     """True arm = nominal model, exact joints, true T_ee_us, no noise, a thin beam: what is
     left is the boundary extraction (a line fitted to a curved section, pixels, the PSF).

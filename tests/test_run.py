@@ -93,6 +93,7 @@ def test_converges_from_a_bad_coarse_estimate(tmp_path):
     assert single["true_error"]["rotation_deg"] <= 0.6
 
 
+@pytest.mark.slow
 def test_speed_of_sound_correction_removes_a_real_bias():
     off = run(load_scenario(QUICK, [*ONE_SPHERE, "imaging.sound_speed_correction=false"]))
     err_off = off.metrics["calibration"]["single"]["true_error"]["image_mm"]

@@ -312,6 +312,7 @@ def test_linked_keys_are_set_together_and_reported(tmp_path):
     assert "refined <strong>0</strong>" in page or "refined **0**" in page
 
 
+@pytest.mark.slow
 def test_a_large_grid_is_validated_value_by_value_and_announced(tmp_path):
     """A 1 001-value grid is validated from the base read once, ≈ 1 ms a value (its last
     value, out of range, named in one line), and the sweep says how many acquisitions it

@@ -48,6 +48,7 @@ def probe_of(array: dict) -> ProbeConfig:
 
 
 @pytest.mark.parametrize("name", sorted(STORED["probes"]))
+@pytest.mark.slow
 def test_the_derived_beam_is_the_reference_s(name):
     rec = STORED["probes"][name]
     probe, fig = probe_of(rec["array"]), rec["figures"]

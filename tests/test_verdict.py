@@ -212,6 +212,7 @@ def test_the_same_arm_refined_from_its_own_touches_is_accepted_within_its_bound(
     assert true["image_mm"] < 0.5 and true["image_mm"] <= c["bound95"]["image_mm"]
 
 
+@pytest.mark.slow
 def test_an_alternation_that_does_not_converge_returns_the_mean_of_its_estimates(monkeypatch):
     """quick.yaml's sphere 1 with the paper's localizer (seed 24): the estimate still
     moves at the fifth calibration (the localizations follow it back and forth). Where
