@@ -884,9 +884,9 @@ def _row_extents(frame, lo, hi):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def _reach(lo, hi, k_rows, r):  # pragma: no cover - compiled
-    """Column range (c0, c1) of the rows within the axial taps' reach of row r that hold
-    values (c0 > c1: none)."""
+def _reach(lo, hi, k_rows, r, C, W):  # pragma: no cover - compiled
+    """Output columns (o0, o1) of row r: those within the lateral taps' reach (C) of a
+    value in the rows within the axial taps' reach (o0 > o1: none)."""
     H = lo.shape[0]
     R = len(k_rows) // 2
     c0, c1 = np.int64(1 << 30), np.int64(-1)
@@ -895,7 +895,9 @@ def _reach(lo, hi, k_rows, r):  # pragma: no cover - compiled
         if 0 <= rr < H and k_rows[t] != 0.0 and hi[rr] >= 0:
             c0 = min(c0, lo[rr])
             c1 = max(c1, hi[rr])
-    return c0, c1
+    if c0 > c1:
+        return np.int64(1), np.int64(0)
+    return max(c0 - C, 0), min(c1 + C, W - 1)
 
 
 # The loops below run over slices from 0, not over ranges from an offset: numba's
@@ -920,6 +922,21 @@ def _correlate_span(out, taps, src, o0, o1):  # pragma: no cover - compiled
             _add_scaled(acc, w, src[o0 + t : o0 + t + m])
 
 
+@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def _axial_into(col, k_rows, source, lo, hi, r, C):  # pragma: no cover - compiled
+    """``col[C + c] += Σ_t k_rows[t] · source[r + t − R, c]`` over the rows within reach
+    that hold values (columns ``lo..hi`` of each), zeros outside."""
+    H = source.shape[0]
+    R = len(k_rows) // 2
+    for t in range(len(k_rows)):
+        rr = r + t - R
+        w = k_rows[t]
+        if rr < 0 or rr >= H or w == 0.0 or hi[rr] < 0:
+            continue
+        a, b = lo[rr], hi[rr] + 1
+        _add_scaled(col[C + a : C + b], w, source[rr, a:b])
+
+
 # Written by hand and compiled with numba: blurring the real and imaginary parts as two
 # stacks of whole frames, squaring and adding them made five full-frame temporaries per
 # frame; here only the rows within reach of a surface's scatterers are touched, and in
@@ -932,7 +949,6 @@ def _add_blurred_surface_speckle(image, field, k_rows, k_cols):  # pragma: no co
     r's taps ``k_cols[r]`` along columns), computed only within reach of its non-zero
     values."""
     n, H, W = field.shape
-    R = len(k_rows) // 2
     C = k_cols.shape[1] // 2
     re = np.zeros((H, W), np.float32)
     im = np.zeros((H, W), np.float32)
@@ -948,21 +964,13 @@ def _add_blurred_surface_speckle(image, field, k_rows, k_cols):  # pragma: no co
                     re[r, c] = field[f, r, c].real
                     im[r, c] = field[f, r, c].imag
         for r in range(H):
-            c0, c1 = _reach(lo, hi, k_rows, r)
-            if c0 > c1:
+            o0, o1 = _reach(lo, hi, k_rows, r, C, W)
+            if o0 > o1:
                 continue
-            # Output columns o0..o1 read col[o0 .. o1 + 2C]: the axial pass over c0..c1
-            # and zeros beside it.
-            o0, o1 = max(c0 - C, 0), min(c1 + C, W - 1)
+            # Output columns o0..o1 read col[o0 .. o1 + 2C]: the axial pass and zeros.
             col[:, o0 : o1 + 2 * C + 1] = 0.0
-            for t in range(len(k_rows)):
-                rr = r + t - R
-                w = k_rows[t]
-                if rr < 0 or rr >= H or w == 0.0 or hi[rr] < 0:
-                    continue
-                a, b = lo[rr], hi[rr] + 1
-                _add_scaled(col[0, C + a : C + b], w, re[rr, a:b])
-                _add_scaled(col[1, C + a : C + b], w, im[rr, a:b])
+            _axial_into(col[0], k_rows, re, lo, hi, r, C)
+            _axial_into(col[1], k_rows, im, lo, hi, r, C)
             _correlate_span(acc[0], k_cols[r], col[0], o0, o1)
             _correlate_span(acc[1], k_cols[r], col[1], o0, o1)
             out = image[f, r]
@@ -1111,7 +1119,6 @@ def _blur_where_nonzero(image, k_rows, k_cols):  # pragma: no cover - compiled
     rows and row r's taps ``k_cols[r]`` along columns (the lateral beam changes with
     depth), zeros outside."""
     n, H, W = image.shape
-    R = len(k_rows) // 2
     C = k_cols.shape[1] // 2
     source = np.empty((H, W), np.float32)
     col = np.zeros(W + 2 * C, np.float32)
@@ -1125,17 +1132,10 @@ def _blur_where_nonzero(image, k_rows, k_cols):  # pragma: no cover - compiled
                 source[r, lo[r] : hi[r] + 1] = frame[r, lo[r] : hi[r] + 1]
                 frame[r, lo[r] : hi[r] + 1] = 0.0
         for r in range(H):
-            c0, c1 = _reach(lo, hi, k_rows, r)
-            if c0 > c1:
+            o0, o1 = _reach(lo, hi, k_rows, r, C, W)
+            if o0 > o1:
                 continue
-            o0, o1 = max(c0 - C, 0), min(c1 + C, W - 1)
             col[o0 : o1 + 2 * C + 1] = 0.0
-            for t in range(len(k_rows)):
-                rr = r + t - R
-                w = k_rows[t]
-                if rr < 0 or rr >= H or w == 0.0 or hi[rr] < 0:
-                    continue
-                a, b = lo[rr], hi[rr] + 1
-                _add_scaled(col[C + a : C + b], w, source[rr, a:b])
+            _axial_into(col, k_rows, source, lo, hi, r, C)
             # Nothing of this row is left in the frame: the output overwrites o0..o1.
             _correlate_span(frame[r], k_cols[r], col, o0, o1)
