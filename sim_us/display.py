@@ -43,23 +43,19 @@ class NoiseSource:
         self._pool = rng.standard_exponential(frame_size * pool_frames, dtype=np.float32)
         self._levels: tuple[float, float, NDArray[np.float32]] | None = None
 
-    def window(self) -> int:
-        """Offset of one frame's noise window in the pool (new for every frame)."""
-        return int(self._rng.integers(0, len(self._pool) - self._size))
-
-    def frame(self) -> NDArray[np.float32]:
-        """One frame's noise intensities (frame_size,), a view into the pool."""
-        offset = self.window()
-        return self._pool[offset : offset + self._size]
-
-    def levels(self, power: np.float32, gain: np.float32) -> NDArray[np.float32]:
-        """The pool's compressed levels ``gain · ln(power · noise)`` (before the rows'
-        offsets), as :func:`_compress` computes them for a pixel without echo."""
+    def frame(
+        self, power: np.float32, gain: np.float32
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """One frame's noise (frame_size,): its intensities at unit mean and its
+        compressed levels ``gain · ln(power · noise)`` (before the rows' offsets, as
+        :func:`_compress` takes them for a pixel without echo); views into the pools."""
         if self._levels is None or self._levels[:2] != (power, gain):
             levels = np.empty_like(self._pool)
             _log_levels(self._pool, power, gain, levels)
             self._levels = (power, gain, levels)
-        return self._levels[2]
+        o = int(self._rng.integers(0, len(self._pool) - self._size))
+        window = slice(o, o + self._size)
+        return self._pool[window], self._levels[2][window]
 
 
 def to_bmode(
@@ -83,18 +79,14 @@ def to_bmode(
     flat = intensity.reshape(n, size)
     index = np.empty(size, dtype=np.int64)
     value = np.empty(size, dtype=np.float32)
-    power = np.float32(10.0 ** (probe.noise_db / 10.0)) if noise is not None else None
-    silent = np.full(size, gain * np.log(_TINY), dtype=np.float32)  # no echo, no noise
+    # Without noise every pixel without echo is at the floor, and the echoes add to 0.
+    power = np.float32(0.0 if noise is None else 10.0 ** (probe.noise_db / 10.0))
+    quiet = (np.zeros(size, np.float32), np.full(size, gain * np.log(_TINY), np.float32))
     for f in range(n):
-        if noise is None or power is None:
-            levels, noise_f = silent, silent
-        else:
-            o = noise.window()
-            noise_f = noise._pool[o : o + size]
-            levels = noise.levels(power, gain)[o : o + size]
+        noise_f, levels = quiet if noise is None else noise.frame(power, gain)
         # Pixels without echo take the noise's level; those with one are gathered, their
         # logarithm taken by numpy (vectorized), and put back.
-        m = _gather_echoes(flat[f], noise_f, power or np.float32(0.0), index, value)
+        m = _gather_echoes(flat[f], noise_f, power, index, value)
         np.log(value[:m], out=value[:m])
         _compress(levels, index[:m], value[:m], gain, offset, W, out[f].reshape(-1))
     return out
