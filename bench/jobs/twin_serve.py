@@ -131,7 +131,7 @@ def loopback_hw_config(
             "acceleration_m_s2": 1.5,
             # The controller's state stream may trail its command handshake by a few
             # packets under load: a short settle keeps the recorded pose the new one.
-            "settle_s": 0.02,
+            "settle_s": 0.005,
             "connect_timeout_s": 3.0,
         },
         "grabber": {
