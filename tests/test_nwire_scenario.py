@@ -79,7 +79,9 @@ def test_a_sweep_over_a_wire_calibrates_each_point(capsys, tmp_path):
     the target, its unused share of frames, its true error and verdict."""
     sweep = tmp_path / "sweep.yaml"
     sweep.write_text(
-        f"base: {SCENARIOS['wire']}\ngrid:\n  imaging.gain_db: [-6, 6]\nseeds: [0]\n",
+        # Sweeps of 7 frames (2 mm apart), as in the budget's test below.
+        f"base: {SCENARIOS['wire']}\ngrid:\n  imaging.gain_db: [-6, 6]\n"
+        "  protocol.frames_per_sweep: [7]\nseeds: [0]\n",
         encoding="utf-8",
     )
     r = uscal_here(capsys, "sweep", str(sweep), "--out", str(tmp_path / "out"), "--workers", "1")

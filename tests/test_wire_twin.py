@@ -67,6 +67,8 @@ def test_with_every_error_source_off_the_wire_gives_the_mount(tmp_path):
     r = uscal(
         "run", str(WIRE), "--out", str(tmp_path / "run"),
         "--set", "phantom.tolerance_position_mm=0", "--set", "protocol.teaching_error_mm=0",
+        # Sweeps of 7 frames (2 mm apart): the wire's dots are in every frame.
+        "--set", "protocol.frames_per_sweep=7",
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     w = json.loads((tmp_path / "run" / "metrics.json").read_text())["calibration"]["wire"]
