@@ -153,13 +153,14 @@ class PlanningConfig:
         },
     )
     localization_noise_mm: tuple[float, float, float] = field(
-        default=(0.007, 0.013, 0.055),
+        default=(0.03, 0.027, 0.083),
         metadata={
             "doc": "1 σ of a localized centre along the image's lateral, axial and "
             "elevational axes, independent between sweeps, which a plan is chosen for "
-            "(the twin's refined localizer on quick.yaml, scatter within a session over "
-            "20 seeds: 0.0070, 0.0132, 0.057 mm with the paper's plan, 0.0073, 0.0128, "
-            "0.054 mm with an optimized 45-sweep plan).",
+            "(the twin's refined localizer on quick.yaml's sphere 1, textured print, the "
+            "paper's plan: scatter within a session over 18 random draws of seed, gain and "
+            "temperature, 0.028–0.032, 0.026–0.027, 0.082–0.083 mm; "
+            "`benchmarks/target_noise.py --target sphere`).",
             "len": 3,
             "gt": 0,
             "le": 5,
@@ -177,12 +178,12 @@ class PlanningConfig:
         },
     )
     localization_bias_mm: tuple[float, float, float] = field(
-        default=(0.01, 0.05, 0.01),
+        default=(0.016, 0.057, 0.027),
         metadata={
             "doc": "1 σ of an offset shared by every centre of a session, along the image's "
             "lateral, axial and elevational axes (where in the cap's echo the centre lands): "
-            "it moves T_ee_us by as much, whatever the plan (the twin on quick.yaml, "
-            "seeds 0–2: 0.008, 0.05, 0.01 mm).",
+            "it moves T_ee_us by as much, whatever the plan (the twin on quick.yaml's "
+            "sphere 1, RMS over the same 18 draws: 0.016, 0.057, 0.027 mm).",
             "len": 3,
             "ge": 0,
             "le": 5,
