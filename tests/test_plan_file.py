@@ -173,16 +173,17 @@ def test_the_sequential_acquisition_stops_when_the_predicted_bounds_are_reached(
 
     scenario = load_scenario(QUICK, ["protocol.spheres=[1]", "seed=2"])
     with reporting(None):
-        m = run(scenario, until=StopRule(0.25, 0.1)).metrics
+        # The precision the paper's 45 sweeps predict (0.381° / 0.130 mm, planning's
+        # noise model): the sequential mode reaches it with far fewer.
+        m = run(scenario, until=StopRule(0.38, 0.13)).metrics
     seq = m["acquisition"]["sequential"]["sphere_1"]
-    assert seq["reached"] and seq["predicted_rotation_deg"] <= 0.25
-    assert seq["predicted_translation_mm"] <= 0.1
-    # It stopped at the first sweep that reached them, well before the paper's 45 (which
-    # predict 0.38° / 0.13 mm under the same noise model): 23 sweeps in 230 s, measured.
+    assert seq["reached"] and seq["predicted_rotation_deg"] <= 0.38
+    assert seq["predicted_translation_mm"] <= 0.13
+    # It stopped at the first sweep that reached them, well before the paper's 45.
     history = seq["history"]
-    assert all(h["rotation_deg"] > 0.25 or h["translation_mm"] > 0.1 for h in history[:-1])
-    assert m["acquisition"]["sweeps"] == seq["sweeps"] < 30
-    assert m["acquisition"]["robot_time_s"] < 0.75 * 349.5
+    assert all(h["rotation_deg"] > 0.38 or h["translation_mm"] > 0.13 for h in history[:-1])
+    assert m["acquisition"]["sweeps"] == seq["sweeps"] < 25
+    assert m["acquisition"]["robot_time_s"] < 0.6 * 349.5
     err = m["calibration"]["single"]["true_error"]
     # The truth within about twice the predicted 1 σ.
     assert err["rotation_deg"] <= 0.5 and err["translation_mm"] <= 0.25
