@@ -61,6 +61,7 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import hilbert
 from scipy.special import fresnel
 
+from .disk_cache import disk_cached
 from .probe import ProbeConfig
 
 __all__ = [
@@ -517,9 +518,10 @@ def _node_weights(depths: Array, d: Array) -> tuple[NDArray[np.int64], NDArray[n
 
 
 @functools.lru_cache(maxsize=16)
+@disk_cached(BeamTables)
 def beam_tables(t: Transducer, max_depth_m: float) -> BeamTables:
     """The beam of ``t`` from near the face to ``max_depth_m`` (cached per transducer and
-    depth range)."""
+    depth range, in the process and on disk: :mod:`sim_us.disk_cache`)."""
     nodes = [_FIRST_NODE_M]
     while nodes[-1] < max_depth_m:
         nodes.append(nodes[-1] + float(np.clip(_NODE_STEP * nodes[-1], *_NODE_SPACING_M)))
@@ -701,8 +703,10 @@ def _trilinear(table, i0, i1, wd, a, j0, j1, wj):  # pragma: no cover - compiled
 
 
 @functools.lru_cache(maxsize=16)
+@disk_cached(MirrorTables)
 def mirror_tables(t: Transducer, max_depth_m: float) -> MirrorTables:
-    """The mirror echo of ``t`` at the depth nodes of its beam tables (cached; ≈ 1 s)."""
+    """The mirror echo of ``t`` at the depth nodes of its beam tables (cached in the
+    process and on disk; ≈ 2 s to compute)."""
     depths = beam_tables(t, max_depth_m).depths
     tilts = np.radians(np.arange(0.0, _MIRROR_MAX_DEG + 1e-9, _MIRROR_STEP_DEG))
     lateral = np.empty((len(depths), len(MIRROR_SLOPES), len(tilts)))

@@ -31,7 +31,16 @@ def test_a_planned_acquisition_on_the_loopback_rig(controller, tmp_path):
     rig acquires the plan's sweeps (a third of the paper's) and calibrates as well; a
     plan for other spheres is refused before anything moves."""
     plan, dataset, out = tmp_path / "plan.yaml", tmp_path / "ds", tmp_path / "cal"
-    r = uscal("plan", str(QUICK), *ONE_SPHERE, "--optimize", "--sweeps", "15", "--out", str(plan))
+    # The planner's coarser grid and fewer other sessions, as tests/test_plan_file.py
+    # plans (the plan's quality is tested there): what is tested here is the rig.
+    coarse = [
+        "--set", "planning.rotation_step_deg=15", "--set", "planning.shift_step_mm=3",
+        "--set", "planning.session_draws=6",
+    ]  # fmt: skip
+    r = uscal(
+        "plan", str(QUICK), *ONE_SPHERE, "--optimize", "--sweeps", "15", *coarse,
+        "--out", str(plan),
+    )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert "optimized" in r.stdout and plan.exists()
     use = ["--set", f"protocol.plan={plan}"]

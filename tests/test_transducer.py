@@ -118,3 +118,34 @@ def test_side_lobes_are_the_array_s_a_level_or_none():
         assert s.imaging.side_lobe_db == value
     with pytest.raises(ScenarioError, match="did you mean 'array'"):
         scenario_from_mapping({"imaging": {"side_lobe_db": "arry"}})
+
+
+def test_the_tables_kept_on_disk_are_the_tables_computed(tmp_path, monkeypatch):
+    """sim_us.disk_cache: the beam tables a process computed are read back by the next
+    one bit for bit; another transducer gets its own file, a damaged file is computed
+    again, and `USCAL_CACHE_DIR=off` writes nothing."""
+    import dataclasses
+
+    cached = beam_tables.__wrapped__  # below the in-process cache: the disk's
+    compute = cached.__wrapped__
+    t = transducer(ProbeConfig())
+    depth = 0.012
+    monkeypatch.setenv("USCAL_CACHE_DIR", "off")
+    cached(t, depth)
+    assert not any(tmp_path.iterdir())
+    monkeypatch.setenv("USCAL_CACHE_DIR", str(tmp_path / "cache"))
+    fresh = compute(t, depth)
+    first = cached(t, depth)
+    (kept,) = (tmp_path / "cache").iterdir()
+    again = cached(t, depth)  # read from the file
+    for f in dataclasses.fields(fresh):
+        a, b, c = (getattr(x, f.name) for x in (fresh, first, again))
+        assert type(a) is type(c)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(c), err_msg=f.name)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f.name)
+    other = replace(t, elevation_focus_m=0.025)
+    assert cached(other, depth).elevation_fwhm[-1] != again.elevation_fwhm[-1]
+    assert len(list((tmp_path / "cache").iterdir())) == 2
+    kept.write_bytes(b"not an npz")
+    np.testing.assert_array_equal(cached(t, depth).lateral, fresh.lateral)
+    assert kept.read_bytes()[:2] == b"PK"  # written again, whole
