@@ -19,6 +19,7 @@ skipped without a word (the tables are computed, as without a cache).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -28,12 +29,12 @@ import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, BinaryIO, TypeVar
 
 import numpy as np
 import scipy
 
-__all__ = ["cache_dir", "disk_cached"]
+__all__ = ["cache_dir", "disk_cached", "write_whole"]
 
 T = TypeVar("T")
 
@@ -76,19 +77,26 @@ def _read(path: Path, cls: type[T]) -> T | None:
     return cls(**{k: (v.item() if v.ndim == 0 else v) for k, v in values.items()})
 
 
-def _write(path: Path, value: Any) -> None:
+def write_whole(path: Path, dump: Callable[[BinaryIO], None]) -> None:
+    """Write a file whole: ``dump`` writes a temporary file beside ``path``, renamed to it
+    when done, so that a process reading at the same time sees the whole file or none.
+    Creates the directory; on an error nothing is left behind."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".tmp")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez(f, **{k: np.asarray(v) for k, v in dataclasses.asdict(value).items()})
-            os.replace(tmp, path)
-        except BaseException:
-            os.unlink(tmp)
-            raise
-    except OSError:
-        pass  # an unwritable cache: computed every time, as without one
+        with os.fdopen(fd, "wb") as f:
+            dump(f)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def _write(path: Path, value: Any) -> None:
+    arrays = {k: np.asarray(v) for k, v in dataclasses.asdict(value).items()}
+    # An unwritable cache: computed every time, as without one.
+    with contextlib.suppress(OSError):
+        write_whole(path, lambda f: np.savez(f, **arrays))
 
 
 def disk_cached(cls: type[T]) -> Callable[[Callable[..., T]], Callable[..., T]]:

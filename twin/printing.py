@@ -54,7 +54,6 @@ from __future__ import annotations
 import hashlib
 import os
 import pickle
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,6 +61,8 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 from scipy.special import sph_harm_y
+
+from sim_us.disk_cache import write_whole
 
 __all__ = [
     "PrintSettings",
@@ -215,11 +216,7 @@ def _from_disk(build, key: tuple, args: tuple):
         with path.open("rb") as f:
             return pickle.load(f)
     part = build(*args)
-    _DISK_CACHE.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=_DISK_CACHE, suffix=".tmp")
-    with os.fdopen(fd, "wb") as f:
-        pickle.dump(part, f, protocol=pickle.HIGHEST_PROTOCOL)
-    os.replace(tmp, path)
+    write_whole(path, lambda f: pickle.dump(part, f, protocol=pickle.HIGHEST_PROTOCOL))
     return part
 
 
