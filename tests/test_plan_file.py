@@ -153,7 +153,14 @@ def test_a_planned_run_on_the_twin_takes_the_planned_time_and_calibrates(tmp_pat
     from bench.progress import reporting
 
     sets = ["protocol.spheres=[1]", "seed=3"]
-    scenario = load_scenario(QUICK, sets)
+    # Planned on the coarser grid with fewer other sessions, as the test above plans
+    # (what is tested here is that the twin carries the plan out).
+    coarse = [
+        "planning.rotation_step_deg=15",
+        "planning.shift_step_mm=3",
+        "planning.session_draws=6",
+    ]
+    scenario = load_scenario(QUICK, [*sets, *coarse])
     c = optimize_plan(scenario, 15, "D", 1)
     plan = write_plan(tmp_path / "plan.yaml", c.optimized.poses, plan_about(c, scenario))
     with reporting(None):
