@@ -395,3 +395,17 @@ def test_the_command_line_loads_a_command_s_modules_only_when_it_runs():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]", r.stdout
+
+
+def test_a_run_loads_neither_scipy_stats_nor_scipy_signal():
+    """What a run imports (``bench.jobs.single``: the twin, the simulator, the pipeline)
+    leaves out scipy.stats and scipy.signal, ≈ 1 s of every process's start between them:
+    the distribution functions come from scipy.special, the analytic signal from
+    scipy.fft."""
+    code = (
+        "import sys, bench.jobs.single, bench.jobs.paper; "
+        "print(sorted(m for m in ('scipy.stats', 'scipy.signal') if m in sys.modules))"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]", r.stdout
