@@ -56,3 +56,17 @@ def controller(tmp_path, request):
     c = Controller(tmp_path, host, *extra)
     yield c
     c.stop()
+
+
+def pytest_collection_modifyitems(config, items):
+    """The modules with the most slow tests (end-to-end runs) first, each module's tests
+    in their own order: with ``--dist loadscope`` a worker takes a module whole, and
+    the longest taken first leave the workers finishing together (the last module taken
+    a short one); xdist's own order (most tests first) left the end-to-end modules,
+    which have few tests, to the end."""
+    slow: dict[str, int] = {}
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        slow[module] = slow.get(module, 0) + (item.get_closest_marker("slow") is not None)
+    first_seen = {m: i for i, m in enumerate(dict.fromkeys(i.nodeid.split("::")[0] for i in items))}
+    items.sort(key=lambda i: (-slow[i.nodeid.split("::")[0]], first_seen[i.nodeid.split("::")[0]]))

@@ -159,7 +159,10 @@ def test_a_plan_made_once_holds_in_twenty_new_sessions(tmp_path):
     from bench.jobs.plan_optimize import optimize_plan, plan_about
 
     def made(sets):
-        scenario = load_scenario(QUICK, [*ONE, *sets])
+        # On the planner's coarser grid (what is tested is that the sweeps chosen clear in
+        # other sessions, not how fine the grid they are chosen from is).
+        grid = ["planning.rotation_step_deg=15", "planning.shift_step_mm=3"]
+        scenario = load_scenario(QUICK, [*ONE, *grid, *sets])
         c = optimize_plan(scenario, 15, "D", 1)
         path = tmp_path / f"plan{len(sets)}.yaml"
         return write_plan(path, c.optimized.poses, plan_about(c, scenario), c.optimized.spares)
