@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
 from pathlib import Path
 
@@ -32,18 +33,27 @@ def rng() -> np.random.Generator:
 
 
 @pytest.fixture(scope="session")
-def quick_run(tmp_path_factory):
+def quick_run(tmp_path_factory, worker_id):
     """`uscal run quick.yaml` on one sphere, the recording sent elsewhere, the
     acquisition saved as dataset files (``base / "dataset"``): (output directory,
-    recording path, metrics, the recording read back)."""
-    base = tmp_path_factory.mktemp("rec")
+    recording path, metrics, the recording read back). Made once per test session: the
+    xdist workers share it (the first to ask runs it, under a lock; the tests only read
+    it)."""
+    if worker_id == "master":  # one process: its own temporary directory
+        base = tmp_path_factory.mktemp("rec")
+    else:  # the directory the workers' temporary directories sit in: this session's
+        base = tmp_path_factory.getbasetemp().parent / "quick_run"
     out, rrd = base / "run", base / "elsewhere" / "quick.rrd"
-    r = uscal(
-        "run", str(QUICK), "--out", str(out), "--set", "protocol.spheres=[1]",
-        "--rrd", str(rrd), "--rrd-frames", "63", "--save-dataset", str(base / "dataset"),
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    (base / "stdout.txt").write_text(r.stdout, encoding="utf-8")
+    base.mkdir(parents=True, exist_ok=True)
+    with open(base.parent / f"{base.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (base / "stdout.txt").exists():
+            r = uscal(
+                "run", str(QUICK), "--out", str(out), "--set", "protocol.spheres=[1]",
+                "--rrd", str(rrd), "--rrd-frames", "63", "--save-dataset", str(base / "dataset"),
+            )  # fmt: skip
+            assert r.returncode == 0, r.stderr
+            (base / "stdout.txt").write_text(r.stdout, encoding="utf-8")
     return out, rrd, json.loads((out / "metrics.json").read_text()), Recording(rrd)
 
 
