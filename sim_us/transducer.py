@@ -178,8 +178,8 @@ def _analytic(x: Array) -> NDArray[np.complex128]:
     cost every rendering process ≈ 0.7 s, more than the tables it is used for."""
     n = len(x)
     X = sp_fft.fft(x)
-    X[1 : (n + 1) // 2] *= 2.0
-    X[n // 2 + 1 if n % 2 == 0 else (n + 1) // 2 :] = 0.0
+    X[1 : (n + 1) // 2] *= 2.0  # the positive frequencies (not Nyquist's, for even n)
+    X[n // 2 + 1 :] = 0.0  # the negative ones
     return sp_fft.ifft(X)
 
 

@@ -74,9 +74,12 @@ def pytest_collection_modifyitems(config, items):
     the longest taken first leave the workers finishing together (the last module taken
     a short one); xdist's own order (most tests first) left the end-to-end modules,
     which have few tests, to the end."""
+
+    def module(item) -> str:
+        return item.nodeid.split("::")[0]
+
     slow: dict[str, int] = {}
     for item in items:
-        module = item.nodeid.split("::")[0]
-        slow[module] = slow.get(module, 0) + (item.get_closest_marker("slow") is not None)
-    first_seen = {m: i for i, m in enumerate(dict.fromkeys(i.nodeid.split("::")[0] for i in items))}
-    items.sort(key=lambda i: (-slow[i.nodeid.split("::")[0]], first_seen[i.nodeid.split("::")[0]]))
+        slow[module(item)] = slow.get(module(item), 0) + bool(item.get_closest_marker("slow"))
+    first_seen = {m: i for i, m in enumerate(dict.fromkeys(map(module, items)))}
+    items.sort(key=lambda i: (-slow[module(i)], first_seen[module(i)]))
