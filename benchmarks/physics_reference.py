@@ -118,6 +118,7 @@ from sim_us import MediumConfig, ProbeConfig  # noqa: E402
 from sim_us.beam import (  # noqa: E402
     SIDE_LOBE_OFFSET_PER_FWHM,
     axial_fwhm_m,
+    beam_of,
     lateral_fwhm_m,
     slice_thickness,
 )
@@ -144,6 +145,13 @@ PROFILE_SAMPLES = 160
 # Point-target PSFs (simus + DAS): depths, lateral positions per half profile.
 PSF_DEPTHS_MM = (10.0, 18.0, 30.0)
 PSF_POSITIONS = 81
+
+# Plane-wave imaging (ProbeConfig.plane_waves_deg): the steering angles compounded, the
+# offsets (mm) its lateral PSF is compared at, the pixel grid about the point (mm).
+PLANE_WAVES_DEG = (-8.0, 0.0, 8.0)
+PLANE_WAVE_OFFSETS_MM = (0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 2.0)
+PLANE_WAVE_HALF_WIDTH_MM = 2.5
+PLANE_WAVE_HALF_DEPTH_MM = 1.0
 
 # The twin's wire: radius, pixel and scanline spacing of the measuring render.
 WIRE_RADIUS_M = 0.01e-3
@@ -415,6 +423,58 @@ def point_target_psf(a: ArraySpec, depth_m: float, fnumber: float) -> dict[str, 
     }
 
 
+def plane_wave_psf(a: ArraySpec, depth_m: float, fnumber: float) -> dict[str, Any]:
+    """The displayed PSF of one point scatterer at ``(0, depth_m)`` imaged by coherently
+    compounded plane waves (:data:`PLANE_WAVES_DEG`, every active element firing, no
+    apodization), as ``ProbeConfig.plane_waves_deg`` asks sim_us for: per wave, ``simus``
+    (pymust's own frequency grid), ``rf2iq``, ``dasmtx`` at the f-number (its hard-edged
+    receive aperture) on a pixel grid about the point; the I/Q summed over the waves, its
+    modulus. The lateral profile is each column's brightest pixel (the compounding's tails
+    are tilted copies of the echo, at other depths than its peak: the display shows them
+    beside the point all the same), its FWHM and its levels (dB) at
+    :data:`PLANE_WAVE_OFFSETS_MM`."""
+    import pymust  # optional: only the reference needs pymust
+    from pymust import utils
+
+    param = pymust_param(a, np.ones(a.active_elements, np.float32))
+    del param["TXapodization"]
+    param.fs = 4 * param.fc
+    param.radius = np.inf
+    x = np.arange(-PLANE_WAVE_HALF_WIDTH_MM, PLANE_WAVE_HALF_WIDTH_MM + 1e-9, 0.01) * 1e-3
+    z = depth_m + np.arange(-PLANE_WAVE_HALF_DEPTH_MM, PLANE_WAVE_HALF_DEPTH_MM + 1e-9, 0.01) * 1e-3
+    X, Z = np.meshgrid(x, z)
+    opt = utils.Options()
+    opt.WaitBar = False
+    iq_sum = np.zeros(X.size, complex)
+    for angle in PLANE_WAVES_DEG:
+        p = param.copy()
+        p.TXdelay = pymust.txdelay(p, np.radians(angle))
+        rf, _ = pymust.simus(
+            np.array([[0.0]]),
+            np.array([[1e-8]]),  # y ≠ 0: the 3-D model with the elevation lens (at y = 0)
+            np.array([[depth_m]]),
+            np.array([[1.0]]),
+            p.TXdelay,
+            p,
+            opt,
+        )
+        iq = pymust.rf2iq(rf, p.fs, p.fc)
+        p.fnumber = fnumber
+        iq_sum += pymust.dasmtx(iq, X, Z, p) @ iq.flatten(order="F")
+    env = np.abs(iq_sum).reshape(X.shape, order="F")
+    profile = env.max(axis=0) / env.max()
+    xm = x * 1e3
+
+    def level(o: float) -> float:  # both sides' mean amplitude, dB
+        both = np.interp(o, xm, profile) + np.interp(-o, xm, profile)
+        return float(20.0 * np.log10(both / 2.0))
+
+    return {
+        "lateral_fwhm_mm": fwhm(xm, profile),
+        "levels_db": [level(o) for o in PLANE_WAVE_OFFSETS_MM],
+    }
+
+
 def reference_figures(case: ProbeCase, log: bool = True) -> dict[str, Any]:
     """The pymust figures of one probe at every depth (see the module docstring)."""
     a = case.array
@@ -465,10 +525,27 @@ def reference_figures(case: ProbeCase, log: bool = True) -> dict[str, Any]:
                 f"  simus {case.name} {depth_mm:g} mm: {time.perf_counter() - t0:.1f} s",
                 file=sys.stderr,
             )
+    pw: dict[str, list[Any]] = {}
+    for depth_mm in PSF_DEPTHS_MM:
+        t0 = time.perf_counter()
+        for k, v in plane_wave_psf(a, depth_mm * 1e-3, fnum).items():
+            pw.setdefault(k, []).append([_r(x) for x in v] if isinstance(v, list) else _r(v))
+        if log:
+            print(
+                f"  simus {case.name} plane waves {depth_mm:g} mm: "
+                f"{time.perf_counter() - t0:.1f} s",
+                file=sys.stderr,
+            )
     out: dict[str, Any] = {
         "receive_fnumber": round(fnum, 4),
         "figures": {k: [_r(v) for v in vals] for k, vals in fig.items()},
         "psf": {"depths_mm": list(PSF_DEPTHS_MM), **psf},
+        "plane_wave_psf": {
+            "depths_mm": list(PSF_DEPTHS_MM),
+            "steer_deg": list(PLANE_WAVES_DEG),
+            "offsets_mm": list(PLANE_WAVE_OFFSETS_MM),
+            **pw,
+        },
     }
     if full:
         out["elevation_fwhm_full_aperture_mm"] = [_r(v) for v in full]
@@ -526,6 +603,23 @@ def twin_figures(probe: ProbeConfig) -> dict[str, list[float]]:
         fig["side_lobe_db"].append(level)
         fig["side_lobe_mm"].append(offset)
     return fig
+
+
+def twin_plane_wave_psf(probe: ProbeConfig) -> dict[str, list]:
+    """sim_us's lateral PSF for ``probe`` imaging with :data:`PLANE_WAVES_DEG` (receive
+    aperture unapodized, as dasmtx's): the lateral kernel the simulator blurs echoes with
+    (``beam_of(probe).lateral_profile``) at each PSF depth, its FWHM and its levels at
+    :data:`PLANE_WAVE_OFFSETS_MM`."""
+    pw = replace(probe, plane_waves_deg=PLANE_WAVES_DEG, receive_apodization="rect")
+    tables = beam_of(pw)
+    x = np.arange(-PLANE_WAVE_HALF_WIDTH_MM, PLANE_WAVE_HALF_WIDTH_MM + 1e-9, 0.005)
+    out: dict[str, list] = {"lateral_fwhm_mm": [], "levels_db": []}
+    for depth_mm in PSF_DEPTHS_MM:
+        prof = tables.lateral_profile(depth_mm * 1e-3, x * 1e-3)[0]
+        out["lateral_fwhm_mm"].append(fwhm(x, prof / prof.max()))
+        levels = np.interp(PLANE_WAVE_OFFSETS_MM, x, prof / prof.max())
+        out["levels_db"].append([float(v) for v in 20.0 * np.log10(np.maximum(levels, 1e-6))])
+    return out
 
 
 # ------------------------------------------------------------------ stored reference
@@ -594,6 +688,49 @@ def _num(v: float | None) -> float:
 
 def _ratio(t: float, r: float) -> float:
     return t / r if np.isfinite(t) and np.isfinite(r) and r > 0 else float("nan")
+
+
+def print_plane_waves(rec: dict[str, Any], twin: dict[str, list]) -> tuple[list, list]:
+    """The plane-wave PSF table of one probe; returns (FWHM ratios, level differences at
+    the offsets up to the first null, where the main lobe is)."""
+    ref = rec["plane_wave_psf"]
+    offsets = ref["offsets_mm"]
+    steer = ", ".join(f"{v:g}" for v in ref["steer_deg"])
+    print(
+        f"  plane waves at {steer}° compounded (simus + dasmtx per wave, each column's "
+        "brightest pixel) vs sim_us's lateral kernel; levels dB at offsets (mm):"
+    )
+    print(
+        f"  {'depth':>5} | {'FWHM mm ref twin ratio':^22} | "
+        + " ".join(f"{o:>5g}" for o in offsets)
+    )
+    ratios, levels = [], []
+    for j, depth in enumerate(ref["depths_mm"]):
+        r, t = _num(ref["lateral_fwhm_mm"][j]), twin["lateral_fwhm_mm"][j]
+        q = _ratio(t, r)
+        ratios.append(q)
+        print(
+            f"  {depth:5g} | {r:6.3f} {t:6.3f} {q:6.2f}    | ref  "
+            + " ".join(f"{v:5.1f}" for v in ref["levels_db"][j])
+        )
+        print(f"  {'':5} | {'':22} | twin " + " ".join(f"{v:5.1f}" for v in twin["levels_db"][j]))
+        # The main lobe: offsets out to where the reference first falls below -20 dB.
+        main = np.flatnonzero(np.asarray(ref["levels_db"][j]) < -20.0)
+        stop = int(main[0]) if len(main) else len(offsets)
+        levels += [
+            t_ - r_
+            for r_, t_ in zip(ref["levels_db"][j][:stop], twin["levels_db"][j][:stop], strict=True)
+        ]
+        tails = [
+            t_ - r_
+            for r_, t_ in zip(ref["levels_db"][j][stop:], twin["levels_db"][j][stop:], strict=True)
+        ]
+        if tails:
+            print(
+                f"  {'':5} | {'':22} | past -20 dB: twin − ref "
+                f"{min(tails):+.1f} to {max(tails):+.1f} dB"
+            )
+    return ratios, levels
 
 
 def print_table(case: ProbeCase, rec: dict[str, Any], twin: dict[str, list[float]]) -> tuple:
@@ -710,6 +847,10 @@ def main() -> None:
         ratios, levels = print_table(case, rec, twin)
         all_ratios += ratios
         all_levels += levels
+        if "plane_wave_psf" in rec:
+            ratios, levels = print_plane_waves(rec, twin_plane_wave_psf(case.imaging))
+            all_ratios += ratios
+            all_levels += levels
     if args.write:
         write_stored(records)
         print(f"\nwrote {STORED.relative_to(ROOT)}")

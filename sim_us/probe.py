@@ -70,6 +70,28 @@ class ProbeConfig:
             "le": 20,
         },
     )
+    plane_waves_deg: tuple[float, ...] = field(
+        default=(),
+        metadata={
+            "doc": "Plane-wave imaging: the steering angles of the plane waves every "
+            "frame is compounded from (coherently, each fired by all active_elements; "
+            "e.g. [-8, 0, 8]), symmetric about 0. [] = a scanner that focuses its "
+            "transmit at every depth, line by line (the clinical default). Each angle's "
+            "transmit is unfocused: the lateral beam is wider and its compounding tails "
+            "stand beside an echo (sim_us.transducer).",
+            "ge": -30,
+            "le": 30,
+        },
+    )
+    receive_apodization: Literal["rect", "hann"] = field(
+        default="rect",
+        metadata={
+            "doc": "Weighting of the receive aperture across its f-number width: 'rect' "
+            "uniform (the focused scanner's), 'hann' a Hann window (lower side lobes, a "
+            "wider main lobe; plane-wave beamformers use it to keep a specular echo's "
+            "line from spreading across the image)."
+        },
+    )
     lateral_fwhm_mm: float | None = field(
         default=None,
         metadata={

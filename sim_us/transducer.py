@@ -26,6 +26,16 @@ elevation aperture (element height) with its lens focus. From these follow:
   square of the one-way field; broadband, its RMS over the pulse's spectrum.
   The lateral profile through the focus keeps its side lobes; the elevation beam narrows
   in front of the lens focus (focal shift of a weakly focused aperture) and widens past it;
+- **plane-wave imaging** (``ProbeConfig.plane_waves_deg``): a research scanner may instead
+  fire a few plane waves steered at symmetric angles θ from all active elements and
+  compound the beamformed frames coherently. Each transmit is unfocused; the beamformer
+  expects its front's arrival, so at a point off the scanline the waves arrive out of step
+  by ``x sin θ`` and their sum draws the compounding's tails beside an echo (at
+  ``λ / sin θ`` for three waves, −25 to −30 dB): the two-way profile is the transmits'
+  sum at each frequency times the receive field, each as a broadband RMS. The tails are
+  tilted copies of the echo at other depths; the separable PSF draws their energy at
+  the echo's depth (their peak 2-6 dB above the reference's brightest pixel there). The
+  receive aperture can be Hann-weighted (``receive_apodization``);
 - **the echo of a mirror** (a smooth surface's specular reflection) against its tilt, in
   the image plane and in elevation: by the image method, the wave from each transmitting
   point of the aperture reaches each receiving point along the path through the mirror
@@ -37,7 +47,8 @@ elevation aperture (element height) with its lens focus. From these follow:
   aperture, so a mirror in focus returns the overlap of the aperture with itself shifted
   by that much (``1 − 2 F# tan θ`` of it laterally): the echo fades by 4 dB at 5° and
   17 dB at 10° for an F# 2.3 array, and past ``atan(1 / 2F#)`` only edge waves remain
-  (pymust: 4.1, 17.0 dB). A surface rough on a scale larger than the wavelength (facets of
+  (pymust: 4.1, 17.0 dB). Plane waves: the same sum over the pairs of every transmit, each
+  transmitting element delayed as its steering does. A surface rough on a scale larger than the wavelength (facets of
   rms slope s) returns its incoherent share over this lobe widened by the facets' tilts
   (Gaussian, s per axis): the geometrical-optics limit of the Kirchhoff model (Ogilvy,
   *Theory of Wave Scattering from Random Rough Surfaces*, 1991, ch. 4).
@@ -133,6 +144,9 @@ class Transducer:
     elevation_aperture_m: float
     elevation_focus_m: float
     speed_m_s: float
+    # Plane-wave imaging: the steering angles (rad) compounded; () = focused transmits.
+    plane_waves_rad: tuple[float, ...] = ()
+    receive_apodization: str = "rect"
 
     @property
     def wavelength_m(self) -> float:
@@ -141,6 +155,12 @@ class Transducer:
 
 def transducer(probe: ProbeConfig) -> Transducer:
     """The transducer of ``probe`` (its beam-relevant fields)."""
+    angles = probe.plane_waves_deg
+    if sorted(angles) != sorted(-a for a in angles):
+        raise ValueError(
+            f"plane_waves_deg {list(angles)}: the steering angles must be symmetric about 0 "
+            "(the beam tables are)"
+        )
     return Transducer(
         f_hz=probe.f_mhz * 1e6,
         bandwidth=probe.bandwidth_pct / 100.0,
@@ -152,6 +172,8 @@ def transducer(probe: ProbeConfig) -> Transducer:
         elevation_aperture_m=probe.elevation_aperture_mm * 1e-3,
         elevation_focus_m=probe.elevation_focus_mm * 1e-3,
         speed_m_s=probe.assumed_speed_m_s,
+        plane_waves_rad=tuple(float(np.radians(a)) for a in probe.plane_waves_deg),
+        receive_apodization=probe.receive_apodization,
     )
 
 
@@ -257,6 +279,31 @@ def _aperture(t: Transducer, depth_m: float) -> Array:
     return u[on]
 
 
+def _receive_weights(t: Transducer, depth_m: float, u: Array) -> Array:
+    """The receive apodization of the elements at ``u`` (m off the scanline) for a point at
+    ``depth_m``: 1, or a Hann window that is 1 on the line and 0 at depth / (2 F#)."""
+    if t.receive_apodization == "rect":
+        return np.ones(len(u))
+    half = max(depth_m / (2.0 * receive_fnumber(t)), float(np.max(np.abs(u))) + t.pitch_m / 2)
+    return 0.5 + 0.5 * np.cos(np.pi * np.clip(np.abs(u) / half, 0.0, 1.0))
+
+
+def _transmits(t: Transducer, depth_m: float) -> list[tuple[Array, Array]]:
+    """The transmits that image a point at ``depth_m`` on the scanline, each as (its
+    elements' positions off the line (m), the path (m) the beamformer takes each
+    element's wave to travel to that point). Focused: one transmit from the receive
+    aperture, each path the element's distance to the point (the focusing delays cancel
+    it there). Plane waves: one per steering angle θ, from all active elements, element
+    ``u`` firing ``u sin θ / c`` late; the beamformer expects the plane front's arrival,
+    ``depth cos θ`` (the front through the array's centre at t = 0), so element ``u``'s
+    wave is expected to travel ``depth cos θ − u sin θ``."""
+    if not t.plane_waves_rad:
+        u = _aperture(t, depth_m)
+        return [(u, np.hypot(u, depth_m))]
+    u = (np.arange(t.active_elements) - (t.active_elements - 1) / 2) * t.pitch_m
+    return [(u, depth_m * np.cos(a) - u * np.sin(a)) for a in t.plane_waves_rad]
+
+
 def _elevation_field(z: Array, r: Array, k: float, t: Transducer) -> NDArray[np.complex128]:
     """One element's field in elevation at range ``r`` and elevation ``z`` (broadcast):
     ∫ exp(i k [(z − ζ)² / 2r − ζ² / 2F]) dζ over the height, / √r (Fresnel), closed form."""
@@ -281,24 +328,38 @@ def _elevation_field(z: Array, r: Array, k: float, t: Transducer) -> NDArray[np.
 
 def two_way_profile(t: Transducer, depth_m: float, x: Array, z: Array) -> Array:
     """Two-way amplitude (peak 1) at points ``(x, depth, z)`` of the focal plane (m),
-    transmit and receive focused at ``(0, depth)``: broadband RMS of the square of the
-    one-way field (module docstring)."""
-    u = _aperture(t, depth_m)
+    imaged by the beamformer focused at ``(0, depth)``: the product of the transmit's and
+    the receive's broadband RMS fields (module docstring). A focused scanner's transmit
+    and receive are the same aperture: the square of its one-way field. Plane waves: the
+    compounded transmits summed as waves at each frequency (their tails beside the line
+    arrive out of step and partly cancel), then the RMS."""
     w = t.pitch_m - t.kerf_m
     freqs = np.linspace(t.f_hz * (1 - t.bandwidth), t.f_hz * (1 + t.bandwidth), _FREQUENCIES)
     power = (_excitation(t, freqs) ** 2) * _pulse_echo_response(t, freqs)  # one-way, squared
-    dx = np.asarray(x, float)[:, None] - u[None, :]
-    r = np.sqrt(dx**2 + depth_m**2)
-    r0 = np.sqrt(u**2 + depth_m**2)
-    zz = np.asarray(z, float)[:, None]
-    out = np.zeros(len(dx))
+    xx, zz = np.asarray(x, float)[:, None], np.asarray(z, float)[:, None]
+    u = _aperture(t, depth_m)
+    weights = _receive_weights(t, depth_m, u)
+    same = not t.plane_waves_rad and t.receive_apodization == "rect"
+
+    def field(k: float, lam: float, u: Array, path: Array, a: Array) -> NDArray[np.complex128]:
+        dx = xx - u[None, :]
+        r = np.sqrt(dx**2 + depth_m**2)
+        directivity = depth_m / r * np.sinc(w * dx / r / lam)
+        one = a * directivity * np.exp(1j * k * (r - path)) / np.sqrt(r)
+        return (one * _elevation_field(zz, r, k, t)).sum(axis=1)
+
+    rx = np.zeros(len(xx))
+    tx = np.zeros(len(xx))
+    transmits = _transmits(t, depth_m)
     for f, pw in zip(freqs, power, strict=True):
         k = 2.0 * np.pi * f / t.speed_m_s
         lam = t.speed_m_s / f
-        directivity = depth_m / r * np.sinc(w * dx / r / lam)
-        field = directivity * np.exp(1j * k * (r - r0)) / np.sqrt(r)
-        field = field * _elevation_field(zz, r, k, t)
-        out += pw * np.abs(field.sum(axis=1)) ** 2
+        received = field(k, lam, u, np.sqrt(u**2 + depth_m**2), weights)
+        rx += pw * np.abs(received) ** 2
+        if not same:
+            sent = sum(field(k, lam, ut, path, np.ones(len(ut))) for ut, path in transmits)
+            tx += pw * np.abs(sent) ** 2
+    out = rx if same else np.sqrt(rx * tx)
     return out / np.max(out)
 
 
@@ -351,16 +412,24 @@ def _mirror_spectra(
     in elevation (the lensed element height, obliquity)."""
     c, lam = t.speed_m_s, t.wavelength_m
     u = _aperture(t, depth_m)
+    weights = _receive_weights(t, depth_m, u)
     w = t.pitch_m - t.kerf_m
-    length, su, sv = _mirror_paths(u, u, depth_m, tilts)
     r0 = np.hypot(u, depth_m)
-    delay = (length - r0[None, :, None] - r0[None, None, :]) / c
 
     def directivity(s: Array) -> Array:
         return np.sqrt(1.0 - s**2) * np.sinc(w * s / lam)
 
-    amp = directivity(su) * directivity(sv) / np.sqrt(length)
-    lateral = _spectra(delay.reshape(len(tilts), -1), amp.reshape(len(tilts), -1), fs, n)
+    # Every (transmitting, receiving) element pair of every transmit: their pulses add
+    # in the beamformed sum (plane waves are compounded coherently).
+    delays, amps = [], []
+    for ut, path in _transmits(t, depth_m):
+        length, su, sv = _mirror_paths(ut, u, depth_m, tilts)
+        delays.append(
+            ((length - path[None, :, None] - r0[None, None, :]) / c).reshape(len(tilts), -1)
+        )
+        amp = directivity(su) * directivity(sv) * weights[None, None, :] / np.sqrt(length)
+        amps.append(amp.reshape(len(tilts), -1))
+    lateral = _spectra(np.concatenate(delays, axis=1), np.concatenate(amps, axis=1), fs, n)
     H, F = t.elevation_aperture_m, t.elevation_focus_m
     lam_min = c / (t.f_hz * (1.0 + t.bandwidth / 2.0))
     m = max(int(np.ceil(H / (lam_min / 2.0))), 2)

@@ -114,6 +114,12 @@ def write(tmp_path, text):
             r"expected_window_mm = 5.*would not cover where the plan puts the sphere.*≥ .* = 9",
         ),
         ("medium:\n  temperature_c: .nan\n", r"temperature_c = nan: expected a finite number"),
+        (
+            "imaging:\n  plane_waves_deg: [-8, 0, 5]\n",
+            r"imaging\.plane_waves_deg = \[-8\.0, 0\.0, 5\.0\]: .*not symmetric about 0",
+        ),
+        ("imaging:\n  plane_waves_deg: [40]\n", r"imaging\.plane_waves_deg.*out of range"),
+        ("imaging:\n  receive_apodization: hamming\n", r"receive_apodization.*not an allowed"),
     ],
 )
 def test_invalid_scenarios_raise_one_clear_error(tmp_path, text, pattern):
