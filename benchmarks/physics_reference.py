@@ -16,6 +16,14 @@ with a longer lens), at depths 5, 10, 15, 18, 22, 26, 30, 35, 40 and 50 mm:
   delay-and-sum with ``dasmtx`` (dynamic receive, the same f-number), its envelope |I/Q|;
   lateral and axial FWHM and the first side lobe, next to the field figures and sim_us.
 
+- plane-wave imaging (``ProbeConfig.plane_waves_deg``): the point-target PSF of three
+  plane waves at -8°, 0°, +8° from all active elements, coherently compounded (per wave
+  ``simus``, ``rf2iq``, ``dasmtx`` at the f-number on a 0.01 mm pixel grid about the
+  point; the I/Q summed), each column's brightest pixel (the compounding's tails are
+  tilted copies of the echo at other depths), at 10, 18 and 30 mm: lateral FWHM and
+  the levels at offsets out to 2 mm, next to sim_us's lateral kernel for the same
+  imaging (``beam_of(probe).lateral_profile``).
+
 How, reference side (pymust 0.1.9, ``pfield`` with ``param.height`` / ``param.focus``:
 its multi-Gaussian elevation beam model, Fresnel in elevation, far field per sub-element
 laterally, 3-D, soft baffle, the element directivity at the centre frequency):
@@ -83,9 +91,11 @@ unless ``--stored``. Takes ≈ 45 s on a quiet host (pfield ≈ 2-5 s per depth 
 simus + DAS ≈ 2-5 s per PSF depth, the twin's renders ≈ 1 s in all), up to ≈ 4 min when
 others load the two cores; ``--stored`` ≈ 3 s.
 
-The second-to-last line is ``worst_level_db=<largest |Δ| of the side-lobe levels>``, the
+The second-to-last line is ``worst_level_db=<largest |Δ| of the side-lobe levels and of
+the plane waves' main-lobe levels>`` (the plane waves' tails past -20 dB are printed, not
+counted: the separable PSF draws them 0-7 dB above the reference's brightest pixel), the
 last ``worst_ratio=<the ratio farthest from 1 over all rows and width/position columns,
-as max(r, 1/r)>``.
+the plane waves' FWHMs included, as max(r, 1/r)>``.
 
 Run: python benchmarks/physics_reference.py [--probe paper|linear75|all] [--write | --stored]
 """
