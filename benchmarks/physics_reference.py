@@ -620,7 +620,7 @@ def twin_plane_wave_psf(probe: ProbeConfig) -> dict[str, list]:
     aperture unapodized, as dasmtx's): the lateral kernel the simulator blurs echoes with
     (``beam_of(probe).lateral_profile``) at each PSF depth, its FWHM and its levels at
     :data:`PLANE_WAVE_OFFSETS_MM`."""
-    pw = replace(probe, plane_waves_deg=PLANE_WAVES_DEG, receive_apodization="rect")
+    pw = replace(probe, plane_waves_deg=PLANE_WAVES_DEG, apodization="rect")
     tables = beam_of(pw)
     x = np.arange(-PLANE_WAVE_HALF_WIDTH_MM, PLANE_WAVE_HALF_WIDTH_MM + 1e-9, 0.005)
     out: dict[str, list] = {"lateral_fwhm_mm": [], "levels_db": []}

@@ -83,13 +83,14 @@ class ProbeConfig:
             "le": 30,
         },
     )
-    receive_apodization: Literal["rect", "hann"] = field(
+    apodization: Literal["rect", "hann"] = field(
         default="rect",
         metadata={
-            "doc": "Weighting of the receive aperture across its f-number width: 'rect' "
-            "uniform (the focused scanner's), 'hann' a Hann window (lower side lobes, a "
-            "wider main lobe; plane-wave beamformers use it to keep a specular echo's "
-            "line from spreading across the image)."
+            "doc": "Weighting of the apertures, transmit and receive: 'rect' uniform (the "
+            "focused scanner's), 'hann' a Hann window across each (the receive aperture's "
+            "f-number width; a plane wave's whole active aperture): lower side lobes, a "
+            "wider main lobe; plane-wave sequences use it to keep the edge waves of the "
+            "transmit aperture and a specular echo's line out of the image."
         },
     )
     lateral_fwhm_mm: float | None = field(

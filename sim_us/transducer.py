@@ -35,7 +35,8 @@ elevation aperture (element height) with its lens focus. From these follow:
   sum at each frequency times the receive field, each as a broadband RMS. The tails are
   tilted copies of the echo at other depths; the separable PSF draws their energy at
   the echo's depth (their peak 2-6 dB above the reference's brightest pixel there). The
-  receive aperture can be Hann-weighted (``receive_apodization``);
+  apertures can be Hann-weighted (``apodization``: each transmit across the active
+  elements, the receive across its f-number width);
 - **the echo of a mirror** (a smooth surface's specular reflection) against its tilt, in
   the image plane and in elevation: by the image method, the wave from each transmitting
   point of the aperture reaches each receiving point along the path through the mirror
@@ -48,10 +49,11 @@ elevation aperture (element height) with its lens focus. From these follow:
   by that much (``1 − 2 F# tan θ`` of it laterally): the echo fades by 4 dB at 5° and
   17 dB at 10° for an F# 2.3 array, and past ``atan(1 / 2F#)`` only edge waves remain
   (pymust: 4.1, 17.0 dB). Plane waves: the same sum over the pairs of every transmit, each
-  transmitting element delayed as its steering does. A surface rough on a scale larger than the wavelength (facets of
-  rms slope s) returns its incoherent share over this lobe widened by the facets' tilts
-  (Gaussian, s per axis): the geometrical-optics limit of the Kirchhoff model (Ogilvy,
-  *Theory of Wave Scattering from Random Rough Surfaces*, 1991, ch. 4).
+  transmitting element delayed as its steering does. A surface rough on a scale larger
+  than the wavelength (facets of rms slope s) returns its incoherent share over this lobe
+  widened by the facets' tilts (Gaussian, s per axis): the geometrical-optics limit of
+  the Kirchhoff model (Ogilvy, *Theory of Wave Scattering from Random Rough Surfaces*,
+  1991, ch. 4).
 
 The figures are checked against pymust (MUST/SIMUS, itself validated against Field II) by
 ``benchmarks/physics_reference.py``: lateral and elevation FWHM within a few per cent of
@@ -146,7 +148,7 @@ class Transducer:
     speed_m_s: float
     # Plane-wave imaging: the steering angles (rad) compounded; () = focused transmits.
     plane_waves_rad: tuple[float, ...] = ()
-    receive_apodization: str = "rect"
+    apodization: str = "rect"
 
     @property
     def wavelength_m(self) -> float:
@@ -173,7 +175,7 @@ def transducer(probe: ProbeConfig) -> Transducer:
         elevation_focus_m=probe.elevation_focus_mm * 1e-3,
         speed_m_s=probe.assumed_speed_m_s,
         plane_waves_rad=tuple(float(np.radians(a)) for a in probe.plane_waves_deg),
-        receive_apodization=probe.receive_apodization,
+        apodization=probe.apodization,
     )
 
 
@@ -279,29 +281,37 @@ def _aperture(t: Transducer, depth_m: float) -> Array:
     return u[on]
 
 
-def _receive_weights(t: Transducer, depth_m: float, u: Array) -> Array:
-    """The receive apodization of the elements at ``u`` (m off the scanline) for a point at
-    ``depth_m``: 1, or a Hann window that is 1 on the line and 0 at depth / (2 F#)."""
-    if t.receive_apodization == "rect":
+def _hann(t: Transducer, u: Array, half: float) -> Array:
+    """The apodization of elements at ``u`` (m off the aperture's centre): 1, or a Hann
+    window 1 at the centre and 0 at ± ``half``."""
+    if t.apodization == "rect":
         return np.ones(len(u))
-    half = max(depth_m / (2.0 * receive_fnumber(t)), float(np.max(np.abs(u))) + t.pitch_m / 2)
     return 0.5 + 0.5 * np.cos(np.pi * np.clip(np.abs(u) / half, 0.0, 1.0))
 
 
-def _transmits(t: Transducer, depth_m: float) -> list[tuple[Array, Array]]:
+def _receive_weights(t: Transducer, depth_m: float, u: Array) -> Array:
+    """The receive apodization of the elements at ``u`` (m off the scanline) for a point at
+    ``depth_m``: across depth / (2 F#) (at least the elements' own extent)."""
+    half = max(depth_m / (2.0 * receive_fnumber(t)), float(np.max(np.abs(u))) + t.pitch_m / 2)
+    return _hann(t, u, half)
+
+
+def _transmits(t: Transducer, depth_m: float) -> list[tuple[Array, Array, Array]]:
     """The transmits that image a point at ``depth_m`` on the scanline, each as (its
     elements' positions off the line (m), the path (m) the beamformer takes each
-    element's wave to travel to that point). Focused: one transmit from the receive
-    aperture, each path the element's distance to the point (the focusing delays cancel
-    it there). Plane waves: one per steering angle θ, from all active elements, element
-    ``u`` firing ``u sin θ / c`` late; the beamformer expects the plane front's arrival,
-    ``depth cos θ`` (the front through the array's centre at t = 0), so element ``u``'s
-    wave is expected to travel ``depth cos θ − u sin θ``."""
+    element's wave to travel to that point, their apodization). Focused: one transmit
+    from the receive aperture, weighted as it is, each path the element's distance to the
+    point (the focusing delays cancel it there). Plane waves: one per steering angle θ,
+    from all active elements (weighted across them), element ``u`` firing ``u sin θ / c``
+    late; the beamformer expects the plane front's arrival, ``depth cos θ`` (the front
+    through the array's centre at t = 0), so element ``u``'s wave is expected to travel
+    ``depth cos θ − u sin θ``."""
     if not t.plane_waves_rad:
         u = _aperture(t, depth_m)
-        return [(u, np.hypot(u, depth_m))]
+        return [(u, np.hypot(u, depth_m), _receive_weights(t, depth_m, u))]
     u = (np.arange(t.active_elements) - (t.active_elements - 1) / 2) * t.pitch_m
-    return [(u, depth_m * np.cos(a) - u * np.sin(a)) for a in t.plane_waves_rad]
+    w = _hann(t, u, t.active_elements * t.pitch_m / 2.0)
+    return [(u, depth_m * np.cos(a) - u * np.sin(a), w) for a in t.plane_waves_rad]
 
 
 def _elevation_field(z: Array, r: Array, k: float, t: Transducer) -> NDArray[np.complex128]:
@@ -339,7 +349,7 @@ def two_way_profile(t: Transducer, depth_m: float, x: Array, z: Array) -> Array:
     xx, zz = np.asarray(x, float)[:, None], np.asarray(z, float)[:, None]
     u = _aperture(t, depth_m)
     weights = _receive_weights(t, depth_m, u)
-    same = not t.plane_waves_rad and t.receive_apodization == "rect"
+    same = not t.plane_waves_rad  # the transmit is the receive aperture, weighted alike
 
     def field(k: float, lam: float, u: Array, path: Array, a: Array) -> NDArray[np.complex128]:
         dx = xx - u[None, :]
@@ -357,7 +367,7 @@ def two_way_profile(t: Transducer, depth_m: float, x: Array, z: Array) -> Array:
         received = field(k, lam, u, np.sqrt(u**2 + depth_m**2), weights)
         rx += pw * np.abs(received) ** 2
         if not same:
-            sent = sum(field(k, lam, ut, path, np.ones(len(ut))) for ut, path in transmits)
+            sent = sum(field(k, lam, ut, path, wt) for ut, path, wt in transmits)
             tx += pw * np.abs(sent) ** 2
     out = rx if same else np.sqrt(rx * tx)
     return out / np.max(out)
@@ -422,12 +432,13 @@ def _mirror_spectra(
     # Every (transmitting, receiving) element pair of every transmit: their pulses add
     # in the beamformed sum (plane waves are compounded coherently).
     delays, amps = [], []
-    for ut, path in _transmits(t, depth_m):
+    for ut, path, wt in _transmits(t, depth_m):
         length, su, sv = _mirror_paths(ut, u, depth_m, tilts)
         delays.append(
             ((length - path[None, :, None] - r0[None, None, :]) / c).reshape(len(tilts), -1)
         )
-        amp = directivity(su) * directivity(sv) * weights[None, None, :] / np.sqrt(length)
+        amp = directivity(su) * directivity(sv) * wt[None, :, None] * weights[None, None, :]
+        amp = amp / np.sqrt(length)
         amps.append(amp.reshape(len(tilts), -1))
     lateral = _spectra(np.concatenate(delays, axis=1), np.concatenate(amps, axis=1), fs, n)
     H, F = t.elevation_aperture_m, t.elevation_focus_m

@@ -119,7 +119,7 @@ def write(tmp_path, text):
             r"imaging\.plane_waves_deg = \[-8\.0, 0\.0, 5\.0\]: .*not symmetric about 0",
         ),
         ("imaging:\n  plane_waves_deg: [40]\n", r"imaging\.plane_waves_deg.*out of range"),
-        ("imaging:\n  receive_apodization: hamming\n", r"receive_apodization.*not an allowed"),
+        ("imaging:\n  apodization: hamming\n", r"apodization.*not an allowed"),
     ],
 )
 def test_invalid_scenarios_raise_one_clear_error(tmp_path, text, pattern):
