@@ -24,7 +24,9 @@ The scene, the same on both sides:
 - The probe: physics_reference.py's paper probe (``paper_probe``, ``array_of``: 13 MHz,
   65 % bandwidth, 0.2 mm pitch, 0.02 mm kerf, 64 active of 190 elements, 4 mm elevation
   aperture, 18 mm lens, one-cycle excitation). sim_us gets ``ProbeConfig`` with exactly
-  these datasheet figures and its defaults otherwise (38 × 40 mm frames at 0.1 mm pixels,
+  these datasheet figures, imaging as the reference does (``plane_waves_deg`` −8°, 0°,
+  +8°, ``apodization`` "hann"; a focused scanner, sim_us's default, is reported beside
+  it), and its defaults otherwise (38 × 40 mm frames at 0.1 mm pixels,
   the array's own beam and side lobes, 60 dB, surface speckle), rendered noise-free
   (``render(T, None)``) from ``trimesh.creation.icosphere`` (5 subdivisions), material
   PLA (without its diffuse share for the smooth sphere), no reverberation (pymust
@@ -49,10 +51,18 @@ How, reference side (``--write``):
   scatterers within ±1.5 mm) was estimated at ≈ 5 × the cost, past the budget. Transmit
   delays and beamforming use 1540 m/s (``pymust_param`` of the array as stated), the
   propagation the water's speed (the same array at 1482.3 m/s): the scanner's depth
-  error is in the frames as in sim_us's. Receive: ``dasmtx`` with physics_reference's
-  ``receive_fnumber`` (2.31, from the element directivity) and a Hann apodization over
-  that aperture, applied to the DAS matrix's entries (dasmtx's own aperture is
-  hard-edged). I/Q by ``rf2iq`` (low-pass at fc); envelope |Σ I/Q| over the three waves.
+  error is in the frames as in sim_us's. Transmit: Hann-weighted across the 64 elements
+  (an unweighted plane wave's edge waves echo every scatterer again 0.3-1 mm deeper at
+  -25 dB, a point at 15 mm: a band inside every surface; -42 dB and below weighted).
+  Receive: ``dasmtx`` with physics_reference's ``receive_fnumber`` (2.31, from the element
+  directivity) and a Hann apodization over that aperture, applied to the DAS matrix's
+  entries (dasmtx's own aperture is hard-edged). I/Q by ``rf2iq`` (low-pass at fc), each
+  transmit's referred to true time before the three are summed: rf2iq demodulates from
+  the RF's first sample, which the receive delay puts at the transmit's own t0, and
+  dasmtx rotates the phase by true time, so each transmit's sum carries exp(2πj fc t0);
+  left in (as in the frames stored before), the steered waves added up to 170° out of
+  step with the unsteered one, a point's PSF at 15 mm had side lobes of -3 dB 0.3 mm
+  beside it. Envelope |Σ I/Q| over the three waves.
 - Surface: the probe-facing cap of the CAD sphere, points of a Fibonacci lattice about
   0.4 λ apart (λ in water at fc; equal area per point), each of reflection coefficient
   PLA/water (0.30, sim_us's impedances) × its area / λ², so the level does not depend on
@@ -261,12 +271,19 @@ SWEEPS = (
 )
 
 
-def probe_config() -> ProbeConfig:
+IMAGING = ("plane waves", "focused")
+
+
+def probe_config(imaging: str = "plane waves") -> ProbeConfig:
     """sim_us's probe: the paper probe's datasheet figures, no reverberation (pymust
     follows no wave twice: the cap's echo bounced off the probe face and back, at twice
-    its depth, has no counterpart in the reference), everything else default."""
+    its depth, has no counterpart in the reference), everything else default; imaging
+    as the reference does ("plane waves": :data:`STEER_DEG` compounded, the receive
+    aperture Hann-weighted) or as a focused scanner does (sim_us's default)."""
     a = PR.paper_probe().array
+    waves = {"plane_waves_deg": STEER_DEG, "apodization": "hann"}
     return ProbeConfig(
+        **(waves if imaging == "plane waves" else {}),
         reverberation=False,
         f_mhz=a.f_mhz,
         bandwidth_pct=a.bandwidth_pct,
@@ -437,6 +454,12 @@ def scanner(a: Any, x_centre: float) -> Scanner:
         del p["TXapodization"]
         p.fs = 4 * p.fc
         p.radius = np.inf
+    # The transmit Hann-weighted across the active elements (sim_us's apodization
+    # "hann"): an unweighted plane wave's edge waves echo every scatterer again 0.3-1 mm
+    # deeper at -25 dB (a point at 15 mm), a band under every surface no scanner shows.
+    xe = (np.arange(a.active_elements) - (a.active_elements - 1) / 2) * pitch
+    half = a.active_elements * pitch / 2
+    medium.TXapodization = (0.5 + 0.5 * np.cos(np.pi * xe / half)).reshape(1, -1)
     # pymust's attenuation is linear in f: water's f² law matched at fc.
     f = a.f_mhz
     medium.attenuation = WATER.attenuation_db_cm_mhz * f ** (WATER.attenuation_power - 1)
@@ -559,7 +582,14 @@ def beamformed(s: Scanner, tx: Transmit, p_us: Array, rc: Array) -> NDArray[np.c
             f"expected {2 * tx.k}): its simus changed"
         )
     iq = pymust.rf2iq(rf, p.fs, fc)
-    return np.asarray(tx.das @ iq.flatten(order="F")) * tx.k
+    # rf2iq demodulates from the RF's first sample, which the receive delay put at t0, and
+    # dasmtx rotates the I/Q's phase by true time: each transmit's sum carries
+    # exp(2πj fc t0). The phase must go before the transmits are compounded (their t0
+    # differ): left in, the steered waves added to the unsteered one 170° out of step at
+    # 15 mm and drew side lobes of -3 dB 0.3 mm beside a point (a point's PSF, checked
+    # against pymust without the window shift: equal within 0.6 dB to -40 dB).
+    phase = np.exp(-2j * np.pi * fc * tx.t0)
+    return np.asarray(tx.das @ iq.flatten(order="F")) * tx.k * phase
 
 
 @dataclass(frozen=True)
@@ -738,7 +768,9 @@ def method_record(surface: str = "smooth") -> dict[str, Any]:
     record = {
         "imaging": "coherently compounded steered plane waves (64 active elements centred "
         "over the sphere), pymust simus (3-D, elevation lens) + rf2iq (low-pass at fc) + "
-        "dasmtx at the scanner's 1540 m/s with the directivity f-number, Hann-apodized",
+        "dasmtx at the scanner's 1540 m/s with the directivity f-number, the transmit and the "
+        "receive Hann-apodized; "
+        "each transmit's I/Q phase referred to true time (exp(-2πj fc t0)) before compounding",
         "steer_deg": list(STEER_DEG),
         "receive_fnumber": round(PR.receive_fnumber(PR.paper_probe().array), 4),
         "medium": "water 20 °C (MediumConfig()): c from calib.sound, attenuation at fc "
@@ -853,16 +885,82 @@ def sweeps_of(frames: NDArray[np.uint8], data: dict[str, Any]) -> list[Sweep]:
 
 
 def twin_frames(
-    poses: Array, surface: str = "smooth", probe: ProbeConfig | None = None
+    poses: Array,
+    surface: str = "smooth",
+    probe: ProbeConfig | None = None,
+    speckle_key: int = 0,
 ) -> NDArray[np.uint8]:
     """sim_us's frames (S, n, H, W) of the same scene at the same poses: an icosphere of
-    PLA in water (without its diffuse share for the "smooth" surface), noise-free."""
+    PLA in water (without its diffuse share for the "smooth" surface), noise-free, imaged
+    as the reference does unless ``probe`` says otherwise; ``speckle_key`` picks the
+    realization of the surface's speckle (the diffuse share's random phases)."""
     probe = probe or probe_config()
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=RADIUS_M)
     mesh.apply_translation(CENTRE_BASE)
     scene = AcousticScene((ScenePart("sphere", mesh, sphere_material(surface)),))
-    sim = BmodeSimulator(scene, probe, MEDIUM)
+    sim = BmodeSimulator(scene, probe, MEDIUM, speckle_key=speckle_key)
     return np.array([sim.render(T, None) for T in poses])
+
+
+# The diffuse sphere's speckle is one random draw on either side: sim_us's error is
+# measured over this many realizations of it (keys 0, 1, …), and pymust's single
+# realization is compared with their median.
+SPECKLE_REALIZATIONS = 20
+
+
+def twin_spread(data: dict[str, Any], imaging: str = "plane waves") -> dict[str, Array]:
+    """sim_us's error (mm, NaN where rejected) per method, speckle realization and sweep,
+    each (SPECKLE_REALIZATIONS, sweeps), for the stored surface's scene and poses."""
+    probe = probe_config(imaging)
+    out: dict[str, list] = {method: [] for method in METHODS}
+    for key in range(SPECKLE_REALIZATIONS):
+        sweeps = sweeps_of(twin_frames(data["T_base_ee"], data["surface"], probe, key), data)
+        for method in METHODS:
+            out[method].append(errors_mm(localize(sweeps, data, method), data["centre_ref"]))
+    return {method: np.array(v) for method, v in out.items()}
+
+
+def print_spread(data: dict[str, Any], results: dict[str, dict[str, list]]) -> float:
+    """pymust's error per sweep against sim_us's over its speckle realizations (the
+    reference's imaging, and a focused scanner's); returns the worst ratio of pymust's
+    error to sim_us's median over the sweeps and methods both accept."""
+    truths = data["centre_ref"]
+    spreads = {imaging: twin_spread(data, imaging) for imaging in IMAGING}
+    print(
+        f"\nsim_us over {SPECKLE_REALIZATIONS} realizations of the speckle (median "
+        "[10th-90th percentile], mm) against pymust's one realization; 'above' = the share "
+        "of sim_us's realizations with a larger error than pymust's; ratio = pymust / median"
+    )
+    print(
+        f"{'sweep':>5} {'method':>8} | {'ref mm':>7} | {'twin (plane waves)':^26} "
+        f"{'ratio':>5} {'above':>5} | {'focused scanner':^22}"
+    )
+    worst = float("nan")
+    for method in METHODS:
+        e_ref = errors_mm(results["ref"][method], truths)
+        for i in range(len(truths)):
+            cells = []
+            for imaging in IMAGING:
+                e = spreads[imaging][method][:, i]
+                ok = e[np.isfinite(e)]
+                if not len(ok):
+                    cells.append((np.nan, np.nan, np.nan, 0))
+                    continue
+                lo, med, hi = np.percentile(ok, [10, 50, 90])
+                cells.append((med, lo, hi, len(ok)))
+            med, lo, hi, n = cells[0]
+            ratio = e_ref[i] / med if np.isfinite(e_ref[i]) and np.isfinite(med) else np.nan
+            if np.isfinite(ratio):
+                worst = ratio if not np.isfinite(worst) else max(worst, ratio)
+            e = spreads["plane waves"][method][:, i]
+            above = float(np.mean(e[np.isfinite(e)] > e_ref[i])) if n else np.nan
+            fmed, flo, fhi, fn = cells[1]
+            print(
+                f"{i:>5} {method:>8} | {e_ref[i]:7.3f} | {med:6.3f} [{lo:5.3f}-{hi:5.3f}] "
+                f"{n:>2}/{SPECKLE_REALIZATIONS} {ratio:5.2f} {above:5.2f} | "
+                f"{fmed:6.3f} [{flo:5.3f}-{fhi:5.3f}] {fn:>2}"
+            )
+    return worst
 
 
 def localize(sweeps: list[Sweep], data: dict[str, Any], method: str) -> list[SweepLocalization]:
@@ -1055,6 +1153,8 @@ def check(surface: str) -> tuple[float, int]:
     t_loc = time.perf_counter() - t0
     print(f"\n== {surface} sphere ==")
     worst, wrong = print_table(data, results)
+    if surface == "diffuse":  # the smooth sphere has no speckle: one realization
+        worst = print_spread(data, results)
     render_s = sum(p["seconds"] for p in meta["per_sweep"])
     print(
         f"reference read from {stored_path(surface).relative_to(ROOT)} (pymust "

@@ -124,36 +124,48 @@ def _errors(data: dict, method: str) -> tuple[list, list, np.ndarray, np.ndarray
 
 @pytest.mark.parametrize("method", RS.METHODS)
 def test_the_localizer_on_pymust_frames_accepts_no_wrong_centre(data, method):
-    """No centre accepted more than 1 mm off, on pymust's frames or sim_us's; every
-    sweep sim_us's frames of the diffuse sphere give a centre for gives one on pymust's
-    too (on the smooth sphere, pymust's plane-wave compounding draws edge-wave tails under
-    the cap that a focused scanner's image has not: there the two models may part on
-    whether a bare cap is a sphere); the refined method's centres on pymust's frames
-    within 0.25 mm."""
+    """No centre accepted more than 1 mm off, on pymust's frames or sim_us's; the two
+    models agree on which sweeps hold a sphere (on the smooth sphere both reject the bare
+    cap: it is not confirmed by its siblings; they parted while the reference's unweighted
+    plane waves drew edge-wave echoes under the cap); the refined method's centres on
+    pymust's frames within 0.25 mm."""
     ref, twin, e_ref, e_twin = _errors(data, method)
     for r, t, er, et in zip(ref, twin, e_ref, e_twin, strict=True):
         assert not (r.accepted and er > 1.0), r
         assert not (t.accepted and et > 1.0), t
-        if t.accepted and data["surface"] == "diffuse":
-            assert r.accepted, r.reason
+        assert r.accepted == t.accepted, (r.reason, t.reason)
         if r.accepted and method == "refined":
             assert er <= 0.25, er
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 35, open: on the diffuse sphere pymust draws the outline as a wider band "
-    "than sim_us (a focused scanner's frame: 178 pixels within 20 dB against 89), and the "
-    "refined centres are up to 2× further off on pymust's frames (README, 'The images "
-    "against physics')",
+    reason="issue 35, open: with the same imaging on both sides and the reference's "
+    "compounding and edge waves fixed, the refined errors on pymust's diffuse sphere are "
+    "0.12-0.17 mm against sim_us's medians of 0.05-0.06 mm (2.0-3.4x, above 95-100 % of "
+    "sim_us's realizations): pymust draws the outline as a wider band (README, 'The "
+    "images against physics')",
 )
 def test_the_refined_error_on_pymust_frames_is_within_1_5_x_sim_us():
-    """The issue's criterion on both spheres: each refined error on pymust's frames within
-    1.5 × (or 0.02 mm more than) the error on sim_us's frames of the same scene, where
-    both accept the sweep."""
+    """The issue's criterion on both spheres, with the same imaging on both sides (sim_us
+    compounding the reference's three plane waves, apertures Hann-weighted): each refined
+    error on pymust's frames within 1.5 × (or 0.02 mm more than) sim_us's error on the
+    same scene where both accept the sweep. The diffuse sphere's speckle is one random
+    draw on either side (sim_us's error over its realizations spans 3-5×): sim_us's is
+    the median over ``SPECKLE_REALIZATIONS`` of them."""
     for surface in RS.SURFACES:
         if not RS.stored_path(surface).exists():
             continue
-        _, _, e_ref, e_twin = _errors(RS.load_stored(surface), "refined")
+        data = RS.load_stored(surface)
+        _, _, e_ref, e_twin = _errors(data, "refined")
+        if surface == "diffuse":
+            spread = RS.twin_spread(data)["refined"]
+            assert np.isfinite(spread).mean() >= 0.9  # sim_us's sweeps are found
+            e_twin = np.nanmedian(spread, axis=0)
         both = np.isfinite(e_ref) & np.isfinite(e_twin)
-        assert np.all(e_ref[both] <= np.maximum(1.5 * e_twin[both], e_twin[both] + 0.02))
+        assert np.all(e_ref[both] <= np.maximum(1.5 * e_twin[both], e_twin[both] + 0.02)), (
+            surface,
+            e_ref,
+            e_twin,
+        )
