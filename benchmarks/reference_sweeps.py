@@ -106,16 +106,15 @@ How, reference side (``--write``):
   off it), sim_us's at −13 dB (200): a sphere's cap returns less than a flat plate of
   PLA (−10.4 dB).
 
-What remains of a plane-wave image's artefacts (frame nearest the centre, dB below the
-cap's peak): the horizontal line a specular top throws across the image (every pixel at
-its depth sums part of its echo) is gone beside the cap (≤ −40 dB 1.5-4 mm from its
-column, grey ≤ 14; −23 to −37 dB with dasmtx's hard aperture): the Hann apodization
-removed it; the steered waves' tilted copies remain faintly towards the crop's edges
-(−33 to −39 dB, grey ≤ 24, cut at ± 6 mm). The fans: the grating fans of the flanks are
-gone (above); what remains is the compounding's X-shaped tails of the cap's echo, two
-blobs 0.8-1 mm beside its column and ≈ 1 mm below its top, inside the sphere (−25 to
-−29 dB, grey ≤ 80), and a ladder of weak dots down the cap's column (−32 to −42 dB,
-grey ≤ 18).
+What remains of a plane-wave image's artefacts (the smooth sphere, frame nearest the
+centre, dB below the cap's peak): the horizontal line a specular top throws across the
+image (every pixel at its depth sums part of its echo) is gone beside the cap (≤ −42 dB
+1.5-6 mm from its column; −23 to −37 dB with dasmtx's hard aperture): the Hann receive
+removed it. The compounding's tails beside and below the cap (0.6-1.2 mm off its column,
+0.3-1.5 mm under its top) are below the 60 dB display; what remains is a weak echo down
+the cap's column 0.5-2.5 mm under its top (−31 to −38 dB). Before the I/Q phase and the
+transmit weighting were fixed, the tails stood at −25 to −30 dB and a ladder of
+edge-wave echoes ran under the cap.
 
 What the frames show. The smooth sphere: the cap alone (≈ 2 mm wide, fading within ± 2 mm
 of elevation) in both models; a smooth sphere's flanks send their echo away from the
@@ -124,17 +123,22 @@ frames. The diffuse sphere: the cap and, ≈ 20 dB below it, the whole probe-fac
 outline as granular speckle in every frame the sphere reaches.
 
 Prints one row per sweep and method (error on pymust's frames "ref", on sim_us's
-"twin", their ratio) with every rejection's reason, then the median errors and their
-ratio per method; the last line is ``worst_error_ratio=<largest ref / twin error over
-the sweeps and methods both accepted> wrong_centres=<centres accepted from pymust's
-frames more than 1 mm off>``.
+"twin" with speckle key 0, their ratio) with every rejection's reason, then the median
+errors and their ratio per method. The diffuse sphere's speckle is one random draw on
+either side: sim_us's error is then measured over ``SPECKLE_REALIZATIONS`` (20) of its
+speckle, imaging as the reference does and as a focused scanner (median, 10th-90th
+percentile, the share of realizations with a larger error than pymust's). The last line
+is ``worst_error_ratio=<largest ref / twin error over the sweeps and methods both
+accepted; for the diffuse sphere over sim_us's median> wrong_centres=<centres accepted
+from pymust's frames more than 1 mm off>``.
 
-``--write [smooth|diffuse]`` renders a sphere with pymust (the smooth one ≈ 22 min on one
-core: ≈ 400 k scatterer-frames per sweep through three waves, and the reference sheets)
-and stores the frames (uint8), spacing, poses, ``T_ee_us``, true centres, radius, axial
-scale, the probe, the method, the pymust version and the command in
+``--write [smooth|diffuse]`` renders a sphere with pymust (the smooth one ≈ 25 min, the
+diffuse one ≈ 45 min on one core: ≈ 400 k scatterer-frames per sweep through three
+waves, and the reference sheets) and stores the frames (uint8), spacing, poses,
+``T_ee_us``, true centres, radius, axial scale, the probe, the method, the pymust
+version and the command in
 ``benchmarks/reference/sweeps.npz`` (smooth) or ``sweeps_diffuse.npz``; then runs the
-check. Without it, the check reads those files (no pymust needed; ≈ 10 s).
+check. Without it, the check reads those files (no pymust needed; ≈ 30 s).
 
 Run: python benchmarks/reference_sweeps.py [--write [smooth|diffuse]]
 """
