@@ -283,6 +283,12 @@ class ProbeConfig:
     )
 
     @property
+    def plane_waves_symmetric(self) -> bool:
+        """Whether the plane waves' steering angles come in ± pairs (the beam tables are
+        symmetric about the scanline; no plane waves is symmetric)."""
+        return sorted(self.plane_waves_deg) == sorted(-a for a in self.plane_waves_deg)
+
+    @property
     def spacing_m(self) -> tuple[float, float]:
         """(sx, sy) in metres."""
         sx, sy = self.pixel_spacing_mm

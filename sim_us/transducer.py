@@ -34,7 +34,7 @@ elevation aperture (element height) with its lens focus. From these follow:
   ``λ / sin θ`` for three waves, −25 to −30 dB): the two-way profile is the transmits'
   sum at each frequency times the receive field, each as a broadband RMS. The tails are
   tilted copies of the echo at other depths; the separable PSF draws their energy at
-  the echo's depth (their peak 2-6 dB above the reference's brightest pixel there). The
+  the echo's depth (0 to 7 dB above the reference's brightest pixel there). The
   apertures can be Hann-weighted (``apodization``: each transmit across the active
   elements, the receive across its f-number width);
 - **the echo of a mirror** (a smooth surface's specular reflection) against its tilt, in
@@ -157,11 +157,10 @@ class Transducer:
 
 def transducer(probe: ProbeConfig) -> Transducer:
     """The transducer of ``probe`` (its beam-relevant fields)."""
-    angles = probe.plane_waves_deg
-    if sorted(angles) != sorted(-a for a in angles):
+    if not probe.plane_waves_symmetric:
         raise ValueError(
-            f"plane_waves_deg {list(angles)}: the steering angles must be symmetric about 0 "
-            "(the beam tables are)"
+            f"plane_waves_deg {list(probe.plane_waves_deg)}: the steering angles must be "
+            "symmetric about 0 (the beam tables are)"
         )
     return Transducer(
         f_hz=probe.f_mhz * 1e6,

@@ -268,13 +268,12 @@ def _check_consistency(s: Scenario) -> None:
                 value=name,
                 allowed="letters, digits and _ (not first), parts joined by /",
             )
-    angles = s.imaging.plane_waves_deg
-    if sorted(angles) != sorted(-a for a in angles):
+    if not s.imaging.plane_waves_symmetric:
         raise ScenarioError(
             "the plane waves' steering angles are not symmetric about 0",
             source=src,
             key="imaging.plane_waves_deg",
-            value=list(angles),
+            value=list(s.imaging.plane_waves_deg),
             allowed="angles in ± pairs (and 0 or not), e.g. [-8, 0, 8]; [] = focused",
         )
     p = s.phantom
