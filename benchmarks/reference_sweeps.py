@@ -172,6 +172,7 @@ from calib.image import pixel_axes  # noqa: E402
 from calib.localize import LocalizerConfig, SweepLocalization, localize_sphere  # noqa: E402
 from calib.records import Sweep  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
+from sim_us.beam import beam_of  # noqa: E402
 from sim_us.materials import MATERIALS, Material, amplitude_reflection, water  # noqa: E402
 from sim_us.raycast import AcousticScene, ScenePart  # noqa: E402
 from sim_us.simulator import BmodeSimulator  # noqa: E402
@@ -182,9 +183,11 @@ STORED = Path(_HERE) / "reference" / "sweeps.npz"
 COMMAND = "python benchmarks/reference_sweeps.py --write"
 
 
-def command(surface: str) -> str:
-    """The command that writes a surface's frames."""
-    return COMMAND if surface == "smooth" else f"{COMMAND} {surface}"
+def command(surface: str, realization: int = 0) -> str:
+    """The command that writes a surface's frames (a realization of its scatterers)."""
+    if surface == "smooth":
+        return COMMAND
+    return f"{COMMAND} {surface}" + (f" --realization {realization}" if realization else "")
 
 
 Array = NDArray[np.float64]
@@ -238,9 +241,25 @@ def sphere_material(surface: str) -> Material:
     return PLA if surface == "diffuse" else replace(PLA, name="pla, smooth", diffuse=0.0)
 
 
-def stored_path(surface: str) -> Path:
-    """Where the frames of a surface are kept."""
-    return STORED if surface == "smooth" else STORED.with_name(f"sweeps_{surface}.npz")
+def stored_path(surface: str, realization: int = 0) -> Path:
+    """Where the frames of a surface (a realization of its diffuse scatterers) are kept."""
+    if surface == "smooth":
+        return STORED
+    return STORED.with_name(
+        f"sweeps_{surface}" + (f"_r{realization}" if realization else "") + ".npz"
+    )
+
+
+# The diffuse sphere's scatterers are one random draw: realizations 0, 1, … each a draw
+# of their own (0: the first stored), rendered and stored apart.
+def stored_realizations(surface: str) -> list[int]:
+    """The realizations of a surface stored (the smooth sphere: [0] if stored)."""
+    if surface == "smooth":
+        return [0] if STORED.exists() else []
+    return [k for k in range(MAX_REALIZATIONS) if stored_path(surface, k).exists()]
+
+
+MAX_REALIZATIONS = 8
 
 
 # Printed roughness along the normal (twin/printing.py's model): off, the CAD sphere
@@ -409,13 +428,13 @@ class Diffuse:
     area_m2: float
 
 
-def diffuse_scatterers(a: Any) -> Diffuse:
+def diffuse_scatterers(a: Any, realization: int = 0) -> Diffuse:
     """Random scatterers on the sphere, ``DIFFUSE_SPACING_WAVELENGTHS`` λ apart on average
-    (fixed by ``SEED``: the same sphere in every frame and sweep)."""
+    (fixed by ``SEED`` and the realization: the same sphere in every frame and sweep)."""
     spacing = DIFFUSE_SPACING_WAVELENGTHS * wavelength_m(a)
     area = 4 * np.pi * RADIUS_M**2
     n = int(np.ceil(area / spacing**2))
-    rng = np.random.default_rng(SEED + 1)
+    rng = np.random.default_rng(SEED + 1 if realization == 0 else (SEED + 1, realization))
     normal = rng.standard_normal((n, 3))
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     return Diffuse(CENTRE_BASE + RADIUS_M * normal, normal, rng.standard_normal(n), area / n)
@@ -500,11 +519,13 @@ def transmit(
     x_px: Array,
     z_px: Array,
     delays: Array | None = None,
+    hann: bool = True,
 ) -> Transmit:
     """The plane wave at ``angle_deg`` (or the transmit of ``delays`` (1, elements), NaN
     for an element off) for echoes of the points ``p_us`` (all a sweep's frames hold,
     their elevations up to the slab's reach), beamformed at pixels (``x_px``, ``z_px``:
-    pymust's x, displayed depth)."""
+    pymust's x, displayed depth); the receive aperture Hann-weighted (else dasmtx's
+    own, hard-edged)."""
     import pymust  # optional: only the reference needs pymust
 
     if delays is None:
@@ -527,7 +548,7 @@ def transmit(
     p.t0 = np.array([t0])
     p.fnumber = s.fnumber
     das = pymust.dasmtx(1j * np.array([2 * k, s.array.active_elements]), x_px, z_px, p)
-    return Transmit(delays, k, t0, _hann(das, 2 * k, x_px, z_px, s))
+    return Transmit(delays, k, t0, _hann(das, 2 * k, x_px, z_px, s) if hann else das)
 
 
 def _hann(das: Any, samples: int, x_px: Array, z_px: Array, s: Scanner) -> Any:
@@ -817,17 +838,21 @@ def method_record(surface: str = "smooth") -> dict[str, Any]:
 
 
 def write_stored(
-    frames: list[NDArray[np.uint8]], infos: list[dict[str, Any]], surface: str = "smooth"
+    frames: list[NDArray[np.uint8]],
+    infos: list[dict[str, Any]],
+    surface: str = "smooth",
+    realization: int = 0,
 ) -> None:
     """Frames (uint8), spacing, poses, true centres, the probe, the method, pymust's
-    version and the command, in the surface's file (compressed)."""
-    path = stored_path(surface)
+    version and the command, in the surface's (realization's) file (compressed)."""
+    path = stored_path(surface, realization)
     probe = probe_config()
     poses = np.array([sweep_poses(spec) for spec in SWEEPS])
     meta = {
         "what": "elevational sweeps of a 5 mm PLA sphere in water rendered with pymust "
         "(benchmarks/reference_sweeps.py's docstring)",
-        "command": command(surface),
+        "command": command(surface, realization),
+        "realization": realization,
         "pymust_version": importlib.metadata.version("pymust"),
         "array": asdict(PR.paper_probe().array),
         "probe": {
@@ -864,6 +889,128 @@ def write_stored(
         axial_scale=np.array(axial_scale(probe)),
         meta=np.array(json.dumps(meta, ensure_ascii=False)),
     )
+
+
+# ------------------------------------------------------------------ the beam in water
+
+# The scanner's delays assume 1540 m/s; in water sound travels at ≈ 1480 m/s, so its
+# focus is off: a point's PSF at these depths (true, mm), each column's brightest pixel
+# (as the display shows the compounding's tilted tails), its levels at these offsets.
+WATER_PSF_DEPTHS_MM = (15.0, 20.0, 25.0)
+WATER_PSF_OFFSETS_MM = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.2, 1.5)
+WATER_PSF_STORED = Path(_HERE) / "reference" / "water_psf.json"
+
+
+def reference_psf(imaging: str, depth_m: float) -> dict[str, Any]:
+    """pymust's displayed PSF of one point in water at ``depth_m`` (true) under the
+    aperture's centre, imaged as :func:`probe_config` (``imaging``) says: "plane waves"
+    (:data:`STEER_DEG`, Hann across the transmit and over the receive F#, beamformed at
+    every pixel about the point) or "focused" (sim_us's focused default: each scanline
+    its own transmit, focused on it at the point's displayed depth from the elements
+    within depth / 2F#, dasmtx's hard receive aperture; the line at offset x images the
+    point as the line at 0 images the point at −x, the aperture moving with the line).
+    Each column's brightest pixel within ± 1 mm of the point's depth; its FWHM and levels
+    (dB, both sides' mean) at :data:`WATER_PSF_OFFSETS_MM`."""
+    import pymust  # optional: only the reference needs pymust
+    from threadpoolctl import threadpool_limits
+
+    a = PR.paper_probe().array
+    s = scanner(a, 0.0)
+    shown = 1.0 / axial_scale(probe_config())
+    z = depth_m * shown + np.arange(-1.0, 1.0 + 1e-9, 0.01) * MM
+    with threadpool_limits(1):
+        if imaging == "plane waves":
+            p = np.array([[0.0, depth_m, 0.0]])
+            x = np.arange(-2.0, 2.0 + 1e-9, 0.01) * MM
+            X, Z = np.meshgrid(x, z)
+            iq = sum(beamformed(s, transmit(s, ang, p, X, Z), p, np.ones(1)) for ang in STEER_DEG)
+            env = np.abs(np.asarray(iq)).reshape(X.shape, order="F")
+            profile = env.max(axis=0)
+            x_mm = x / MM
+        else:
+            del s.medium["TXapodization"]  # sim_us's focused default: rect
+            apod = PR.aperture(a, depth_m * shown, s.fnumber)
+            delays = np.asarray(pymust.txdelay(0.0, depth_m * shown, s.scan), float)
+            delays = delays.reshape(1, -1)
+            delays[0, apod == 0] = np.nan  # off: no transmit
+            delays[0] -= np.nanmin(delays)
+            offsets = np.arange(0.0, 2.0 + 1e-9, 0.02) * MM
+            column = np.zeros_like(z)
+            points = np.column_stack([-offsets, np.full_like(offsets, depth_m), 0 * offsets])
+            tx = transmit(s, 0.0, points, column, z, delays, hann=False)
+            half = np.array(
+                [np.abs(np.asarray(beamformed(s, tx, q[None], np.ones(1)))).max() for q in points]
+            )
+            profile = np.concatenate([half[:0:-1], half])
+            x_mm = np.concatenate([-offsets[:0:-1], offsets]) / MM
+    return _psf_figures(x_mm, profile / profile.max())
+
+
+def _psf_figures(x_mm: Array, profile: Array) -> dict[str, Any]:
+    """FWHM (mm) and the levels (dB, both sides' mean amplitude) of a lateral profile."""
+
+    def level(o: float) -> float:
+        both = np.interp(o, x_mm, profile) + np.interp(-o, x_mm, profile)
+        return round(float(20.0 * np.log10(max(both / 2.0, 1e-6))), 2)
+
+    return {
+        "fwhm_mm": round(PR.fwhm(x_mm, profile), 4),
+        "levels_db": [level(o) for o in WATER_PSF_OFFSETS_MM],
+    }
+
+
+def twin_psf(imaging: str, depth_m: float) -> dict[str, Any]:
+    """sim_us's lateral PSF in water for the same imaging at the point's displayed depth:
+    the kernel it blurs echoes with (``beam_of(probe, water's speed)``)."""
+    probe = probe_config(imaging)
+    x = np.arange(-2.0, 2.0 + 1e-9, 0.005)
+    prof = beam_of(probe, WATER_C).lateral_profile(depth_m / axial_scale(probe), x * MM)[0]
+    return _psf_figures(x, prof / prof.max())
+
+
+def write_water_psf() -> None:
+    """pymust's PSFs in water (both imagings, every depth) in :data:`WATER_PSF_STORED`."""
+    rec: dict[str, Any] = {
+        "what": "a point's displayed PSF in water (20 °C) imaged by a scanner assuming "
+        f"{probe_config().assumed_speed_m_s:g} m/s, pymust {importlib.metadata.version('pymust')}",
+        "command": f"{COMMAND}-psf",
+        "depths_mm": list(WATER_PSF_DEPTHS_MM),
+        "offsets_mm": list(WATER_PSF_OFFSETS_MM),
+    }
+    for imaging in IMAGING:
+        rec[imaging] = [reference_psf(imaging, d * MM) for d in WATER_PSF_DEPTHS_MM]
+    WATER_PSF_STORED.write_text(json.dumps(rec, indent=1) + "\n")
+
+
+def print_water_psf() -> float:
+    """The stored reference's PSFs in water beside sim_us's; returns the largest level
+    difference (dB) down to -20 dB of the main lobe."""
+    rec = json.loads(WATER_PSF_STORED.read_text())
+    offsets = rec["offsets_mm"]
+    print(
+        f"\nA point's PSF in water, scanner at {probe_config().assumed_speed_m_s:g} m/s "
+        f"(column max, dB at offsets in mm; {rec['what']}):"
+    )
+    print(
+        f"{'imaging':>11} {'mm':>3} | FWHM ref twin ratio | "
+        + " ".join(f"{o:5.2f}" for o in offsets)
+    )
+    worst = 0.0
+    for imaging in IMAGING:
+        for d, ref in zip(rec["depths_mm"], rec[imaging], strict=True):
+            tw = twin_psf(imaging, d * MM)
+            main = [i for i, v in enumerate(ref["levels_db"]) if v >= -20.0]
+            worst = max(worst, *(abs(tw["levels_db"][i] - ref["levels_db"][i]) for i in main))
+            print(
+                f"{imaging:>11} {d:3.0f} | {ref['fwhm_mm']:.3f} {tw['fwhm_mm']:.3f} "
+                f"{tw['fwhm_mm'] / ref['fwhm_mm']:5.2f} | "
+                + " ".join(f"{v:5.1f}" for v in ref["levels_db"])
+                + "\n"
+                + " " * 37
+                + "twin | "
+                + " ".join(f"{v:5.1f}" for v in tw["levels_db"])
+            )
+    return worst
 
 
 # ------------------------------------------------------------------ the check
@@ -1046,15 +1193,16 @@ def print_table(data: dict[str, Any], results: dict[str, dict[str, list]]) -> tu
 
 
 def render_reference(
-    surface: str = "smooth", log: bool = True
+    surface: str = "smooth", log: bool = True, realization: int = 0
 ) -> tuple[list[NDArray[np.uint8]], list[dict[str, Any]]]:
-    """All sweeps' pymust frames of a surface, on one BLAS thread."""
+    """All sweeps' pymust frames of a surface (a realization of its diffuse scatterers),
+    on one BLAS thread."""
     from threadpoolctl import threadpool_limits
 
     a = PR.paper_probe().array
     probe = probe_config()
     lattice = sphere_surface(a)
-    diffuse = diffuse_scatterers(a) if surface == "diffuse" else None
+    diffuse = diffuse_scatterers(a, realization) if surface == "diffuse" else None
     frames, infos = [], []
     with threadpool_limits(1):
         for spec in SWEEPS:
@@ -1181,6 +1329,19 @@ def main() -> None:
         help="render a surface's sweeps with pymust (default: smooth) and store them",
     )
     parser.add_argument(
+        "--write-psf",
+        action="store_true",
+        help="compute a point's PSF in water with pymust (≈ 1 min) and store it",
+    )
+    parser.add_argument(
+        "--realization",
+        type=int,
+        default=0,
+        metavar="K",
+        help=f"with --write diffuse: the realization of its scatterers to render (0 to "
+        f"{MAX_REALIZATIONS - 1}; 0, the first, is the default)",
+    )
+    parser.add_argument(
         "--focused-frame",
         nargs=3,
         metavar=("SURFACE", "SWEEP", "FRAME"),
@@ -1194,11 +1355,23 @@ def main() -> None:
             parser.error(f"--focused-frame: SURFACE must be one of {', '.join(SURFACES)}")
         print_focused(surface, int(sweep), int(frame))
         return
+    if not 0 <= args.realization < MAX_REALIZATIONS or (
+        args.realization and args.write != "diffuse"
+    ):
+        parser.error(
+            f"--realization {args.realization}: 0 to {MAX_REALIZATIONS - 1}, and only with "
+            "--write diffuse (the smooth sphere has no random scatterers)"
+        )
     if args.write:
-        frames, infos = render_reference(args.write)
-        write_stored(frames, infos, args.write)
-        path = stored_path(args.write)
+        frames, infos = render_reference(args.write, realization=args.realization)
+        write_stored(frames, infos, args.write, args.realization)
+        path = stored_path(args.write, args.realization)
         print(f"wrote {path.relative_to(ROOT)} ({path.stat().st_size / 1e6:.2f} MB)")
+    if args.write_psf:
+        write_water_psf()
+        print(f"wrote {WATER_PSF_STORED.relative_to(ROOT)}")
+    if WATER_PSF_STORED.exists():
+        print(f"largest PSF level difference down to -20 dB: {print_water_psf():.1f} dB")
     worst, wrong = float("nan"), 0
     for surface in SURFACES:
         if not stored_path(surface).exists():

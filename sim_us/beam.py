@@ -68,20 +68,24 @@ SIDE_LOBE_OFFSET_PER_FWHM = 4.493409457909064 / (2.0 * 1.3915573782515103)
 _COVERAGE = 1.25
 
 
-def beam_of(probe: ProbeConfig) -> BeamTables:
+def beam_of(probe: ProbeConfig, medium_speed_m_s: float | None = None) -> BeamTables:
     """The transducer's beam tables over the probe's depth range (cached): the imaging
-    depth with room for a scale error (±10 %) and an image origin offset (≤ 5 mm)."""
-    return beam_tables(transducer(probe), _depth_range_m(probe))
+    depth with room for a scale error (±10 %) and an image origin offset (≤ 5 mm).
+    ``medium_speed_m_s``: the speed of sound where it images (None: the scanner's assumed
+    speed); a scanner focuses for its own, so elsewhere its beam is out of focus
+    (:mod:`sim_us.transducer`)."""
+    return beam_tables(transducer(probe, medium_speed_m_s), _depth_range_m(probe))
 
 
 def _depth_range_m(probe: ProbeConfig) -> float:
     return round(probe.depth_mm * 1.12e-3 + 5e-3, 4)
 
 
-def mirror_of(probe: ProbeConfig) -> MirrorTables:
+def mirror_of(probe: ProbeConfig, medium_speed_m_s: float | None = None) -> MirrorTables:
     """The echo of a tilted surface element through the probe's apertures (cached), from
-    its datasheet figures whatever widths it states."""
-    return mirror_tables(transducer(probe), _depth_range_m(probe))
+    its datasheet figures whatever widths it states, in a medium of that speed (None: the
+    scanner's)."""
+    return mirror_tables(transducer(probe, medium_speed_m_s), _depth_range_m(probe))
 
 
 def axial_fwhm_m(probe: ProbeConfig) -> float:
@@ -91,15 +95,22 @@ def axial_fwhm_m(probe: ProbeConfig) -> float:
     return pulse_axial_fwhm_m(transducer(probe))
 
 
-def lateral_fwhm_m(probe: ProbeConfig, depth_m: NDArray[np.float64] | float) -> NDArray[np.float64]:
-    """Two-way lateral FWHM (m) at depth(s): stated, or the focused aperture's."""
+def lateral_fwhm_m(
+    probe: ProbeConfig,
+    depth_m: NDArray[np.float64] | float,
+    medium_speed_m_s: float | None = None,
+) -> NDArray[np.float64]:
+    """Two-way lateral FWHM (m) at depth(s): stated, or the focused aperture's (in a
+    medium of that speed; None: the scanner's)."""
     if probe.lateral_fwhm_mm is not None:
         return np.full(np.shape(depth_m), probe.lateral_fwhm_mm * 1e-3)
-    return beam_of(probe).at("lateral_fwhm", depth_m)
+    return beam_of(probe, medium_speed_m_s).at("lateral_fwhm", depth_m)
 
 
 def speckle_cell_gain(
-    probe: ProbeConfig, depth_m: NDArray[np.float64] | float
+    probe: ProbeConfig,
+    depth_m: NDArray[np.float64] | float,
+    medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Mean speckle intensity relative to a flat reflector's echo at depth(s), re the
     elevation focus: a medium's speckle sums the scatterers of the resolution cell
@@ -107,8 +118,9 @@ def speckle_cell_gain(
     coherently (∝ (area × peak)²), so their ratio goes as 1 / (lateral × elevation FWHM);
     the axial width is the same at every depth."""
     focus = probe.elevation_focus_mm * 1e-3
-    cell = lateral_fwhm_m(probe, depth_m) * slice_thickness(probe, depth_m)
-    return lateral_fwhm_m(probe, focus) * slice_thickness(probe, focus) / cell
+    c = medium_speed_m_s
+    cell = lateral_fwhm_m(probe, depth_m, c) * slice_thickness(probe, depth_m, c)
+    return lateral_fwhm_m(probe, focus, c) * slice_thickness(probe, focus, c) / cell
 
 
 def band_attenuation_db(probe: ProbeConfig, medium: Material, depth_m: Any) -> Any:
@@ -132,12 +144,14 @@ def narrowest_lateral_fwhm_m(probe: ProbeConfig) -> float:
 
 
 def slice_thickness(
-    probe: ProbeConfig, depth_m: NDArray[np.float64] | float
+    probe: ProbeConfig,
+    depth_m: NDArray[np.float64] | float,
+    medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Elevation FWHM (m) at depth(s) ``depth_m``: the geometric beam of a stated slice
-    thickness, or the lensed aperture's diffraction."""
+    thickness, or the lensed aperture's diffraction (in a medium of that speed)."""
     if probe.slice_thickness_mm is None:
-        return beam_of(probe).at("elevation_fwhm", depth_m)
+        return beam_of(probe, medium_speed_m_s).at("elevation_fwhm", depth_m)
     H = probe.elevation_aperture_mm * 1e-3
     F = probe.elevation_focus_mm * 1e-3
     st_f = probe.slice_thickness_mm * 1e-3
@@ -170,7 +184,10 @@ def elevation_offsets(
 
 
 def elevation_amplitude(
-    probe: ProbeConfig, depths_m: NDArray[np.float64], z: NDArray[np.float64]
+    probe: ProbeConfig,
+    depths_m: NDArray[np.float64],
+    z: NDArray[np.float64],
+    medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Two-way elevation amplitude (len(z), depths), 1 on the axis: the lensed aperture's
     own profile (main lobe and side lobes), or a Gaussian ``exp(−4 ln2 z² / ST²)`` of a
@@ -178,22 +195,26 @@ def elevation_amplitude(
     depths = np.asarray(depths_m, float)
     z = np.asarray(z, float)
     if probe.slice_thickness_mm is None:
-        profile = beam_of(probe).elevation_profile(depths, z).T
-        on_axis = beam_of(probe).elevation_profile(depths, np.zeros(1)).T
+        tables = beam_of(probe, medium_speed_m_s)
+        profile = tables.elevation_profile(depths, z).T
+        on_axis = tables.elevation_profile(depths, np.zeros(1)).T
         return profile / np.maximum(on_axis, 1e-30)
-    st = slice_thickness(probe, depths)[None, :]
+    st = slice_thickness(probe, depths, medium_speed_m_s)[None, :]
     return np.exp(-4.0 * np.log(2.0) * z[:, None] ** 2 / st**2)
 
 
 def elevation_amplitude_at(
-    probe: ProbeConfig, depths_m: NDArray[np.float64], z: NDArray[np.float64]
+    probe: ProbeConfig,
+    depths_m: NDArray[np.float64],
+    z: NDArray[np.float64],
+    medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Two-way elevation amplitude at per-row offsets (``depths_m`` (N,), ``z`` (N, m)),
     as :func:`elevation_amplitude` (up to a factor per row)."""
     depths = np.asarray(depths_m, float)
     if probe.slice_thickness_mm is None:
-        return beam_of(probe).elevation_at(depths, z)
-    st = slice_thickness(probe, depths)[:, None]
+        return beam_of(probe, medium_speed_m_s).elevation_at(depths, z)
+    st = slice_thickness(probe, depths, medium_speed_m_s)[:, None]
     return np.exp(-4.0 * np.log(2.0) * np.asarray(z, float) ** 2 / st**2)
 
 
@@ -202,6 +223,7 @@ def elevation_weights(
     depths_m: NDArray[np.float64],
     z: NDArray[np.float64],
     dz: NDArray[np.float64],
+    medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Intensity weights (planes, depths) of each sub-plane at each depth.
 
@@ -210,7 +232,7 @@ def elevation_weights(
     depth so that a flat reflector across the whole beam echoes with its full strength at
     every depth (a smaller object is dimmed: partial volume).
     """
-    energy = elevation_amplitude(probe, depths_m, z) ** 2 * dz[:, None]
+    energy = elevation_amplitude(probe, depths_m, z, medium_speed_m_s) ** 2 * dz[:, None]
     return energy / energy.sum(axis=0, keepdims=True)
 
 
@@ -219,6 +241,7 @@ def slab_edge_shares(
     depths_m: NDArray[np.float64],
     z: NDArray[np.float64],
     dz: NDArray[np.float64],
+    medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Share (planes, depths) of a slab's beam-profile density at its low-z edge.
 
@@ -227,8 +250,8 @@ def slab_edge_shares(
     integration over elevation). Returns ``b²(lo) / (b²(lo) + b²(hi))``: 0.5 for the slab in
     the middle of the beam, less for slabs on its positive flank, more on its negative one.
     """
-    lo = elevation_amplitude(probe, depths_m, z - dz / 2) ** 2
-    hi = elevation_amplitude(probe, depths_m, z + dz / 2) ** 2
+    lo = elevation_amplitude(probe, depths_m, z - dz / 2, medium_speed_m_s) ** 2
+    hi = elevation_amplitude(probe, depths_m, z + dz / 2, medium_speed_m_s) ** 2
     return lo / np.maximum(lo + hi, 1e-300)
 
 
@@ -243,10 +266,12 @@ def lateral_amplitude(
     depths_m: NDArray[np.float64],
     spacing_m: float,
     floor: float = SURFACE_KERNEL_FLOOR,
+    medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Two-way lateral amplitude PSF (rows, taps), peak 1, sampled every ``spacing_m``
     (the drawn column spacing) for rows at ``depths_m``; centred, symmetric, cut where every
-    row stays below ``floor`` of its peak.
+    row stays below ``floor`` of its peak; in a medium of speed ``medium_speed_m_s``
+    (None: the scanner's).
 
     The array's own profile where the lateral beam and its side lobes are derived
     (``side_lobe_db: array``); otherwise a Gaussian of the depth's FWHM (stated or
@@ -256,10 +281,10 @@ def lateral_amplitude(
     level at its peak is what matters for a detector).
     """
     depths = np.asarray(depths_m, float)
-    fwhm = lateral_fwhm_m(probe, depths)
+    fwhm = lateral_fwhm_m(probe, depths, medium_speed_m_s)
     own = probe.lateral_fwhm_mm is None and probe.side_lobe_db == "array"
     derived = probe.lateral_fwhm_mm is None or probe.side_lobe_db == "array"
-    tables = beam_of(probe) if derived else None
+    tables = beam_of(probe, medium_speed_m_s) if derived else None
     if own:
         assert tables is not None
         radius = int(np.ceil(tables.lateral_x[-1] / spacing_m))

@@ -131,7 +131,6 @@ class BmodeSimulator:
         ]
         self.caster = RayCaster(scene)
         self.wires = scene.wires
-        self.mirror = mirror_of(probe)
         # Scatterer cells of a third of the finer resolution: ≥ 10 per PSF cell.
         cell = min(axial_fwhm_m(probe), narrowest_lateral_fwhm_m(probe)) / 3.0
         self.scatterers = ScattererField(cell, int(speckle_key))
@@ -155,18 +154,15 @@ class BmodeSimulator:
             self.spacing[1] / (1.0 + ey / 100.0),
         )
         self.offset = (probe.lateral_offset_mm * 1e-3, probe.image_origin_offset_mm * 1e-3)
-        sx, sy = self.true_spacing
+        sy = self.true_spacing[1]
         self.max_depth = self.offset[1] + (H - 1) * sy  # apparent depth below the face
         self.z, dz = elevation_offsets(probe, self.max_depth)
         # The face-frame point each pixel shows, through the one pixel ↔ image mapping.
         self._pixel_y = self.offset[1] + pixel_to_us(np.arange(H), 0, W, self.true_spacing)[:, 1]
-        rows_y = self._pixel_y
-        self.weights = elevation_weights(probe, rows_y, self.z, dz).astype(np.float32)  # (K, H)
-        # Continuous elevation: the slab each sub-plane stands for (none with one plane)
-        # and the beam profile's share at the slab's low-z edge, per row.
+        self._dz = dz
+        # Continuous elevation: the slab each sub-plane stands for (none with one plane).
         self._smear = probe.continuous_elevation and len(self.z) > 1
         self._slab = dz if len(self.z) > 1 else np.zeros(1)
-        self._edge_share = slab_edge_shares(probe, rows_y, self.z, dz)
         # Scanlines on the nearest columns to an even spacing; each stands for the columns
         # nearest to it (its weight) and the lateral PSF (σ ≳ spacing) fills them in.
         # (The simulator's own sampling choice: on the reported pixel grid.)
@@ -181,12 +177,38 @@ class BmodeSimulator:
         self._origins_us = np.stack(
             np.broadcast_arrays(x[None, :], 0.0, self.z[:, None]), axis=-1
         ).astype(float)
+        self._scanline_step = step
+        self._beam_speed: float | None = None
+        self._use_beam(self.medium)
+        # Path loss past which no echo can reach the display floor at any row's gain: the
+        # strongest interface of the scene reflects r_max, so a path weaker than
+        # floor / r_max cannot show.
+        self.floor_db = self._floor_db(self.medium)
+
+    def _use_beam(self, medium: Material) -> None:
+        """The beam in ``medium``: the scanner focuses for the speed it assumes, so where
+        sound travels at another (water: 1482 m/s at 20 °C against 1540) its beam is out of
+        focus (:mod:`sim_us.transducer`). Sets what depends on it: the mirror's echo, the
+        sub-planes' weights and slab shares, the PSF kernels; kept while the medium's speed
+        rounds to the same transducer (5 m/s). The sampling (scatterer cells, sub-planes,
+        scanlines) follows the scanner's own beam, whatever the medium."""
+        key = transducer(self.probe, medium.speed_m_s).medium_speed_m_s
+        if self._beam_speed is not None and key == self._beam_key:
+            return
+        probe, c = self.probe, medium.speed_m_s
+        self._beam_speed, self._beam_key = c, key
+        sx, sy = self.true_spacing
+        rows_y, dz = self._pixel_y, self._dz
+        self.mirror = mirror_of(probe, c)
+        self.weights = elevation_weights(probe, rows_y, self.z, dz, c).astype(np.float32)  # (K, H)
+        # The beam profile's share at each slab's low-z edge, per row.
+        self._edge_share = slab_edge_shares(probe, rows_y, self.z, dz, c)
         sigma_ax = axial_fwhm_m(probe) / FWHM_PER_SIGMA / sy  # amplitude PSF σ, rows
         # Lateral amplitude PSF per row (the beam changes with depth), peak 1.
-        lateral = lateral_amplitude(probe, rows_y, sx)
+        lateral = lateral_amplitude(probe, rows_y, sx, medium_speed_m_s=c)
         # Intensity PSF kernels of the surface echoes (correlation taps along rows; along
         # columns one set per row): |h|², unit sum, with the ring-down tail when configured.
-        intensity = _between_scanlines(lateral**2, step)
+        intensity = _between_scanlines(lateral**2, self._scanline_step)
         intensity /= intensity.sum(axis=1, keepdims=True)
         self._kernels = (
             _ring_down_kernel(sigma_ax / np.sqrt(2), probe, sy),
@@ -196,16 +218,14 @@ class BmodeSimulator:
         # The medium's speckle through the amplitude PSF h, unit sum per axis; white
         # scatterers keep unit mean intensity with the norm 1 / (Σ h_ax² · Σ h_lat²) per row.
         k_ax = _gaussian_kernel(sigma_ax)
-        k_lat = lateral_amplitude(probe, rows_y, sx, floor=_SPECKLE_KERNEL_FLOOR)
+        k_lat = lateral_amplitude(
+            probe, rows_y, sx, floor=_SPECKLE_KERNEL_FLOOR, medium_speed_m_s=c
+        )
         k_lat /= k_lat.sum(axis=1, keepdims=True)
         self._speckle_kernels = (k_ax, np.ascontiguousarray(k_lat, dtype=np.float32))
         self._speckle_norm = (
             1.0 / (np.sum(k_ax.astype(float) ** 2) * np.sum(k_lat**2, axis=1))
         ).astype(np.float32)
-        # Path loss past which no echo can reach the display floor at any row's gain: the
-        # strongest interface of the scene reflects r_max, so a path weaker than
-        # floor / r_max cannot show.
-        self.floor_db = self._floor_db(self.medium)
 
     @property
     def T_face_image(self) -> Array:
@@ -231,13 +251,16 @@ class BmodeSimulator:
 
     def _medium_at(self, temperature_c: float | None) -> tuple[Material, float]:
         """The medium and the trace budget at a true medium temperature (None: the
-        configured one). Only the medium's material changes: the Embree scene, the
-        scanlines and the beam tables are kept, so re-rendering at another temperature
-        costs nothing more than rendering."""
+        configured one). The medium's material changes, and the beam with its speed where
+        that rounds to another transducer (:meth:`_use_beam`, tables cached); the Embree
+        scene and the scanlines are kept."""
         if temperature_c is None or temperature_c == self.medium_config.temperature_c:
-            return self.medium, self.floor_db
-        medium = medium_material(self.medium_config.kind, float(temperature_c))
-        return medium, self._floor_db(medium)
+            medium, floor_db = self.medium, self.floor_db
+        else:
+            medium = medium_material(self.medium_config.kind, float(temperature_c))
+            floor_db = self._floor_db(medium)
+        self._use_beam(medium)
+        return medium, floor_db
 
     # ------------------------------------------------------------------ echoes
 
@@ -395,7 +418,10 @@ class BmodeSimulator:
         zs = z0[:, None] + dz[:, None] * u[None, :]
         # b² across the slab and at the sub-plane itself, whose weight holds b² at its own
         # elevation times the slab's width.
-        b2 = elevation_amplitude_at(self.probe, depth, np.column_stack([zs, z0])) ** 2
+        b2 = (
+            elevation_amplitude_at(self.probe, depth, np.column_stack([zs, z0]), self._beam_speed)
+            ** 2
+        )
         centre = b2[:, -1] * _SLAB_SAMPLES
         i0, i1, wd = self.mirror.depth_nodes(depth)
         wsum, mean, spread = _slab_lobe_moments(
@@ -624,9 +650,13 @@ class BmodeSimulator:
         # a uniform medium); the speckle's level against a flat reflector's follows the
         # resolution cell (``backscatter_db`` holds at the elevation focus).
         loss_db = band_attenuation_db(self.probe, medium, depth)
-        amp_row = level * 10.0 ** (-loss_db / 20.0) * np.sqrt(speckle_cell_gain(self.probe, depth))
+        amp_row = (
+            level
+            * 10.0 ** (-loss_db / 20.0)
+            * np.sqrt(speckle_cell_gain(self.probe, depth, self._beam_speed))
+        )
         cell = self.scatterers.cell_m
-        st = slice_thickness(self.probe, depth)
+        st = slice_thickness(self.probe, depth, self._beam_speed)
         reach = _SPECKLE_COVERAGE * st / 2  # elevation half-span summed at each depth (m)
         n_side = int(np.ceil(reach.max() / cell)) + 1
         # Each row sums every 2^m-th line of the lattice, m as large as keeps at least

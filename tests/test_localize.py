@@ -509,7 +509,10 @@ def test_sparse_sweeps_measure_the_elevation_or_say_why_not(frames, gain):
     1.18 mm off at 9 frames, −20 dB); known to a slice (dz / √12) and joined with what
     the cap's depth in each frame says through the radius, the centres are found within
     0.4 mm in elevation (none a millimetre off), and a sweep whose elevation stays
-    uncertain is rejected naming the frame spacing."""
+    uncertain is rejected naming the frame spacing. Which sweeps can be measured depends
+    on where the sphere falls between two frames: about half at 9 frames and −20 dB (23
+    of 45 with the beam focused for water, 22 in water's defocused beam); nearly every
+    other one names the spacing."""
     sweeps, truths, T_ee_us, scale, _ = _quick_scan(
         [
             f"imaging.gain_db={gain}",
@@ -521,7 +524,9 @@ def test_sparse_sweeps_measure_the_elevation_or_say_why_not(frames, gain):
     cfg = LocalizerConfig(expected_depth_mm=20.0)
     locs = localize_sphere(sweeps, T_ee_us, 3 * MM, cfg, axial_scale=scale)
     err = np.array([(r.centre - p) / MM for r, p in zip(locs, truths, strict=True) if r.accepted])
-    assert len(err) >= 0.5 * len(sweeps)
+    assert len(err) >= 0.45 * len(sweeps)
+    spacing_named = sum("mm apart; take more frames per sweep" in r.reason for r in locs)
+    assert len(err) + spacing_named >= 0.95 * len(sweeps)
     assert np.abs(err[:, 2]).max() < 0.4
     assert np.linalg.norm(err, axis=1).max() < 1.0
     for r in locs:
@@ -806,7 +811,8 @@ def test_cap_depth_does_not_follow_the_gain(monkeypatch):
 def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():
     """The plan keeps the sphere in view in every sweep; found in fewer than half, it is
     at the noise floor and none of its few detections is accepted, each saying why. Found
-    in half or more, nothing changes."""
+    in half or more (accepted, or seen but its elevation not measured), nothing
+    changes."""
     from calib.localize import SweepLocalization
     from calib.localize.consensus import _reject_if_rarely_seen
 
@@ -832,6 +838,17 @@ def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():
     assert all(np.isnan(r.centre).all() for r in few)
     half = locs(5)
     assert _reject_if_rarely_seen(half) == half
+    # A sweep whose elevation its frames could not measure saw the sphere: sparse
+    # frames are not a faint sphere.
+    sparse = [
+        replace(r, reason="elevation not measured: ± 0.71 mm (1 σ; at most 0.5)")
+        if i in (4, 5)
+        else r
+        for i, r in enumerate(locs(4))
+    ]
+    assert _reject_if_rarely_seen(sparse) == sparse
+    one_sparse = locs(3)[:3] + sparse[4:5] + locs(3)[4:]  # 3 accepted, 1 seen: 4 of 10
+    assert not any(r.accepted for r in _reject_if_rarely_seen(one_sparse))
 
 
 def test_a_sweep_off_the_image_normal_is_localized_between_the_pixels():

@@ -169,3 +169,31 @@ def test_the_refined_error_on_pymust_frames_is_within_1_5_x_sim_us():
             e_ref,
             e_twin,
         )
+
+
+def test_the_beam_in_water_draws_the_reference_s_psf():
+    """A scanner assumes 1540 m/s; in water (≈ 1480 m/s at 20 °C) its delays miss the
+    focus. sim_us's lateral kernel in water, for the focused scanner and the compounded
+    plane waves, against pymust's displayed PSF of a point there (stored by
+    ``reference_sweeps.py --write-psf``): FWHM within 5 %, the main lobe (down to
+    -20 dB) within 2.5 dB, the skirts past it within 6 dB. The same scanner imaging at
+    its own speed (the beam sim_us drew in water before) is far off: the check can fail."""
+    import json
+
+    rec = json.loads(RS.WATER_PSF_STORED.read_text())
+    assert rec["offsets_mm"] == list(RS.WATER_PSF_OFFSETS_MM)
+    assert rec["depths_mm"] == list(RS.WATER_PSF_DEPTHS_MM)
+    for imaging in RS.IMAGING:
+        for d, ref in zip(rec["depths_mm"], rec[imaging], strict=True):
+            tw = RS.twin_psf(imaging, d * MM)
+            assert 0.95 <= tw["fwhm_mm"] / ref["fwhm_mm"] <= 1.05, (imaging, d)
+            for r, t in zip(ref["levels_db"], tw["levels_db"], strict=True):
+                assert abs(t - r) <= (2.5 if r >= -20.0 else 6.0), (imaging, d, r, t)
+    # At the scanner's own speed: the focused beam at 20 mm is ≈ 15 dB narrower 0.3 mm out.
+    from sim_us.beam import beam_of
+
+    probe = RS.probe_config("focused")
+    ref = rec["focused"][rec["depths_mm"].index(20.0)]
+    at_own = beam_of(probe).lateral_profile(20 * MM / RS.axial_scale(probe), [0.0, 0.3 * MM])[0]
+    level = 20 * np.log10(at_own[1] / at_own[0])
+    assert level < ref["levels_db"][RS.WATER_PSF_OFFSETS_MM.index(0.3)] - 10.0

@@ -106,18 +106,21 @@ def _not_a_sphere(f_shell: float, f_outer: float) -> str:
     )
 
 
+_ELEVATION_NOT_MEASURED = "elevation not measured"
+
+
 def _elevation_not_measured(z_sigma: float, frame_step: float | None = None) -> str:
     """Why a centre whose elevation has a standard error ``z_sigma`` (metres) above
     ``_MAX_ELEVATION_SIGMA`` is not accepted (``frame_step``: the sweep's frame spacing,
     named when the error is that of an elevation known to a frame)."""
     if not np.isfinite(z_sigma):
         return (
-            "elevation not measured: the cap's echo does not fall to half its peak on both "
+            f"{_ELEVATION_NOT_MEASURED}: the cap's echo does not fall to half its peak on both "
             "sides across the sweep's frames (a longer sweep, or the sphere nearer its middle)"
         )
     sparse = frame_step is not None and z_sigma >= 0.25 * frame_step
     return (
-        f"elevation not measured: the cap's echo across the frames gives it to "
+        f"{_ELEVATION_NOT_MEASURED}: the cap's echo across the frames gives it to "
         f"± {z_sigma / _M_PER_MM:.2f} mm "
         f"(1 σ; at most {_MAX_ELEVATION_SIGMA / _M_PER_MM:g})"
         + (
@@ -129,6 +132,7 @@ def _elevation_not_measured(z_sigma: float, frame_step: float | None = None) -> 
 
 
 _CUT_BY_EDGE = "sphere cut by the image's lateral edge"
+_SEEN_BUT_UNMEASURED = (_CUT_BY_EDGE, _ELEVATION_NOT_MEASURED)
 
 
 def _cut_by_lateral_edge(sweep: Sweep, centre: Array, radius: float) -> str:
@@ -154,8 +158,10 @@ def _reject_if_rarely_seen(locs: list[SweepLocalization]) -> list[SweepLocalizat
     gain), where the few detections are the ones noise happened to shape; none of them
     is accepted, each with that reason."""
     n = len(locs)
-    # A sphere cut by the image's edge was seen, only not where it can be measured.
-    found = sum(r.accepted or r.reason.startswith(_CUT_BY_EDGE) for r in locs)
+    # A sphere cut by the image's edge, or whose elevation its frames could not measure,
+    # was seen (its echo stood out), only not where or how it can be measured: sparse
+    # frames are not a faint sphere.
+    found = sum(r.accepted or r.reason.startswith(_SEEN_BUT_UNMEASURED) for r in locs)
     if n < _MIN_SWEEPS_SEEN or 2 * found >= n:
         return locs
     reason = (
