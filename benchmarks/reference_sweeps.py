@@ -124,23 +124,29 @@ outline as granular speckle in every frame the sphere reaches.
 
 Prints one row per sweep and method (error on pymust's frames "ref", on sim_us's
 "twin" with speckle key 0, their ratio) with every rejection's reason, then the median
-errors and their ratio per method. The diffuse sphere's speckle is one random draw on
-either side: sim_us's error is then measured over ``SPECKLE_REALIZATIONS`` (20) of its
-speckle, imaging as the reference does and as a focused scanner (median, 10th-90th
-percentile, the share of realizations with a larger error than pymust's). The last line
-is ``worst_error_ratio=<largest ref / twin error over the sweeps and methods both
-accepted; for the diffuse sphere over sim_us's median> wrong_centres=<centres accepted
-from pymust's frames more than 1 mm off>``.
+errors and their ratio per method. The diffuse sphere's speckle is a random draw on
+either side: pymust's error is then taken over every stored realization of its
+scatterers (each, and their median) and sim_us's over ``SPECKLE_REALIZATIONS`` (20) of
+its speckle, imaging as the reference does and as a focused scanner (median, 10th-90th
+percentile). Before the tables, a point's PSF in water (pymust's, stored, beside
+sim_us's lateral kernel for water's speed; focused scanner and plane waves). The last
+line is ``worst_error_ratio=<largest ref / twin error over the sweeps and methods both
+accepted; for the diffuse sphere pymust's median over sim_us's> wrong_centres=<centres
+accepted from pymust's frames more than 1 mm off>``.
 
 ``--write [smooth|diffuse]`` renders a sphere with pymust (the smooth one ≈ 25 min, the
 diffuse one ≈ 45 min on one core: ≈ 400 k scatterer-frames per sweep through three
-waves, and the reference sheets) and stores the frames (uint8), spacing, poses,
-``T_ee_us``, true centres, radius, axial scale, the probe, the method, the pymust
-version and the command in
-``benchmarks/reference/sweeps.npz`` (smooth) or ``sweeps_diffuse.npz``; then runs the
-check. Without it, the check reads those files (no pymust needed; ≈ 30 s).
+waves, and the reference sheets; ≈ 90 min with two renders and other work on the 2
+cores) and stores the frames (uint8), spacing, poses, ``T_ee_us``, true centres,
+radius, axial scale, the probe, the method, the pymust version and the command in
+``benchmarks/reference/sweeps.npz`` (smooth) or ``sweeps_diffuse.npz``
+(``--realization K``: the diffuse scatterers' K-th draw, in ``sweeps_diffuse_rK.npz``);
+then runs the check. ``--write-psf`` recomputes the PSF in water (≈ 1 min,
+``water_psf.json``). Without them, the check reads those files (no pymust needed;
+≈ 30 s).
 
-Run: python benchmarks/reference_sweeps.py [--write [smooth|diffuse]]
+Run: python benchmarks/reference_sweeps.py [--write [smooth|diffuse] [--realization K]]
+[--write-psf]
 """
 
 from __future__ import annotations
