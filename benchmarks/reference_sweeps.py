@@ -1022,10 +1022,10 @@ def print_water_psf() -> float:
 # ------------------------------------------------------------------ the check
 
 
-def load_stored(surface: str = "smooth") -> dict[str, Any]:
-    """A surface's stored sweeps (no pickles): arrays by name, ``meta`` decoded, and the
-    ``surface``."""
-    with np.load(stored_path(surface), allow_pickle=False) as f:
+def load_stored(surface: str = "smooth", realization: int = 0) -> dict[str, Any]:
+    """A surface's stored sweeps (a realization of its diffuse scatterers; no pickles):
+    arrays by name, ``meta`` decoded, and the ``surface``."""
+    with np.load(stored_path(surface, realization), allow_pickle=False) as f:
         data = {k: f[k] for k in f.files}
     data["meta"] = json.loads(str(data["meta"]))
     data["surface"] = surface
@@ -1077,24 +1077,13 @@ def twin_spread(data: dict[str, Any], imaging: str = "plane waves") -> dict[str,
     return {method: np.array(v) for method, v in out.items()}
 
 
-def load_realization(surface: str, realization: int) -> dict[str, Any]:
-    """A stored realization of a surface (its scene and poses the same as realization 0's)."""
-    if realization == 0:
-        return load_stored(surface)
-    with np.load(stored_path(surface, realization), allow_pickle=False) as f:
-        data = {k: f[k] for k in f.files}
-    data["meta"] = json.loads(str(data["meta"]))
-    data["surface"] = surface
-    return data
-
-
 def reference_errors(surface: str) -> tuple[list[int], dict[str, Array]]:
     """The localizer's error (mm, NaN where rejected) on each stored realization of
     pymust's frames of a surface: (the realizations, {method: (realizations, sweeps)})."""
     reals = stored_realizations(surface)
     out: dict[str, list] = {method: [] for method in METHODS}
     for k in reals:
-        data = load_realization(surface, k)
+        data = load_stored(surface, k)
         sweeps = sweeps_of(data["frames"], data)
         for method in METHODS:
             out[method].append(errors_mm(localize(sweeps, data, method), data["centre_ref"]))

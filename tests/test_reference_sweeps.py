@@ -210,7 +210,7 @@ def test_every_stored_realization_is_the_same_scene():
     reals = RS.stored_realizations("diffuse")
     assert reals[0] == 0
     for k in reals[1:]:
-        data = RS.load_realization("diffuse", k)
+        data = RS.load_stored("diffuse", k)
         assert data["meta"]["realization"] == k
         assert data["meta"]["command"] == RS.command("diffuse", k)
         assert data["meta"]["method"] == first["meta"]["method"]
