@@ -124,6 +124,7 @@ from numpy.typing import NDArray  # noqa: E402
 from scipy.signal import hilbert  # noqa: E402
 
 from bench.config.scenario import load_scenario  # noqa: E402
+from bench.files import write_text_atomic  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
 from sim_us.beam import (  # noqa: E402
     SIDE_LOBE_OFFSET_PER_FWHM,
@@ -682,7 +683,7 @@ def write_stored(records: dict[str, dict[str, Any]]) -> None:
         lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]",
         text,
     )
-    STORED.write_text(text + "\n")
+    write_text_atomic(STORED, text + "\n")
 
 
 # ------------------------------------------------------------------ printing

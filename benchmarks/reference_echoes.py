@@ -159,6 +159,7 @@ from scipy.ndimage import gaussian_filter  # noqa: E402
 from scipy.signal.windows import tukey  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
+from bench.files import write_text_atomic  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
 from sim_us.beam import (  # noqa: E402
     axial_fwhm_m,
@@ -1049,7 +1050,7 @@ def write_stored(records: dict[str, dict[str, Any]]) -> None:
         lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]",
         text,
     )
-    STORED.write_text(text + "\n")
+    write_text_atomic(STORED, text + "\n")
 
 
 # ------------------------------------------------------------------ printing
