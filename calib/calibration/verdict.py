@@ -105,8 +105,10 @@ POSE_SIGNIFICANCE = 1e-3
 #: the noise its bound already carries through the jackknife over views.
 POSE_SCATTER_MM = 0.5
 #: The sphere's radius as the images draw it may differ from the one given by this (mm):
-#: the estimate reads 0.07–0.37 mm large on the twin (the PSF, saturation), so a radius
-#: given 0.5 mm or more off shows, a scale error of a few per cent does not.
+#: the estimate (the cap's half-amplitude edge) reads −0.07 to +0.17 mm off on the twin
+#: over 16 conditions of gain, depth and radius (:func:`calib.localize.refine.
+#: apparent_radius`), so a radius given 0.5 mm or more off shows, a scale error of a few
+#: per cent does not.
 RADIUS_MISMATCH_MM = 0.4
 #: The images' scale (lateral, axial) may differ from the one assumed by this share, and
 #: by three of its standard errors: at the 25–40 mm the spheres are imaged, 1 % moves a
