@@ -12,6 +12,8 @@ import ctypes
 import gc
 import multiprocessing
 import os
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -28,6 +30,7 @@ __all__ = [
     "SchedulerError",
     "as_completed",
     "executor",
+    "exit_with_parent",
     "one_blas_thread",
     "pool_task",
     "release_memory",
@@ -50,6 +53,25 @@ def one_blas_thread() -> threadpool_limits:
     spin waiting for each other on the tiny matrices of the pipeline (the DH
     refinement's SVDs took 9.7 s of a paper run instead of 1 s)."""
     return threadpool_limits(1, user_api="blas")
+
+
+def exit_with_parent(poll_s: float = 1.0) -> None:
+    """In a pool worker: exit as soon as the process that started it is gone.
+
+    A run stopped by SIGTERM (``kill``, a job scheduler) ends without shutting its pool
+    down, and a spawned worker then runs its current task to the end (minutes of a core:
+    found beside later runs) before it reads the closed pipe. Polling the parent's pid
+    from a daemon thread works however the worker was started and from whichever thread
+    (the kernel's parent-death signal follows the thread that forked)."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(poll_s)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 def release_memory() -> None:
@@ -80,9 +102,17 @@ def start_worker() -> None:
 
 def worker_initializer(counts: Any, parts: Path) -> None:
     """A pool worker: report progress to the run, share the run's printed parts, one
-    BLAS thread (:func:`one_blas_thread`)."""
+    BLAS thread (:func:`one_blas_thread`); it exits with the run (:func:`exit_with_parent`)."""
+    exit_with_parent()
     progress_report.worker_initializer(counts)
     use_disk_cache(parts)
+    one_blas_thread()
+
+
+def _grid_worker_initializer() -> None:
+    """A grid's local worker: it exits with the grid (:func:`exit_with_parent`), one BLAS
+    thread (n processes on the cores)."""
+    exit_with_parent()
     one_blas_thread()
 
 
@@ -103,7 +133,7 @@ def executor(scheduler: str | None, workers: int | None):
         pool = cf.ProcessPoolExecutor(
             max_workers=n,
             mp_context=multiprocessing.get_context("spawn"),
-            initializer=one_blas_thread,  # n processes on the cores: no BLAS threads
+            initializer=_grid_worker_initializer,
         )
         return pool.submit, pool.shutdown
     try:

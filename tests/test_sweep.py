@@ -4,6 +4,7 @@ paper's robustness claim measured against the fixed-threshold baseline."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import os
@@ -199,9 +200,71 @@ def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path):
     # mm): "suspect: did not converge", as the verdict should say of it.
     verdicts = [r["calibration_verdict"] for r in rows]
     assert set(verdicts) <= {"accepted", "suspect"} and verdicts.count("accepted") >= 2
+    # Each verdict says why in its own cell (commas and all): none when accepted.
+    for r in rows:
+        reasons = r["calibration_verdict_reasons"]
+        assert (r["calibration_verdict"] == "accepted") == (reasons == ""), reasons
+        assert r["error"] == ""
     assert (
         "The calibrations' verdicts (without a bound): refined:" in (out / "sweep.html").read_text()
     )
+
+
+def _pool_workers(pid: int) -> list[int]:
+    """The spawned pool workers among a process's children (Linux /proc)."""
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    out = []
+    for c in children:
+        try:
+            if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes():
+                out.append(int(c))
+        except FileNotFoundError:
+            continue
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads /proc (Linux)")
+def test_a_sweep_stopped_by_sigterm_takes_its_workers_with_it(tmp_path):
+    """``kill`` (SIGTERM) to the sweep alone, as a job scheduler sends it: its workers,
+    mid-task, exit within seconds instead of running their task to its end."""
+    path = _write(
+        tmp_path / "sweep.yaml",
+        f"base: {QUICK}\ngrid:\n{SMALL}  imaging.gain_db: [-10, 0]\nseeds: [0]\n"
+        "stages: [localize, calibrate]\nmethods: [refined]\n",
+    )
+    script = Path(sys.executable).parent / "uscal"
+    proc = subprocess.Popen(
+        [str(script), "sweep", str(path), "--out", str(tmp_path / "out"), "--workers", "1"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.time() + 120
+        workers: list[int] = []
+        while time.time() < deadline and not workers:
+            time.sleep(0.2)
+            workers = _pool_workers(proc.pid)
+        assert workers, "the sweep started no worker"
+        time.sleep(3.0)  # the worker is past its start, into its point
+        os.kill(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
+        deadline = time.time() + 10
+        while time.time() < deadline and any(_alive(w) for w in workers):
+            time.sleep(0.2)
+        assert not any(_alive(w) for w in workers)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # whatever is left of the session
 
 
 @pytest.mark.slow

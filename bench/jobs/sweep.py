@@ -311,8 +311,10 @@ def run_point(
                 row["calibration_image_mm"] = image_error_mm(
                     scenario, alt.result.T_ee_us, truth.T_ee_us
                 )
-                # What the pipeline itself says of it (no bound is computed here).
-                row["calibration_verdict"] = judge(alt).status
+                # What the pipeline itself says of it, and why (no bound is computed here).
+                verdict = judge(alt)
+                row["calibration_verdict"] = verdict.status
+                row["calibration_verdict_reasons"] = "; ".join(verdict.reasons)
                 # The localizer again, with the estimated mount (the consensus the
                 # alternation builds): the centres the calibration kept that are > 1 mm
                 # off, and those the localizer accepted but the calibration dropped.
@@ -355,6 +357,7 @@ def _target_row(
         "sweeps": len(acq.dataset.sweeps),
         "calibration_image_mm": cal["true_error"]["image_mm"],
         "calibration_verdict": cal["verdict"]["status"],
+        "calibration_verdict_reasons": "; ".join(cal["verdict"]["reasons"]),
     }
 
 
@@ -392,8 +395,10 @@ class SweepRow:
     # centres it dropped as outliers.
     calibration_false_acceptances: int | None = None
     calibration_dropped: int | None = None
-    # The calibrate stage: the calibration's verdict (calib.calibration.verdict, without a bound).
+    # The calibrate stage: the calibration's verdict (calib.calibration.verdict, without a bound)
+    # and its reasons ("; " between them, empty when accepted).
     calibration_verdict: str | None = None
+    calibration_verdict_reasons: str | None = None
 
     @classmethod
     def from_document(cls, row: dict[str, Any]) -> SweepRow:
@@ -417,6 +422,7 @@ class SweepRow:
             number("calibration_false_acceptances", int),
             number("calibration_dropped", int),
             row.get("calibration_verdict"),
+            row.get("calibration_verdict_reasons"),
         )
 
     def figure(self, name: str) -> float | int | None:

@@ -29,6 +29,7 @@ _METRICS = {
     "calibration_false_acceptances": "calibration: centres kept > 1 mm from the truth (count)",
     "calibration_dropped": "calibration: localizer-accepted centres it dropped (count)",
     "calibration_verdict": "calibration: its verdict (accepted, suspect, rejected)",
+    "calibration_verdict_reasons": "calibration: why (the verdict's reasons)",
 }
 #: The calibrate stage's figures, in the order ``results.csv`` lists them.
 _CALIBRATION_METRICS = (
@@ -36,6 +37,7 @@ _CALIBRATION_METRICS = (
     "calibration_false_acceptances",
     "calibration_dropped",
     "calibration_verdict",
+    "calibration_verdict_reasons",
 )
 
 
@@ -229,6 +231,8 @@ def _fmt(v: Any) -> str:
         return ""
     if isinstance(v, float):
         return "nan" if not np.isfinite(v) else f"{v:.6g}"
+    if isinstance(v, str) and ("," in v or '"' in v):
+        return '"' + v.replace('"', "'") + '"'  # a verdict's reasons: one quoted cell
     return str(v)
 
 
