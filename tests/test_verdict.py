@@ -290,6 +290,28 @@ def test_a_radius_given_right_is_not_called_wrong_where_the_cap_saturates():
 
 
 @pytest.mark.slow
+def test_where_only_the_cap_s_top_echoes_the_radius_is_not_read():
+    """In gel only the cap's specular top stands above the noise: the flank columns'
+    edges are speckle, the few circles that fit them read 21 m or 2.3 mm for a 5 mm
+    sphere. The check abstains (no reading, no reason) rather than say the radius is
+    wrong."""
+    from bench.config.scenario import load_scenario
+    from bench.jobs.single import run
+
+    sets = [
+        "protocol.spheres=[1]",
+        "medium.kind=gel",
+        "imaging.gain_db=10",
+        "protocol.target_depth_mm=15",
+        "imaging.depth_mm=30",
+        "seed=35",
+    ]
+    v = run(load_scenario(QUICK, sets)).metrics["calibration"]["single"]["verdict"]
+    assert "radius_seen_mm" not in v
+    assert not any("draw the sphere" in r for r in v["reasons"])
+
+
+@pytest.mark.slow
 def test_run_exits_3_when_the_calibration_is_not_accepted_within_the_requirement(tmp_path):
     out = tmp_path / "run"
     r = uscal(

@@ -517,6 +517,8 @@ _EDGE_DROP_GREY = 25.5
 #: A column whose peak reaches this grey level is clipped: its peak, and so its edge, is
 #: unknown.
 _CLIPPED_GREY = 254.5
+#: The fitted section's radius, in units of the given radius, that counts as a reading.
+_FIT_RANGE = (0.4, 2.5)
 
 
 def apparent_radius(vol: SweepVolume, centre: Array, radius: float) -> float | None:
@@ -576,7 +578,11 @@ def apparent_radius(vol: SweepVolume, centre: Array, radius: float) -> float | N
         loss="soft_l1",
         f_scale=0.05e-3,
     )
-    if not fit.success or fit.x[2] <= 0:
+    # A circle far from the given size is no reading of it: where only the cap's top
+    # echoes (gel, the specular arc), the flank columns' edges are speckle and the fit
+    # runs off to a near-straight line (a 5 mm sphere in gel "drawn" 21 m in radius).
+    # A radius given wrong by a factor (the diameter for the radius) still shows.
+    if not fit.success or not _FIT_RANGE[0] * radius <= fit.x[2] <= _FIT_RANGE[1] * radius:
         return None
     offset = vol.z0 + k * dz - centre[2]  # the slice's elevation off the centre
     return float(np.hypot(fit.x[2], offset))
