@@ -27,6 +27,7 @@ __all__ = [
     "drop_frame_pages",
     "frames_to_file",
     "make_directory",
+    "replaced_atomically",
     "with_frames",
     "without_frames",
     "write_text_atomic",
@@ -93,17 +94,26 @@ def atomic_output_dir(target: str | os.PathLike[str], force: bool = False) -> It
         shutil.rmtree(old, ignore_errors=True)
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` through a temporary sibling renamed into place:
-    a reader (or a resumed sweep) sees the old file or the new one, never half of one."""
+@contextlib.contextmanager
+def replaced_atomically(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """A temporary sibling of ``path`` to write, renamed onto ``path`` when the block
+    ends without an error (removed when it raises): a reader sees the old file or the
+    new one, never half of one."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        tmp.write_text(text, encoding="utf-8")
+        yield tmp
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-    return path
+
+
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` through :func:`replaced_atomically` (a resumed
+    sweep's cached points, the stored references)."""
+    with replaced_atomically(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
 
 
 def frames_to_file(sweeps: Sequence[Sweep], path: Path) -> list[Sweep]:

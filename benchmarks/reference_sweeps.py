@@ -173,7 +173,7 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
 
-from bench.files import write_text_atomic  # noqa: E402
+from bench.files import replaced_atomically, write_text_atomic  # noqa: E402
 from calib import se3  # noqa: E402
 from calib.image import pixel_axes  # noqa: E402
 from calib.localize import LocalizerConfig, SweepLocalization, localize_sphere  # noqa: E402
@@ -884,26 +884,20 @@ def write_stored(
         "per_sweep": infos,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    # Through a temporary sibling renamed into place: an interrupted render (hours of
-    # pymust) leaves the stored file it had, never half of one.
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(
-                f,
-                frames=np.array(frames, np.uint8),
-                spacing=np.array(probe.spacing_m),
-                T_base_ee=poses,
-                T_ee_us=np.eye(4),
-                centre_base=CENTRE_BASE,
-                centre_ref=np.array([true_centre(T) for T in poses]),
-                radius=np.array(RADIUS_M),
-                axial_scale=np.array(axial_scale(probe)),
-                meta=np.array(json.dumps(meta, ensure_ascii=False)),
-            )
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    # An interrupted render (hours of pymust) leaves the stored file it had.
+    with replaced_atomically(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(
+            f,
+            frames=np.array(frames, np.uint8),
+            spacing=np.array(probe.spacing_m),
+            T_base_ee=poses,
+            T_ee_us=np.eye(4),
+            centre_base=CENTRE_BASE,
+            centre_ref=np.array([true_centre(T) for T in poses]),
+            radius=np.array(RADIUS_M),
+            axial_scale=np.array(axial_scale(probe)),
+            meta=np.array(json.dumps(meta, ensure_ascii=False)),
+        )
 
 
 # ------------------------------------------------------------------ the beam in water

@@ -221,7 +221,7 @@ def results_csv(spec: SweepSpec, points: Sequence[dict[str, Any] | SweepPoint]) 
                 or (row.calibration_error if row is not None else None)
                 or ""
             )
-            cells.append('"' + error.replace('"', "'") + '"' if error else "")
+            cells.append(_quoted(error) if error else "")
             lines.append(",".join(cells))
     return "\n".join(lines) + "\n"
 
@@ -232,8 +232,13 @@ def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return "nan" if not np.isfinite(v) else f"{v:.6g}"
     if isinstance(v, str) and ("," in v or '"' in v):
-        return '"' + v.replace('"', "'") + '"'  # a verdict's reasons: one quoted cell
+        return _quoted(v)  # a verdict's reasons: one cell
     return str(v)
+
+
+def _quoted(text: str) -> str:
+    """``text`` as one CSV cell (its own double quotes made single)."""
+    return '"' + text.replace('"', "'") + '"'
 
 
 def write_sweep(out: str | Path, result: SweepResult) -> list[Path]:

@@ -307,7 +307,8 @@ def apparent_sphere_radius(
 ) -> tuple[float, int] | None:
     """The median over (at most ``at_most``, evenly chosen) accepted sweeps of the
     sphere's radius as their images draw it (:func:`calib.localize.refine.
-    apparent_radius`), and how many sweeps gave one; None unless most of them gave one."""
+    apparent_radius`), and how many sweeps gave one; None unless most of them (and at least
+    three) gave one."""
     accepted = [i for i, loc in enumerate(localizations) if loc.accepted]
     if not accepted:
         return None
