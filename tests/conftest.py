@@ -68,6 +68,33 @@ def controller(tmp_path, request):
     c.stop()
 
 
+def pytest_configure(config):
+    """Before xdist starts its workers: compile the numba kernels into their cache unless
+    a previous run did so for these sources (tests/numba_warmup.py says why)."""
+    if hasattr(config, "workerinput") or config.option.collectonly:
+        return  # a worker: its master warmed the cache
+    if not getattr(config.option, "numprocesses", None):
+        return  # one process: it compiles each kernel once, as it first needs it
+    import hashlib
+
+    from .numba_warmup import warm
+
+    sources = sorted(
+        p for d in ("calib", "sim_us") for p in (ROOT / d).rglob("*.py")
+        if "numba.njit" in p.read_text(encoding="utf-8")
+    )  # fmt: skip
+    # What numba's cache checks a kernel's source by: its file's time stamp and size.
+    digest = hashlib.sha256(
+        repr([(str(p), p.stat().st_mtime_ns, p.stat().st_size) for p in sources]).encode()
+    ).hexdigest()
+    stamp = ROOT / "tests" / "__pycache__" / "numba-warm.stamp"
+    if stamp.exists() and stamp.read_text() == digest:
+        return
+    warm()
+    stamp.parent.mkdir(exist_ok=True)
+    stamp.write_text(digest)
+
+
 def pytest_collection_modifyitems(config, items):
     """The modules with the most slow tests (end-to-end runs) first, each module's tests
     in their own order: with ``--dist loadscope`` a worker takes a module whole, and

@@ -90,12 +90,14 @@ def _candidates(
     order = np.argsort(-smooth[rows, cols], kind="stable")
     rows, cols = rows[order], cols[order]
     # One maximum per dot: a flat top (a saturated echo) has several; keep the first.
+    # Greedy, brightest first: the next kept is the first not within 1 mm of one kept
+    # (each kept one clears its neighbours at once: noise leaves thousands of maxima).
     keep: list[int] = []
-    for i in range(len(rows)):
-        if len(keep) >= 4 * n:
-            break
-        if all(np.hypot((rows[i] - rows[j]) * sy, (cols[i] - cols[j]) * sx) > 1.0 for j in keep):
-            keep.append(i)
+    alive = np.ones(len(rows), dtype=bool)
+    while len(keep) < 4 * n and alive.any():
+        i = int(np.argmax(alive))
+        keep.append(i)
+        alive &= np.hypot((rows - rows[i]) * sy, (cols - cols[i]) * sx) > 1.0
     rows, cols = rows[keep], cols[keep]
     # The dot test at the scale of a whole echo (σ = 0.5 mm), where a surface's granular
     # echo is one continuous line and a wire's echo still one compact spot.
