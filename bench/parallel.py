@@ -12,6 +12,7 @@ import ctypes
 import gc
 import multiprocessing
 import os
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -142,11 +143,29 @@ def executor(scheduler: str | None, workers: int | None):
         raise SchedulerError(
             "--scheduler needs Dask distributed: pip install 'uscal[dist]'"
         ) from None
+    _refused(scheduler)
     try:
         client = Client(scheduler, timeout="10s")
     except OSError as exc:
         raise SchedulerError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
     return client.submit, client.close
+
+
+def _refused(scheduler: str) -> None:
+    """Fail at once where nothing listens at a ``tcp://host:port`` scheduler address (the
+    client would retry for its whole timeout); a host that does not answer is left to the
+    client's timeout."""
+    address = scheduler.removeprefix("tcp://")
+    host, _, port = address.rpartition(":")
+    if scheduler == address or not host or not port.isdigit():
+        return  # another protocol, or no port: the client knows its defaults
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=1.0):
+            return
+    except ConnectionRefusedError as exc:
+        raise SchedulerError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+    except OSError:
+        return
 
 
 def as_completed(futures, dask: bool):
