@@ -12,10 +12,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
 from numpy.typing import NDArray
-from rerun.chunk import RrdReader
 
 from calib import se3
 from calib.calibration.alternation import AlternationResult
@@ -23,7 +20,7 @@ from calib.localize import LocalizerConfig, SweepLocalization, frame_offsets, sp
 from calib.records import Sweep
 
 from .options import RecordingOptions, sweeps_to_log
-from .recorder import GREEN, RED, Recorder
+from .recorder import GREEN, RED, Recorder, rr
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -170,10 +167,11 @@ def log_acquisition(
 
 def blueprint(
     sessions: Sequence[str], scans: Sequence[str] = (), reconstruction: bool = False
-) -> rrb.Blueprint:
+) -> rr.blueprint.Blueprint:
     """One tab per sphere session (3D scene | current frame over convergence, radial
     profile and residuals), one per phantom scan (3D scene | frame with its boundary
     samples), and one for the reconstruction."""
+    rrb = rr.blueprint
     tabs = []
     for s in sessions:
         tabs.append(
@@ -219,7 +217,7 @@ def merge_parts(
     t0 = time.perf_counter()
     for part in parts:
         log.debug("merging %s (%.1f MB)", part.name, part.stat().st_size / 2**20)
-        rr.send_chunks(RrdReader(part).stream(), recording=rec.stream)
+        rr.send_chunks(rr.chunk.RrdReader(part).stream(), recording=rec.stream)
     rec.stream.send_blueprint(blueprint(sessions, scans, reconstruction))
     rec.close()
     log.debug(

@@ -34,12 +34,14 @@ blueprint, so the viewer opens on the 3D scene, the current frame and the plots.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
+import sys
 from collections.abc import Mapping, Sequence
+from types import ModuleType
 
 import mujoco
 import numpy as np
-import rerun as rr
 import trimesh
 from numpy.typing import NDArray
 
@@ -48,6 +50,26 @@ from calib.calibration.alternation import AlternationResult
 from calib.image import pixel_to_us, sphere_section, us_to_pixel
 
 from .options import RecordingOptions
+
+
+def lazy_module(name: str) -> ModuleType:
+    """``import name``, run at the first use of one of its attributes (the standard
+    library's :class:`importlib.util.LazyLoader`): rerun takes ≈ 0.8 s to import and every
+    run's job imports this module, while most runs, and every pool worker that records
+    nothing, never log."""
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.find_spec(name)
+    assert spec is not None and spec.loader is not None, name
+    loader = importlib.util.LazyLoader(spec.loader)
+    spec.loader = loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    loader.exec_module(module)
+    return module
+
+
+rr = lazy_module("rerun")
 
 __all__ = ["GREEN", "RED", "Recorder"]
 
