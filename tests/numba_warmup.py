@@ -20,22 +20,15 @@ def _sweep(medium: str, n: int):
     from bench.config.scenario import load_scenario
     from calib import se3
     from calib.acquisition.protocol import facing_pose
-    from calib.records import Sweep
+
+    from .rendered import render_sweep
 
     s = load_scenario(None, ["robot.dh_error_scale=0", f"medium.kind={medium}"], check_reach=False)
     twin = make_twin(s)
-    imager = make_imager(s, twin)
-    T_ee_us = twin.truth.T_ee_us
     T_face = facing_pose(twin.truth.landmarks_base["sphere_1"], 0.02)
-    images, poses = [], []
-    for z in np.linspace(-0.01, 0.01, n):
-        reading = twin.robot.move_to(T_face @ se3.make(np.eye(3), [0, 0, z]) @ se3.invert(T_ee_us))
-        images.append(imager.grab().image)
-        poses.append(reading.T_base_ee)
-    sweep = Sweep(
-        "sphere_1", 0, np.array(images), imager.spacing, np.zeros((n, 6)), np.array(poses)
-    )
-    return sweep, T_ee_us
+    frames = [T_face @ se3.make(np.eye(3), [0, 0, z]) for z in np.linspace(-0.01, 0.01, n)]
+    sweep, _ = render_sweep(twin, make_imager(s, twin), frames)
+    return sweep, twin.truth.T_ee_us
 
 
 def warm() -> None:

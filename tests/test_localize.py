@@ -21,6 +21,7 @@ from calib.localize import (
 from calib.records import Sweep
 
 from .localize_reference import score_candidates_reference
+from .rendered import render_sweep
 
 MM = 1e-3
 
@@ -107,17 +108,8 @@ def rendered_sweeps():
     for k, (dx, dz, tilt) in enumerate([(0, 0, 0), (2, 1.5, 8), (-3, -2, -8)]):
         T_face = facing_pose(centre + np.array([dx * MM, 0, 0]), 0.02)
         T_face = T_face @ se3.make(se3.matrix_from_euler(np.radians([0, tilt, 0])), [0, 0, dz * MM])
-        images, poses, true_poses = [], [], []
-        for z in np.linspace(-0.01, 0.01, 21):
-            reading = twin.robot.move_to(
-                T_face @ se3.make(np.eye(3), [0, 0, z]) @ se3.invert(T_ee_us)
-            )
-            images.append(imager.grab().image)
-            poses.append(reading.T_base_ee)
-            true_poses.append(twin.robot.truth.T_base_ee)
-        sweep = Sweep(
-            "sphere_1", k, np.array(images), imager.spacing, np.zeros((21, 6)), np.array(poses)
-        )
+        frames = [T_face @ se3.make(np.eye(3), [0, 0, z]) for z in np.linspace(-0.01, 0.01, 21)]
+        sweep, true_poses = render_sweep(twin, imager, frames, pose_id=k)
         T_ref_true = true_poses[10] @ T_ee_us
         sweeps.append(sweep)
         truths.append(se3.apply(se3.invert(T_ref_true), centre))
@@ -879,17 +871,10 @@ def test_a_sweep_off_the_image_normal_is_localized_between_the_pixels():
     sweeps, truths = [], []
     for k, dz in enumerate([-2.4, -1.3, -0.5, 0.6, 1.5, 2.3]):
         T_face = facing_pose(centre, 0.02) @ se3.make(np.eye(3), [0, 0, dz * MM])
-        images, poses = [], []
-        for z in np.linspace(-0.01, 0.01, 21):
-            reading = twin.robot.move_to(
-                T_face @ se3.make(np.eye(3), z * skew) @ se3.invert(T_ee_us)
-            )
-            images.append(imager.grab().image)
-            poses.append(reading.T_base_ee)
-        poses = np.array(poses)
-        joints = np.zeros((21, 6))
-        sweeps.append(Sweep("sphere_1", k, np.array(images), imager.spacing, joints, poses))
-        truths.append(se3.apply(se3.invert(poses[10] @ T_ee_us), centre))
+        frames = [T_face @ se3.make(np.eye(3), z * skew) for z in np.linspace(-0.01, 0.01, 21)]
+        sweep, _ = render_sweep(twin, imager, frames, pose_id=k)
+        sweeps.append(sweep)
+        truths.append(se3.apply(se3.invert(sweep.T_base_ee[10] @ T_ee_us), centre))
     locs = localize_sphere(sweeps, T_ee_us, 5 * MM, LocalizerConfig(), axial_scale=1482.3 / 1540.0)
     # At 1 mm between frames the mirror's elevation lobe (0.6 mm wide here) can leave a
     # sweep's elevation unmeasured: such a sweep is rejected, and says so.
