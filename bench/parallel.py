@@ -63,14 +63,19 @@ def exit_with_parent(poll_s: float = 1.0) -> None:
     down, and a spawned worker then runs its current task to the end (minutes of a core:
     found beside later runs) before it reads the closed pipe. Polling the parent's pid
     from a daemon thread works however the worker was started and from whichever thread
-    (the kernel's parent-death signal follows the thread that forked)."""
-    parent = os.getppid()
+    (the kernel's parent-death signal follows the thread that forked).
+
+    The parent is the one ``multiprocessing`` recorded at the spawn, not the parent at
+    the time of the call: a run killed while its worker was still importing (seconds on
+    a loaded machine) has already left the worker to init by then, and a worker that
+    took init for its parent ran its whole task (found in CI)."""
+    spawner = multiprocessing.parent_process()
+    parent = spawner.pid if spawner is not None else os.getppid()
 
     def watch() -> None:
-        while True:
+        while os.getppid() == parent:
             time.sleep(poll_s)
-            if os.getppid() != parent:
-                os._exit(1)
+        os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 

@@ -233,9 +233,12 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads /proc (Linux)")
-def test_a_sweep_stopped_by_sigterm_takes_its_workers_with_it(tmp_path):
-    """``kill`` (SIGTERM) to the sweep alone, as a job scheduler sends it: its workers,
-    mid-task, exit within seconds instead of running their task to its end."""
+@pytest.mark.parametrize("after_s", [0.0, 3.0], ids=["while-starting", "mid-task"])
+def test_a_sweep_stopped_by_sigterm_takes_its_workers_with_it(tmp_path, after_s):
+    """``kill`` (SIGTERM) to the sweep alone, as a job scheduler sends it: its workers
+    exit within seconds instead of running their task to its end, whether they were
+    into their point or still importing (a worker the run left before its initializer
+    ran once took init for its parent and ran its whole point)."""
     path = _write(
         tmp_path / "sweep.yaml",
         f"base: {QUICK}\ngrid:\n{SMALL}  imaging.gain_db: [-10, 0]\nseeds: [0]\n"
@@ -255,7 +258,7 @@ def test_a_sweep_stopped_by_sigterm_takes_its_workers_with_it(tmp_path):
             time.sleep(0.2)
             workers = _pool_workers(proc.pid)
         assert workers, "the sweep started no worker"
-        time.sleep(3.0)  # the worker is past its start, into its point
+        time.sleep(after_s)  # 3 s: the worker is past its start, into its point
         os.kill(proc.pid, signal.SIGTERM)
         proc.wait(timeout=30)
         deadline = time.time() + 10
