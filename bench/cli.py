@@ -49,6 +49,17 @@ def _with_requirements(args: argparse.Namespace) -> list[str]:
     return [*args.overrides, *extra]
 
 
+def _check_rrd_frames(args: argparse.Namespace, frames_per_sweep: int) -> None:
+    """``--rrd-frames`` that records at least one whole sweep, or none (0): a smaller
+    number recorded no B-mode frame and said nothing."""
+    n = args.rrd_frames
+    if not args.no_rrd and 0 < n < frames_per_sweep:
+        raise UscalError(
+            f"--rrd-frames {n}: fewer than one sweep's {frames_per_sweep} frames (the "
+            f"recording logs whole sweeps); give 0 for none, or {frames_per_sweep} or more"
+        )
+
+
 def _gate(scenario, calibrations: Calibrations, console: Console) -> int:
     """Exit code 3 when the scenario states requirements and the calibration to use is
     not accepted within them (the verdict says why); 0 otherwise."""
@@ -179,6 +190,7 @@ def _cmd_run(args: argparse.Namespace, console: Console) -> int:
     from .summaries import RunSummary
 
     scenario = load_scenario(args.scenario, _with_requirements(args))
+    _check_rrd_frames(args, scenario.protocol.frames_per_sweep)
     out = Path(args.out or scenario.output.dir)
     if args.save_dataset:
         check_new_directory(args.save_dataset, "--save-dataset")
@@ -361,12 +373,19 @@ def _cmd_calibrate(args: argparse.Namespace, console: Console) -> int:
     with run_directory(out, args.force, args.rrd, args.no_rrd, args.rrd_frames) as directory:
         with progress_bars(console) as bars, reporting(bars.update):
             result = calibrate_recorded(dataset, settings, markers, tuple(args.dh_from))
+        logged = None
         if directory.recording is not None:
-            record_recorded(directory.recording, settings, result)
+            logged = record_recorded(directory.recording, settings, result)
         directory.write(settings, recorded_run_result(result, settings))
     recorded = RecordedSummary.from_metrics(result.metrics)
     print_recorded(recorded, console)
     print_written(out, directory.written, console)
+    per_sweep = max((s.n_frames for s in result.dataset.sweeps), default=0)
+    if logged == 0 and 0 < args.rrd_frames < per_sweep:
+        console.print(
+            f"[yellow]the recording holds no B-mode frame: --rrd-frames {args.rrd_frames} "
+            f"is less than one of the dataset's sweeps ({per_sweep} frames)[/yellow]"
+        )
     return _gate(settings, recorded.calibrations, console)
 
 

@@ -168,3 +168,14 @@ def test_an_output_place_that_cannot_hold_a_directory_is_one_line(capsys, tmp_pa
     assert len(lines) == 1 and "/proc/uscal-out" in lines[0], r.stderr
     assert "cannot" in lines[0] and "Traceback" not in r.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_recording_of_fewer_frames_than_a_sweep_is_refused_before_any_work(capsys, tmp_path):
+    """The recording logs whole sweeps: ``--rrd-frames`` below one sweep's frames would
+    record no B-mode frame at all. It is one line before the run starts; 0 (none), a
+    sweep's frames or ``--no-rrd`` are accepted."""
+    r = uscal_here(capsys, "run", QUICK, "--out", str(tmp_path / "run"), "--rrd-frames", "20")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--rrd-frames 20" in lines[0] and "21" in lines[0], r.stderr
+    assert list(tmp_path.iterdir()) == []

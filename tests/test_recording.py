@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.recording.options import sweeps_to_log
+from bench.recording.options import frames_per_target, sweeps_to_log
 
 
 def test_recording_goes_where_asked_and_nothing_else_is_left(quick_run):
@@ -83,3 +83,20 @@ def test_detected_sections_lie_on_the_true_ones(quick_run):
 )
 def test_sweeps_to_log_spreads_whole_sweeps(n, per, limit, expected):
     assert sweeps_to_log(n, per, limit) == expected
+
+
+@pytest.mark.parametrize(
+    ("targets", "limit", "expected"),
+    [
+        # Four spheres, 60 frames: two whole sweeps (an even split in frames gave none).
+        (["s1", "s2", "s3", "s4"], 60, [21, 21, 0, 0]),
+        (["s1", "s2", "s3", "s4"], 420, [105, 105, 105, 105]),
+        (["s1", "s2", "s3"], 420, [147, 147, 126]),
+        (["s1"], 20, [0]),
+        ([], 420, []),
+    ],
+)
+def test_a_sessions_frames_are_dealt_as_whole_sweeps_over_its_targets(targets, limit, expected):
+    got = frames_per_target(targets, 21, limit)
+    assert list(got) == targets and list(got.values()) == expected
+    assert sum(got.values()) <= limit

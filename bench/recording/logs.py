@@ -19,7 +19,7 @@ from calib.calibration.alternation import AlternationResult
 from calib.localize import LocalizerConfig, SweepLocalization, frame_offsets, sphere_profile
 from calib.records import Sweep
 
-from .options import RecordingOptions, sweeps_to_log
+from .options import RecordingOptions, frames_per_target, sweeps_to_log
 from .recorder import GREEN, RED, Recorder, rr
 
 Array = NDArray[np.float64]
@@ -117,9 +117,11 @@ def log_acquisition(
         for target in alt.localizations:
             owner.setdefault(target, method)
     targets = [t for t in dataset.targets() if t in owner]
-    budget = rec.options.max_frames // max(len(targets), 1)
+    per_sweep = max((s.n_frames for s in dataset.sweeps), default=0)
+    budgets = frames_per_target(targets, per_sweep, rec.options.max_frames)
     logged = 0
     for target in targets:
+        budget = budgets[target]
         alt = alternations[owner[target]]
         sweeps = dataset.of(target)
         T_true = centres = None

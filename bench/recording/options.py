@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["RecordingOptions", "sweeps_to_log"]
+__all__ = ["RecordingOptions", "frames_per_target", "sweeps_to_log"]
 
 
 @dataclass(frozen=True)
@@ -49,3 +49,15 @@ def sweeps_to_log(n_sweeps: int, frames_per_sweep: int, max_frames: int) -> list
     if k == 0:
         return []
     return sorted({int(i) for i in np.linspace(0, n_sweeps - 1, k).round()})
+
+
+def frames_per_target(targets: list[str], frames_per_sweep: int, max_frames: int) -> dict[str, int]:
+    """A session's ``max_frames`` as whole sweeps dealt out over its targets in turn (the
+    first targets take the remainder), in frames per target. An even split in frames
+    gave each of four spheres 15 of 60 frames, less than a sweep, and the recording had
+    none."""
+    if not targets or frames_per_sweep <= 0:
+        return dict.fromkeys(targets, 0)
+    n = max_frames // frames_per_sweep
+    k = len(targets)
+    return {t: frames_per_sweep * (n // k + (i < n % k)) for i, t in enumerate(targets)}
