@@ -195,18 +195,24 @@ def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path):
     rows = _rows(out)
     assert len(rows) == 3
     assert all(0 < float(r["calibration_image_mm"]) < 1.0 for r in rows)  # calibrate stage
-    # A sound rig: no calibration rejected, most accepted. At -10 dB in water's defocused
-    # beam the alternation swings by 0.2° between its last iterations (image error 0.05
-    # mm): "suspect: did not converge", as the verdict should say of it.
+    # A sound rig: no calibration rejected, most accepted, each judged on its 95 % bound
+    # as `uscal run` judges it, and each bound covers the true image error.
     verdicts = [r["calibration_verdict"] for r in rows]
     assert set(verdicts) <= {"accepted", "suspect"} and verdicts.count("accepted") >= 2
+    for r in rows:
+        assert float(r["calibration_image_mm"]) <= float(r["calibration_bound_image_mm"]) < 2.0
+        assert r["calibration_bound_covers"] == "True"
     # Each verdict says why in its own cell (commas and all): none when accepted.
     for r in rows:
         reasons = r["calibration_verdict_reasons"]
         assert (r["calibration_verdict"] == "accepted") == (reasons == ""), reasons
         assert r["error"] == ""
     assert (
-        "The calibrations' verdicts (without a bound): refined:" in (out / "sweep.html").read_text()
+        "The calibrations' verdicts (on their 95 % bounds): refined:"
+        in (out / "sweep.html").read_text()
+    )
+    assert (
+        "cover the true error: refined <strong>3 of 3</strong>" in (out / "sweep.html").read_text()
     )
 
 

@@ -28,6 +28,8 @@ _METRICS = {
     "calibration_image_mm": "calibration: true image error (mm)",
     "calibration_false_acceptances": "calibration: centres kept > 1 mm from the truth (count)",
     "calibration_dropped": "calibration: localizer-accepted centres it dropped (count)",
+    "calibration_bound_image_mm": "calibration: 95 % bound on the image error (mm)",
+    "calibration_bound_covers": "calibration: the bound covers the true image error",
     "calibration_verdict": "calibration: its verdict (accepted, suspect, rejected)",
     "calibration_verdict_reasons": "calibration: why (the verdict's reasons)",
 }
@@ -36,6 +38,8 @@ _CALIBRATION_METRICS = (
     "calibration_image_mm",
     "calibration_false_acceptances",
     "calibration_dropped",
+    "calibration_bound_image_mm",
+    "calibration_bound_covers",
     "calibration_verdict",
     "calibration_verdict_reasons",
 )
@@ -154,9 +158,25 @@ def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -
             )
             for m in spec.methods
         }
+        bounds = {
+            m: [
+                r.calibration_bound_covers
+                for p in points
+                for r in p.rows
+                if r.method == m and r.calibration_bound_covers is not None
+            ]
+            for m in spec.methods
+        }
+        if any(bounds.values()):
+            lines += [
+                "95 % bounds on the image error that cover the true error: "
+                + ", ".join(f"{m} **{sum(b)} of {len(b)}**" for m, b in bounds.items() if b)
+                + ".",
+                "",
+            ]
         if any(verdicts.values()):
             lines += [
-                "The calibrations' verdicts (without a bound): "
+                "The calibrations' verdicts (on their 95 % bounds): "
                 + "; ".join(
                     f"{m}: " + ", ".join(f"{n} {v}" for v, n in sorted(c.items()))
                     for m, c in verdicts.items()
