@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .kernels import candidate_sums, grid_sums
+from .kernels import grid_sums
 from .settings import LocalizerConfig
 from .volume import LABEL_UNIT, SweepVolume, candidate_step
 
@@ -134,16 +134,7 @@ def _fractions(
     """Bright share of the samples ``P`` (m, 3) about each candidate voxel (N, 3), NaN
     where fewer than ``min_coverage`` of them lie inside the volume."""
     o = _offsets_vox(vol, P)
-    sums = candidate_sums(
-        vol.bits,
-        vol._nearest,
-        vol._frame_rows,
-        vol._frame_cols,
-        vol._frames.shape[1],
-        vol._frames.shape[2],
-        np.ascontiguousarray(candidates, dtype=np.int64).reshape(-1, 3),
-        o,
-    )
+    sums = vol.label_sums(candidates, o)
     return _bright_fraction(sums, len(o), min_coverage)
 
 
@@ -160,17 +151,11 @@ def score_grid(
     """:func:`score_candidates` for a regular grid of candidates, (count) shaped."""
     if step[2] != vol.column_step:
         vol = vol.with_column_step(step[2])
-    H, W = vol._frames.shape[1:]
     fractions = {}
     for name, P in (("shell", shell), ("interior", interior)):
         o = _offsets_vox(vol, P)
         sums = grid_sums(
-            vol.bits,
-            vol._nearest,
-            vol._frame_rows,
-            vol._frame_cols,
-            H,
-            W,
+            *vol.virtual_stack(),
             np.asarray(start, dtype=np.int64),
             np.asarray(step, dtype=np.int64),
             np.asarray(count, dtype=np.int64),

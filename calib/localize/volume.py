@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from ..errors import LocalizationError
 from ..image import pixel_axes, pixel_to_us, us_to_pixel
 from ..records import Sweep
-from .kernels import _frame_sums, _gather_labels, _pack_bits
+from .kernels import _frame_sums, _gather_labels, _pack_bits, candidate_sums
 from .settings import frame_offsets
 
 __all__ = [
@@ -125,21 +125,32 @@ class SweepVolume:
         in-plane coordinates as separate axes (:func:`calib.image.pixel_axes`)."""
         return pixel_axes(rs + self.row0, cs + self.col0, self.width, self.spacing[:2])
 
+    def virtual_stack(self) -> tuple:
+        """What the compiled label kernels read of the stack (:mod:`calib.localize.kernels`):
+        (bits, each slice's nearest frame, each frame's row and column shift, H, W)."""
+        H, W = self._frames.shape[1:]
+        return self.bits, self._nearest, self._frame_rows, self._frame_cols, H, W
+
     def label_at(self, k: NDArray[np.int64], r: NDArray[np.int64], c: NDArray[np.int64]):
         """Labels of voxels (any shape of integer indices); 0 (outside) past the volume."""
         k, r, c = np.broadcast_arrays(k, r, c)
         out = _gather_labels(
-            self.bits,
-            self._nearest,
-            self._frame_rows,
-            self._frame_cols,
-            self._frames.shape[1],
-            self._frames.shape[2],
+            *self.virtual_stack(),
             np.ascontiguousarray(k, dtype=np.int64).ravel(),
             np.ascontiguousarray(r, dtype=np.int64).ravel(),
             np.ascontiguousarray(c, dtype=np.int64).ravel(),
         )
         return out.reshape(k.shape)
+
+    def label_sums(self, candidates: NDArray[np.int64], offsets: NDArray[np.int64]):
+        """Encoded label sums (valid + LABEL_UNIT · bright), (N,), of candidate voxels
+        (N, 3) as (k, r, c), each over the integer sample ``offsets`` (m, 3): the sum of
+        :meth:`label_at` at every candidate + offset, in one compiled pass."""
+        return candidate_sums(
+            *self.virtual_stack(),
+            np.ascontiguousarray(candidates, dtype=np.int64).reshape(-1, 3),
+            np.ascontiguousarray(offsets, dtype=np.int64),
+        )
 
     def with_column_step(self, step: int) -> SweepVolume:
         """The same volume with its bits split for another candidate column step."""
