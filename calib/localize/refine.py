@@ -209,9 +209,7 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         )
         level = 0.0
         if rows.size:
-            level = float(
-                np.median(np.take_along_axis(vol._levels[frame_of], rows, axis=1).max(axis=1))
-            )
+            level = float(np.median(vol._levels[frame_of[:, None], rows].max(axis=1)))
         # Top of the cap first: the column under (x, z) in the slices nearest the current
         # elevation. The elevation profile is then read at the depth of that top: read one
         # millimetre too deep (a grid seed below the top, where a saturated or diffuse cap
