@@ -327,9 +327,6 @@ def run_point(
                     alt, image_points(scenario), inputs=scenario_uncertainty(scenario)
                 )
                 row["calibration_bound_image_mm"] = bound.image_mm
-                row["calibration_bound_covers"] = bool(
-                    row["calibration_image_mm"] <= bound.image_mm
-                )
                 verdict = judge(alt, bound, requirements(scenario))
                 row["calibration_verdict"] = verdict.status
                 row["calibration_verdict_reasons"] = "; ".join(verdict.reasons)
@@ -417,10 +414,8 @@ class SweepRow:
     # bound) and its reasons ("; " between them, empty when accepted).
     calibration_verdict: str | None = None
     calibration_verdict_reasons: str | None = None
-    # The calibrate stage: the 95 % bound on the image error (mm) and whether it covers
-    # the true image error.
+    # The calibrate stage: the 95 % bound on the image error (mm).
     calibration_bound_image_mm: float | None = None
-    calibration_bound_covers: bool | None = None
 
     @classmethod
     def from_document(cls, row: dict[str, Any]) -> SweepRow:
@@ -446,8 +441,15 @@ class SweepRow:
             row.get("calibration_verdict"),
             row.get("calibration_verdict_reasons"),
             number("calibration_bound_image_mm", float),
-            number("calibration_bound_covers", bool),
         )
+
+    @property
+    def calibration_bound_covers(self) -> bool | None:
+        """The calibrate stage: whether the 95 % bound covers the true image error (None
+        without both)."""
+        if self.calibration_bound_image_mm is None or self.calibration_image_mm is None:
+            return None
+        return bool(self.calibration_image_mm <= self.calibration_bound_image_mm)
 
     def figure(self, name: str) -> float | int | None:
         """A figure by its ``results.csv`` name (None: not measured at this point)."""
