@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,7 @@ from calib.files.dataset import AcquisitionInfo, ConeTipPhantom, DatasetWriter, 
 from calib.files.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.records import Dataset, Sweep, Touch
 from twin.arm_errors import robot_stream
-from twin.imager import SimImager
+from twin.imager import GainSeriesImager, SimImager
 from twin.touch import SimTouchGuide
 from twin.world import Twin, build_twin
 
@@ -50,6 +50,7 @@ __all__ = [
     "make_twin",
     "save_dataset",
     "simulate_acquisition",
+    "simulate_acquisition_at_gains",
     "simulate_touches",
     "teach_at",
     "twin_nwire_phantom",
@@ -242,6 +243,48 @@ def simulate_acquisition(
         twin.robot.clock_s - clock_start,
         tuple(replaced),
     )
+
+
+def simulate_acquisition_at_gains(
+    scenarios: Sequence[Scenario], name: str = "sim"
+) -> tuple[Twin, list[SimulatedAcquisition]]:
+    """:func:`simulate_acquisition` of each scenario of a series that differ in the
+    scanner's overall gain alone (``imaging.gain_db``), from one acquisition: the twin,
+    its truth, the plan and every motion do not depend on the gain, and each frame's
+    echoes are simulated once and displayed at every gain
+    (:class:`twin.imager.GainSeriesImager`). The twin is the highest gain's; each
+    acquisition is the one :func:`simulate_acquisition` makes of its scenario (same
+    poses, same noise), except for echoes that only the highest gain's trace reaches,
+    beneath a lower gain's display floor (:meth:`BmodeSimulator.render_at_gains`)."""
+    gains = [float(s.imaging.gain_db) for s in scenarios]
+    top = scenarios[int(np.argmax(gains))]
+    for s in scenarios:
+        if replace(s, imaging=replace(s.imaging, gain_db=top.imaging.gain_db)) != top:
+            raise ValueError(f"{s.source}: differs from {top.source} in more than the gain")
+    twin = make_twin(top)
+    imager = GainSeriesImager(
+        twin.robot,
+        twin.truth.T_ee_us,
+        top.imaging,
+        top.medium,
+        stage_rngs(top)["imaging"],
+        gains,
+    )
+    acq = simulate_acquisition(top, twin, imager, name)
+    delivered = imager.delivered
+    del imager  # the simulator's tables, before every gain's frames are stacked
+    n = sum(s.n_frames for s in acq.dataset.sweeps)
+    series = []
+    for g in gains:
+        frames = delivered.pop(g)
+        if len(frames) != n:  # every sweep's frames, and no other
+            raise RuntimeError(f"gain {g:g} dB: {len(frames)} frames for {n} acquired")
+        sweeps, i = [], 0
+        for sweep in acq.dataset.sweeps:
+            sweeps.append(replace(sweep, images=np.array(frames[i : i + sweep.n_frames])))
+            i += sweep.n_frames
+        series.append(replace(acq, dataset=replace(acq.dataset, sweeps=tuple(sweeps))))
+    return twin, series
 
 
 def dataset_meta(scenario: Scenario) -> dict[str, float]:

@@ -489,7 +489,15 @@ def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
         spec = load_sweep(args.sweep_file)
     workers = args.workers or os.cpu_count() or 1
     hours = spec.estimated_seconds() / 3600
-    print_workload(spec.count(), len(spec.seeds), hours, workers, bool(args.scheduler), console)
+    print_workload(
+        spec.count(),
+        len(spec.seeds),
+        spec.acquisitions(),
+        hours,
+        workers,
+        bool(args.scheduler),
+        console,
+    )
     out = Path(args.out or Path("out") / Path(args.sweep_file).stem)
     with progress_bars(console) as bars, reporting(bars.update):
         result = run_sweep(spec, out, args.scheduler, args.workers or None, run_target)

@@ -3,7 +3,9 @@ budget`` (:mod:`bench.jobs.budget`).
 
 A grid is a list of points, each a run of a base scenario with some overrides and a seed
 (:class:`GridPoint`), all running one task, ``task(overrides, seed) -> dict`` (a
-picklable function: a module-level one, or a :func:`functools.partial` of one). The
+picklable function: a module-level one, or a :func:`functools.partial` of one); points
+of one batch (:attr:`GridPoint.batch`: the same seed and settings but for one that a
+single run can serve, such as the display gain) run one batch task together. The
 points run on a local process pool or a Dask cluster (:func:`bench.parallel.executor`);
 each point's document (its overrides, seed and the task's result, or the error it
 raised) is written to ``DIR/points/<key>.json`` as it finishes, and a point whose file
@@ -31,10 +33,14 @@ from . import progress as progress_report
 from .files import make_directory, write_text_atomic
 from .parallel import as_completed, executor
 
-__all__ = ["GridOutcome", "GridPoint", "cache_key", "code_version", "run_grid"]
+__all__ = ["GridOutcome", "GridPoint", "cache_key", "code_version", "guarded", "run_grid"]
 
+Overrides = tuple[tuple[str, Any], ...]
 #: What a grid's task is: ``(overrides, seed)`` → the point's result (JSON-able).
-Task = Callable[[tuple[tuple[str, Any], ...], int], dict[str, Any]]
+Task = Callable[[Overrides, int], dict[str, Any]]
+#: A task over a batch of points: ``(each point's overrides, seed)`` → their results, in
+#: order (each guarded alone: :func:`guarded`).
+BatchTask = Callable[[list[Overrides], int], list[dict[str, Any]]]
 
 
 @functools.cache
@@ -63,9 +69,12 @@ class GridPoint:
     """One point of a grid: the scenario overrides (key path, value) and the seed its
     task runs with, and its cache key (:func:`cache_key`)."""
 
-    overrides: tuple[tuple[str, Any], ...]
+    overrides: Overrides
     seed: int
     key: str
+    #: Points of a grid with the same ``batch`` (not None) and seed run together, by the
+    #: grid's batch task (:func:`run_grid`).
+    batch: Any = None
 
 
 @dataclass(frozen=True)
@@ -83,17 +92,26 @@ class GridOutcome:
     refused: int = 0
 
 
-def _guarded(task: Task, overrides: tuple[tuple[str, Any], ...], seed: int) -> dict[str, Any]:
-    """The task of a point, its failure recorded instead of raised (the grid goes on). A
-    plan refused before anything moved (a pose that would collide or is out of reach: the
-    condition cannot be run on this rig, nothing went wrong) is a ``refused`` point, not
-    a failed one."""
+def guarded(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
+    """A point's result ``fn(*args)``, its failure recorded instead of raised (the grid
+    goes on). A plan refused before anything moved (a pose that would collide or is out
+    of reach: the condition cannot be run on this rig, nothing went wrong) is a
+    ``refused`` point, not a failed one."""
     try:
-        return task(overrides, seed)
+        return fn(*args)
     except (CollisionError, UnreachablePoseError) as exc:
         return {"refused": f"{type(exc).__name__}: {exc}"}
     except Exception as exc:
         return {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+
+
+def _guarded_batch(task: BatchTask, overrides: list[Overrides], seed: int) -> list[dict[str, Any]]:
+    """A batch's results; what its points share failing (their acquisition: a refused
+    plan, an error), each of them records that."""
+    outcome = guarded(lambda: {"results": task(overrides, seed)})
+    if "results" in outcome:
+        return outcome["results"]
+    return [dict(outcome) for _ in overrides]
 
 
 def run_grid(
@@ -103,11 +121,15 @@ def run_grid(
     scheduler: str | None = None,
     workers: int | None = None,
     label: str = "points",
+    batch_task: BatchTask | None = None,
 ) -> GridOutcome:
     """Run ``task`` at every point whose ``out/points/<key>.json`` does not exist yet, on
     a local pool of ``workers`` processes (default one per core) or the Dask cluster at
     ``scheduler``, writing each document as it comes; progress is reported as
-    ``label``. Points sharing a key run once (the file records the last of them)."""
+    ``label``. Points sharing a key run once (the file records the last of them). With
+    ``batch_task``, the points still to run that share a :attr:`GridPoint.batch` and seed
+    run as one call of it (a point alone in its batch, or without one, runs ``task``);
+    their documents are written when it ends."""
     t0 = time.perf_counter()
     directory = make_directory(Path(out) / "points")
     runs = {p.key: p for p in points}
@@ -122,19 +144,33 @@ def run_grid(
     n_cached = len(done)
     progress_report.report(label, n_cached, len(runs))
     if todo:
+        batches: dict[Any, list[str]] = {}
+        for key, p in todo.items():
+            together = p.batch is not None and batch_task is not None
+            batches.setdefault(("batch", p.batch, p.seed) if together else key, []).append(key)
         submit, close = executor(scheduler, workers)
         try:
-            futures = {submit(_guarded, task, p.overrides, p.seed): key for key, p in todo.items()}
+            futures = {}
+            for keys in batches.values():
+                first = todo[keys[0]]
+                if len(keys) == 1:
+                    future = submit(guarded, task, first.overrides, first.seed)
+                else:
+                    overrides = [todo[k].overrides for k in keys]
+                    future = submit(_guarded_batch, batch_task, overrides, first.seed)
+                futures[future] = keys
             for future in as_completed(futures, scheduler is not None):
-                key = futures[future]
-                point = todo[key]
-                doc: dict[str, Any] = {
-                    "overrides": [[k, v] for k, v in point.overrides],
-                    "seed": point.seed,
-                }
-                doc.update(future.result())
-                write_text_atomic(directory / f"{key}.json", json.dumps(doc, indent=1))
-                done[key] = doc
+                keys = futures[future]
+                results = future.result()
+                for key, result in zip(keys, results if len(keys) > 1 else [results], strict=True):
+                    point = todo[key]
+                    doc: dict[str, Any] = {
+                        "overrides": [[k, v] for k, v in point.overrides],
+                        "seed": point.seed,
+                    }
+                    doc.update(result)
+                    write_text_atomic(directory / f"{key}.json", json.dumps(doc, indent=1))
+                    done[key] = doc
                 progress_report.report(label, len(done), len(runs))
         finally:
             close()

@@ -7,6 +7,9 @@ true probe mount point at.
 
 from __future__ import annotations
 
+import copy
+from collections.abc import Sequence
+
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
@@ -21,7 +24,7 @@ from sim_us.wires import Wire
 from .robot import SimRobot
 from .scene import Scene
 
-__all__ = ["SimImager", "acoustic_scene"]
+__all__ = ["GainSeriesImager", "SimImager", "acoustic_scene"]
 
 
 def acoustic_scene(scene: Scene) -> AcousticScene:
@@ -108,8 +111,7 @@ class SimImager:
         # The flange at the grab instant, through the loaded holder (SimRobot.frame_pose,
         # which also advances the session clock the water temperature follows).
         T_base_us = self.robot.frame_pose() @ self._T_ee_us
-        image = self.simulator.render(T_base_us[None], self._rng, self._temperature_c())[0]
-        return UsFrame(image, self.spacing)
+        return UsFrame(self._render(T_base_us[None], self._temperature_c())[0], self.spacing)
 
     def capture(self) -> None:
         """Note a frame at the current true probe pose and time (what :meth:`grab` would
@@ -132,10 +134,54 @@ class SimImager:
         temps = [c for _, c in self._captured]
         self._captured = []
         temperature = None if temps[0] is None else float(np.mean(temps))
-        images = self.simulator.render(T, self._rng, temperature)
-        return [UsFrame(image, self.spacing) for image in images]
+        return [UsFrame(image, self.spacing) for image in self._render(T, temperature)]
 
     def render_at(self, T_base_us: NDArray[np.float64]) -> NDArray[np.uint8]:
         """Frames (n, H, W) at given true image poses (batched, e.g. a whole sweep)."""
         T = np.asarray(T_base_us).reshape(-1, 4, 4)
-        return self.simulator.render(T, self._rng, self._temperature_c())
+        return self._render(T, self._temperature_c())
+
+    def _render(self, T: NDArray[np.float64], temperature_c: float | None) -> NDArray[np.uint8]:
+        """Frames (n, H, W) at true image poses ``T`` and a water temperature."""
+        return self.simulator.render(T, self._rng, temperature_c)
+
+
+class GainSeriesImager(SimImager):
+    """A :class:`SimImager` that forms every frame at several overall gains at once, from
+    one simulation of its echoes (:meth:`sim_us.simulator.BmodeSimulator.render_at_gains`):
+    a robustness grid's gain axis acquires once instead of once per gain.
+
+    It delivers the frames of its configured gain, ``probe.gain_db``, which must be the
+    highest of ``gains_db`` (its trace reaches every gain's echoes); :attr:`delivered`
+    keeps every gain's frames (H, W), in the order delivered. Each gain's noise is drawn
+    from its own copy of ``rng`` taken here, before any frame: the noise an imager of
+    that gain made from the same ``rng`` would draw.
+    """
+
+    def __init__(
+        self,
+        robot: SimRobot,
+        T_ee_us: NDArray[np.float64],
+        probe: ProbeConfig,
+        medium: MediumConfig,
+        rng: np.random.Generator,
+        gains_db: Sequence[float],
+    ) -> None:
+        if len(set(gains_db)) != len(gains_db):
+            raise ValueError(f"gains {list(gains_db)}: each once")
+        if max(gains_db) != probe.gain_db:
+            raise ValueError(
+                f"the imager's gain ({probe.gain_db:g} dB) must be the highest of {list(gains_db)}"
+            )
+        super().__init__(robot, T_ee_us, probe, medium, rng)
+        self.gains_db = tuple(float(g) for g in gains_db)
+        self._own = self.gains_db.index(float(probe.gain_db))
+        # After the speckle key's draw (SimImager.__init__), as every gain's imager would be.
+        self._rngs = [copy.deepcopy(self._rng) for _ in self.gains_db]
+        self.delivered: dict[float, list[NDArray[np.uint8]]] = {g: [] for g in self.gains_db}
+
+    def _render(self, T: NDArray[np.float64], temperature_c: float | None) -> NDArray[np.uint8]:
+        series = self.simulator.render_at_gains(T, self.gains_db, self._rngs, temperature_c)
+        for g, frames in zip(self.gains_db, series, strict=True):
+            self.delivered[g].extend(frames)
+        return series[self._own]

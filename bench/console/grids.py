@@ -9,17 +9,24 @@ from pathlib import Path
 __all__ = ["print_cached_run", "print_workload"]
 
 
-def print_workload(count: int, seeds: int, hours: float, workers: int, cluster: bool, console):
-    """What a sweep is about to run, before it runs."""
+def print_workload(
+    count: int, seeds: int, acquisitions: int, hours: float, workers: int, cluster: bool, console
+):
+    """What a sweep is about to run, before it runs: its points, the acquisitions they
+    take (points that differ in the gain alone share one) and the time it should take."""
     where = (
-        f"≈ {hours:.1f} worker-hours on the cluster"
+        f"≈ {_duration(hours)} of worker time on the cluster"
         if cluster
-        else f"≈ {hours / workers:.1f} h on {workers} local worker(s)"
+        else f"≈ {_duration(hours / workers)} on {workers} local worker(s)"
     )
     console.print(
-        f"{count // seeds:,} grid points × {seeds} seed(s) = {count:,} acquisitions; "
-        f"{where} (cached points are not recomputed)"
+        f"{count // seeds:,} grid points × {seeds} seed(s) = {count:,} points, "
+        f"{acquisitions:,} acquisitions; {where} (cached points are not recomputed)"
     )
+
+
+def _duration(hours: float) -> str:
+    return f"{hours:.1f} h" if hours >= 1.0 else f"{max(1, round(60 * hours))} min"
 
 
 def print_cached_run(what: str, n: int, result, files: Sequence[Path], console) -> None:

@@ -17,7 +17,10 @@ A sweep file::
 
 Each point is a pure function of (base scenario, overrides, seed): the tasks return
 metrics, never frames, and the main process writes ``DIR/points/<key>.json`` as each
-finishes.
+finishes. Points that differ in the display gain alone (a gain axis) are acquired once
+and each frame's echoes simulated once, then shown at every gain
+(:func:`bench.acquire_sim.simulate_acquisition_at_gains`): the acquisition is most of a
+point's time.
 """
 
 from __future__ import annotations
@@ -41,7 +44,13 @@ from calib.errors import UscalError
 from calib.localize import localize_sphere
 
 from .. import progress as progress_report
-from ..acquire_sim import make_imager, make_twin, simulate_acquisition
+from ..acquire_sim import (
+    SimulatedAcquisition,
+    make_imager,
+    make_twin,
+    simulate_acquisition,
+    simulate_acquisition_at_gains,
+)
 from ..config.geometry import TARGET_PHANTOMS
 from ..config.method import (
     axial_scale,
@@ -52,7 +61,7 @@ from ..config.method import (
 )
 from ..config.scenario import acquisition_pixels, load_scenario, validate_overrides
 from ..config.schema import read_yaml
-from ..grid import GridPoint, cache_key, run_grid
+from ..grid import GridPoint, cache_key, guarded, run_grid
 from ..parallel import release_memory
 from ..truth import image_error_mm, localization_errors
 
@@ -70,10 +79,16 @@ __all__ = [
 ]
 
 STAGES = ("localize", "calibrate")
+#: The override a sweep's points share one acquisition across (the display gain).
+SHARED_ACROSS = "imaging.gain_db"
 #: Frame pixels one worker simulates and localizes (both methods) per second, for the
-#: time a sweep announces; the ``calibrate`` stage adds half. On this 2-core machine:
-#: robustness.yaml 6.7 M/s a worker, robustness_wide.yaml 11 M/s (× 1.5).
-PIXELS_PER_SECOND = 7e6
+#: time a sweep announces; the ``calibrate`` stage adds half. On this 2-core machine,
+#: robustness.yaml (75 points, 15 acquisitions): 1 040 worker-seconds.
+PIXELS_PER_SECOND = 2.4e6
+#: The share of a point's time that is its own where points share their acquisition (a
+#: gain axis: :func:`run_points_at_gains`): its localization (and calibration). quick.yaml,
+#: spheres 1-2, both methods, one core: 3.3 s of 10.6 s; the acquisition is the rest.
+OWN_SHARE = 0.3
 LOCALIZER_METHODS = ("paper", "refined", "fixed_threshold")
 CSV_COLUMNS = ("seed", "method", "localization_median_error_mm", "rejected_fraction")
 
@@ -122,10 +137,17 @@ class SweepSpec:
     def estimated_seconds(self) -> float:
         """Rough time of the whole sweep on one worker: each point simulates and
         localizes the base scenario's sweeps (grid keys that change the image size
-        change it too) at ≈ :data:`PIXELS_PER_SECOND`."""
+        change it too) at ≈ :data:`PIXELS_PER_SECOND`; points that share an acquisition
+        (a gain axis) cost it once (:data:`OWN_SHARE`)."""
         pixels = acquisition_pixels(load_scenario(self.base, check_reach=False))
         stages = 1.0 if self.stages == ("localize",) else 1.5
-        return self.count() * stages * pixels / PIXELS_PER_SECOND
+        work = self.acquisitions() * (1.0 - OWN_SHARE) + self.count() * OWN_SHARE
+        return work * stages * pixels / PIXELS_PER_SECOND
+
+    def acquisitions(self) -> int:
+        """The acquisitions the points take: one each, but one for the points that
+        differ in the gain alone (:func:`run_points_at_gains`)."""
+        return len({(_batch_of(self, o) or json.dumps(o), s) for o, s in self.points()})
 
     def override_keys(self) -> list[str]:
         """Every key path the grid sets, linked entries' keys one by one."""
@@ -261,20 +283,53 @@ def run_point(
     the first sphere from the coarse estimate; one row of metrics per method, no
     frames. A wire, N-wire or cone scenario is calibrated from its own target by
     ``target_runner`` (``uscal run``'s: :func:`bench.jobs.targets.run_target`)."""
-    scenario = load_scenario(Path(base), [*(_override(k, v) for k, v in overrides), f"seed={seed}"])
+    scenario = _point_scenario(base, overrides, seed)
     t0 = time.perf_counter()
     twin = make_twin(scenario)
     imager = make_imager(scenario, twin)
     with progress_report.reporting(None):  # the sweep counts points, not sweeps
         acq = simulate_acquisition(scenario, twin, imager, "sweep")
+    del imager
     if scenario.phantom.kind in TARGET_PHANTOMS:
-        del imager
         if target_runner is None:
             raise SweepError(f"a {scenario.phantom.kind} scenario's point needs its runner")
         return [_target_row(target_runner, scenario, twin, acq, seed, t0)]
-    truth = twin.truth
-    del imager
     release_memory()
+    return _sphere_rows(scenario, twin.truth, acq, stages, methods)
+
+
+def run_points_at_gains(
+    base: str,
+    overrides: Sequence[Sequence[tuple[str, Any]]],
+    seed: int,
+    stages: Sequence[str],
+    methods: Sequence[str],
+) -> list[dict[str, Any]]:
+    """:func:`run_point`'s rows of sphere points that differ in the display gain alone,
+    from one acquisition shown at every gain
+    (:func:`bench.acquire_sim.simulate_acquisition_at_gains`); each point's result
+    (``{"rows": ...}``, or the error its own localization or calibration raised), in
+    order."""
+    scenarios = [_point_scenario(base, o, seed) for o in overrides]
+    with progress_report.reporting(None):
+        twin, series = simulate_acquisition_at_gains(scenarios, "sweep")
+    release_memory()
+    return [
+        guarded(lambda s=s, acq=acq: {"rows": _sphere_rows(s, twin.truth, acq, stages, methods)})
+        for s, acq in zip(scenarios, series, strict=True)
+    ]
+
+
+def _point_scenario(base: str, overrides: Sequence[tuple[str, Any]], seed: int):
+    """The scenario of a point: ``base`` with its overrides and seed."""
+    return load_scenario(Path(base), [*(_override(k, v) for k, v in overrides), f"seed={seed}"])
+
+
+def _sphere_rows(
+    scenario, truth, acq: SimulatedAcquisition, stages: Sequence[str], methods: Sequence[str]
+) -> list[dict[str, Any]]:
+    """A sphere point's rows (:func:`run_point`) from its acquisition and the truth."""
+    seed = scenario.seed
     radius = stated_radius(scenario)
     scale = axial_scale(scenario)
     targets = acq.dataset.targets()
@@ -386,6 +441,28 @@ def _sweep_point(
 ) -> dict[str, Any]:
     """A point's result as the grid records it (:func:`run_point`'s rows)."""
     return {"rows": run_point(base, overrides, seed, stages, methods, target_runner)}
+
+
+def _sweep_points_at_gains(
+    base: str,
+    stages: Sequence[str],
+    methods: Sequence[str],
+    overrides: list[tuple[tuple[str, Any], ...]],
+    seed: int,
+) -> list[dict[str, Any]]:
+    """A batch of points that differ in the gain alone, as the grid records them."""
+    return run_points_at_gains(base, overrides, seed, stages, methods)
+
+
+def _batch_of(spec: SweepSpec, overrides: Sequence[tuple[str, Any]]) -> str | None:
+    """The batch a point runs in (:attr:`bench.grid.GridPoint.batch`): sphere points that
+    set the gain and agree on every other override share one (their seed apart); None
+    for the rest (a wire, N-wire or cone point calibrates through ``uscal run``'s own
+    path)."""
+    # A target scenario's sweep has its target's name as its one method (load_sweep).
+    if set(spec.methods) & set(TARGET_PHANTOMS) or SHARED_ACROSS not in dict(overrides):
+        return None
+    return json.dumps([[k, v] for k, v in overrides if k != SHARED_ACROSS])
 
 
 # ----------------------------------------------------------------------------- reading a point
@@ -516,8 +593,9 @@ def run_sweep(
     :func:`bench.outputs.sweep_report.write_sweep` writes the tables. ``target_runner``:
     how a wire, N-wire or cone scenario's points are calibrated (:func:`run_point`)."""
     task = functools.partial(_sweep_point, str(spec.base), spec.stages, spec.methods, target_runner)
-    points = [GridPoint(o, s, point_key(spec, o, s)) for o, s in spec.points()]
-    grid = run_grid(task, points, out, scheduler, workers, "sweep points")
+    at_gains = functools.partial(_sweep_points_at_gains, str(spec.base), spec.stages, spec.methods)
+    points = [GridPoint(o, s, point_key(spec, o, s), _batch_of(spec, o)) for o, s in spec.points()]
+    grid = run_grid(task, points, out, scheduler, workers, "sweep points", at_gains)
     return SweepResult(
         spec,
         grid.documents,
