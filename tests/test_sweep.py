@@ -414,6 +414,9 @@ def test_a_large_grid_is_validated_value_by_value_and_announced(tmp_path):
     path.write_text(path.read_text().replace("400]", f"{values[-1]}]"))
     spec = load_sweep(path)
     assert spec.count() == 2_002 == len(spec.points())
+    # A fine gain axis shares acquisitions five neighbouring gains at a time (each holds
+    # its gains' frames): 201 per seed.
+    assert spec.acquisitions() == 402
     robustness = load_sweep(ROOT / "scenarios" / "robustness.yaml")
     assert robustness.acquisitions() == 15
     assert 520 < robustness.estimated_seconds() < 2080  # measured: 1040 worker-seconds

@@ -83,6 +83,10 @@ __all__ = [
 STAGES = ("localize", "calibrate")
 #: The override a sweep's points share one acquisition across (the display gain).
 SHARED_ACROSS = "imaging.gain_db"
+#: Gains one acquisition serves at most: it holds every gain's frames until its points
+#: are localized (five times a point's frames), so a fine gain axis is split in runs of
+#: this many neighbouring values.
+MAX_GAINS_PER_ACQUISITION = 5
 #: Frame pixels one worker simulates and localizes (both methods) per second, for the
 #: time a sweep announces; the ``calibrate`` stage adds half. On this 2-core machine,
 #: robustness.yaml (75 points, 15 acquisitions): 1 040 worker-seconds.
@@ -149,7 +153,10 @@ class SweepSpec:
     def acquisitions(self) -> int:
         """The acquisitions the points take: one each, but one for the points that
         differ in the gain alone (:func:`run_points_at_gains`)."""
-        return len({(_batch_of(self, o) or json.dumps(o), s) for o, s in self.points()})
+        points = self.points()
+        return len(
+            {(b or json.dumps(o), s) for (o, s), b in zip(points, _batches(self), strict=True)}
+        )
 
     def override_keys(self) -> list[str]:
         """Every key path the grid sets, linked entries' keys one by one."""
@@ -456,15 +463,28 @@ def _sweep_points_at_gains(
     return run_points_at_gains(base, overrides, seed, stages, methods)
 
 
-def _batch_of(spec: SweepSpec, overrides: Sequence[tuple[str, Any]]) -> str | None:
-    """The batch a point runs in (:attr:`bench.grid.GridPoint.batch`): sphere points that
-    set the gain and agree on every other override share one (their seed apart); None
-    for the rest (a wire, N-wire or cone point calibrates through ``uscal run``'s own
-    path)."""
+def _batches(spec: SweepSpec) -> list[str | None]:
+    """The batch each point runs in, in :meth:`SweepSpec.points`' order
+    (:attr:`bench.grid.GridPoint.batch`): sphere points that set the gain and agree on
+    every other override share one (their seed apart), up to
+    :data:`MAX_GAINS_PER_ACQUISITION` neighbouring gains; None for the rest (a wire,
+    N-wire or cone point calibrates through ``uscal run``'s own path)."""
+    points = spec.points()
     # A target scenario's sweep has its target's name as its one method (load_sweep).
-    if set(spec.methods) & set(TARGET_PHANTOMS) or SHARED_ACROSS not in dict(overrides):
-        return None
-    return json.dumps([[k, v] for k, v in overrides if k != SHARED_ACROSS])
+    if set(spec.methods) & set(TARGET_PHANTOMS):
+        return [None] * len(points)
+    gains = sorted({float(dict(o)[SHARED_ACROSS]) for o, _ in points if SHARED_ACROSS in dict(o)})
+    rank = {g: i for i, g in enumerate(gains)}
+    batches: list[str | None] = []
+    for overrides, _ in points:
+        gain = dict(overrides).get(SHARED_ACROSS)
+        if gain is None:
+            batches.append(None)
+            continue
+        run = rank[float(gain)] // MAX_GAINS_PER_ACQUISITION
+        rest = [[k, v] for k, v in overrides if k != SHARED_ACROSS]
+        batches.append(json.dumps([rest, run]))
+    return batches
 
 
 # ----------------------------------------------------------------------------- reading a point
@@ -596,7 +616,10 @@ def run_sweep(
     how a wire, N-wire or cone scenario's points are calibrated (:func:`run_point`)."""
     task = functools.partial(_sweep_point, str(spec.base), spec.stages, spec.methods, target_runner)
     at_gains = functools.partial(_sweep_points_at_gains, str(spec.base), spec.stages, spec.methods)
-    points = [GridPoint(o, s, point_key(spec, o, s), _batch_of(spec, o)) for o, s in spec.points()]
+    points = [
+        GridPoint(o, s, point_key(spec, o, s), b)
+        for (o, s), b in zip(spec.points(), _batches(spec), strict=True)
+    ]
     grid = run_grid(task, points, out, scheduler, workers, "sweep points", at_gains)
     return SweepResult(
         spec,
