@@ -268,7 +268,7 @@ def simulate_acquisition_at_gains(
         top.imaging,
         top.medium,
         stage_rngs(top)["imaging"],
-        gains,
+        gains_db=gains,
     )
     acq = simulate_acquisition(top, twin, imager, name)
     delivered = imager.delivered

@@ -464,3 +464,24 @@ def test_points_that_differ_in_the_gain_alone_share_one_acquisition():
     deeper = load_scenario(QUICK, [*small, "imaging.gain_db=0", "imaging.depth_mm=50"])
     with pytest.raises(ValueError, match="more than the gain"):
         simulate_acquisition_at_gains([scenarios[0], deeper])
+
+
+def test_a_gain_series_is_imaged_at_its_highest_gain_each_gain_once():
+    """The series' own imager must trace for its highest gain (a lower one's trace stops
+    short of a higher gain's echoes), each gain once; the simulator refuses a gain above
+    the one it traces for."""
+    from twin.imager import GainSeriesImager
+
+    scenario = load_scenario(QUICK, ["protocol.spheres=[1]", "imaging.gain_db=0"])
+    twin = make_twin(scenario)
+    args = (twin.robot, twin.truth.T_ee_us, scenario.imaging, scenario.medium)
+    with pytest.raises(ValueError, match=r"must be the highest of \[0\.0, 10\.0\]"):
+        GainSeriesImager(*args, np.random.default_rng(0), gains_db=[0.0, 10.0])
+    with pytest.raises(ValueError, match="each once"):
+        GainSeriesImager(*args, np.random.default_rng(0), gains_db=[0.0, 0.0])
+    imager = GainSeriesImager(*args, np.random.default_rng(0), gains_db=[-10.0, 0.0])
+    T = np.eye(4)[None]
+    with pytest.raises(ValueError, match="above the configured 0 dB"):
+        imager.simulator.render_at_gains(T, [10.0], [None])
+    with pytest.raises(ValueError, match="2 gains but 1 noise"):
+        imager.simulator.render_at_gains(T, [-10.0, 0.0], [None])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -158,24 +159,18 @@ class GainSeriesImager(SimImager):
     that gain made from the same ``rng`` would draw.
     """
 
-    def __init__(
-        self,
-        robot: SimRobot,
-        T_ee_us: NDArray[np.float64],
-        probe: ProbeConfig,
-        medium: MediumConfig,
-        rng: np.random.Generator,
-        gains_db: Sequence[float],
-    ) -> None:
+    def __init__(self, *args: Any, gains_db: Sequence[float], **kwargs: Any) -> None:
+        """``args``, ``kwargs``: :class:`SimImager`'s."""
+        super().__init__(*args, **kwargs)
         if len(set(gains_db)) != len(gains_db):
             raise ValueError(f"gains {list(gains_db)}: each once")
-        if max(gains_db) != probe.gain_db:
+        if max(gains_db) != self.probe.gain_db:
             raise ValueError(
-                f"the imager's gain ({probe.gain_db:g} dB) must be the highest of {list(gains_db)}"
+                f"the imager's gain ({self.probe.gain_db:g} dB) must be the highest of "
+                f"{list(gains_db)}"
             )
-        super().__init__(robot, T_ee_us, probe, medium, rng)
         self.gains_db = tuple(float(g) for g in gains_db)
-        self._own = self.gains_db.index(float(probe.gain_db))
+        self._own = self.gains_db.index(float(self.probe.gain_db))
         # After the speckle key's draw (SimImager.__init__), as every gain's imager would be.
         self._rngs = [copy.deepcopy(self._rng) for _ in self.gains_db]
         self.delivered: dict[float, list[NDArray[np.uint8]]] = {g: [] for g in self.gains_db}
