@@ -758,11 +758,7 @@ class BmodeSimulator:
         ``rng`` draws the electronic noise; None renders without it. ``temperature_c`` as
         in :meth:`intensity`.
         """
-        image = self.intensity(T_scene_us, temperature_c)
-        t0 = time.perf_counter()
-        frames = to_bmode(image, self.probe, self._noise_of(rng, image[0].size))
-        self.timings.display += time.perf_counter() - t0
-        return frames
+        return self.render_at_gains(T_scene_us, [self.probe.gain_db], [rng], temperature_c)[0]
 
     def render_at_gains(
         self,
