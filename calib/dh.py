@@ -14,6 +14,7 @@ and ``T_base_ee(q) = A_1 ... A_6``; ``ee`` is the tool flange (UR "tool0").
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,6 +133,16 @@ def link_transform(theta: ArrayLike, d: ArrayLike, a: ArrayLike, alpha: ArrayLik
     return A
 
 
+@functools.lru_cache(maxsize=64)
+def _link_constants(table: DHTable) -> tuple[Array, Array, Array, Array, Array]:
+    """A table's joint offsets, d, a, cos α and sin α (read-only (6,) arrays)."""
+    p = table.as_array()
+    out = (p[:, 0], p[:, 1], p[:, 2], np.cos(p[:, 3]), np.sin(p[:, 3]))
+    for v in out:
+        v.flags.writeable = False
+    return out
+
+
 def frame_transforms(table: DHTable, q: ArrayLike) -> Array:
     """Poses of all DH frames in the base frame.
 
@@ -149,8 +160,16 @@ def frame_transforms(table: DHTable, q: ArrayLike) -> Array:
     q = np.asarray(q, dtype=float)
     if q.shape[-1] != 6:
         raise ValueError(f"joint vector must end in 6 angles, got shape {q.shape}")
-    p = table.as_array()
-    A = link_transform(q + p[:, 0], p[:, 1], p[:, 2], p[:, 3])  # (..., 6, 4, 4)
+    # link_transform's products with the table's constants, computed once per table:
+    # the twin and the calibration evaluate the same few tables at many joint vectors.
+    offset, d, a, ca, sa = _link_constants(table)
+    theta = q + offset
+    ct, st = np.cos(theta), np.sin(theta)
+    A = np.zeros((*theta.shape, 4, 4))  # (..., 6, 4, 4)
+    A[..., 0, 0], A[..., 0, 1], A[..., 0, 2], A[..., 0, 3] = ct, -st * ca, st * sa, a * ct
+    A[..., 1, 0], A[..., 1, 1], A[..., 1, 2], A[..., 1, 3] = st, ct * ca, -ct * sa, a * st
+    A[..., 2, 1], A[..., 2, 2], A[..., 2, 3] = sa, ca, d
+    A[..., 3, 3] = 1.0
     out = np.empty((*q.shape[:-1], 7, 4, 4))
     out[..., 0, :, :] = np.eye(4)
     for i in range(6):

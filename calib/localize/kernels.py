@@ -13,7 +13,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["candidate_sums", "cap_weights", "grid_sums"]
+__all__ = ["block_intensity", "candidate_sums", "cap_weights", "grid_sums", "parabola_vertex"]
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -205,3 +205,101 @@ def cap_weights(
                 if v > 0:
                     out[a, b, c] = v
     return out
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def block_intensity(
+    frames, levels, nearest, frame_rows, frame_cols, ks, r0, nr, c0, nc, level, one_level
+):  # pragma: no cover - compiled
+    """Grey level minus its brightness level of the virtual stack's voxel block ``ks`` ×
+    rows ``r0 … r0 + nr − 1`` × columns ``c0 … c0 + nc − 1`` (0 outside the frames): the
+    row's own level, or ``level`` everywhere with ``one_level``. Compiled: the cap
+    refinement reads hundreds of such small blocks per sweep, and NumPy's per-slice
+    windows cost more in call overhead than in arithmetic."""
+    H, W = frames.shape[1], frames.shape[2]
+    out = np.zeros((ks.shape[0], nr, nc))
+    for a in range(ks.shape[0]):
+        j = nearest[ks[a]]
+        for b in range(nr):
+            fr = r0 + b - frame_rows[j]
+            if fr < 0 or fr >= H:
+                continue
+            sub = level if one_level else levels[j, fr]
+            for c in range(nc):
+                fc = c0 + c - frame_cols[j]
+                if 0 <= fc < W:
+                    out[a, b, c] = frames[j, fr, fc] - sub
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def parabola_vertex(u, y, wt):  # pragma: no cover - compiled
+    """The weighted least-squares parabola y ≈ a u² + b u + c through (u, y), weights
+    ``wt``: (status, vertex, its standard error). Status 0: fitted; 1: it does not open
+    downwards; 2: the normal matrix is singular (the caller takes the pseudo-inverse).
+    The standard error as :func:`calib.localize.refine._parabola_vertex` states it.
+    Compiled: the elevation fit calls it thousands of times per calibration on a few
+    points each, where NumPy's small-array overhead was 0.18 ms a call."""
+    n = u.shape[0]
+    # Normal matrix Vᵀ W V and Vᵀ W² V (V = [u², u, 1]), moments of u.
+    m = np.zeros(5)
+    m2 = np.zeros(5)
+    r = np.zeros(3)
+    for i in range(n):
+        p = 1.0
+        for k in range(5):
+            m[k] += wt[i] * p
+            m2[k] += wt[i] * wt[i] * p
+            p *= u[i]
+        r[0] += wt[i] * u[i] * u[i] * y[i]
+        r[1] += wt[i] * u[i] * y[i]
+        r[2] += wt[i] * y[i]
+    M = np.empty((3, 3))
+    S = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = m[4 - i - j]
+            S[i, j] = m2[4 - i - j]
+    # Inverse by cofactors (symmetric 3 × 3).
+    c00 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
+    c01 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
+    c02 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
+    det = M[0, 0] * c00 + M[0, 1] * c01 + M[0, 2] * c02
+    if det == 0.0 or not np.isfinite(det):
+        return 2, 0.0, 0.0
+    Minv = np.empty((3, 3))
+    Minv[0, 0] = c00 / det
+    Minv[1, 0] = c01 / det
+    Minv[2, 0] = c02 / det
+    Minv[0, 1] = (M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]) / det
+    Minv[1, 1] = (M[0, 0] * M[2, 2] - M[0, 2] * M[2, 0]) / det
+    Minv[2, 1] = (M[0, 1] * M[2, 0] - M[0, 0] * M[2, 1]) / det
+    Minv[0, 2] = (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]) / det
+    Minv[1, 2] = (M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]) / det
+    Minv[2, 2] = (M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]) / det
+    coef = np.zeros(3)
+    for i in range(3):
+        for j in range(3):
+            coef[i] += Minv[i, j] * r[j]
+    a, b = coef[0], coef[1]
+    if a >= 0:
+        return 1, 0.0, 0.0
+    vertex = -b / (2 * a)
+    sw, sw2 = m[0], m2[0]
+    n_effective = sw * sw / sw2  # Kish's; n for equal weights
+    if n_effective - 3 < 2:
+        return 0, vertex, 0.0
+    sse = 0.0
+    for i in range(n):
+        e = coef[0] * u[i] * u[i] + coef[1] * u[i] + coef[2] - y[i]
+        sse += wt[i] * e * e
+    s2 = sse / (sw * (1 - 3 / n_effective))
+    cov = np.zeros((2, 2))  # (Minv S Minv)[:2, :2]
+    for i in range(2):
+        for j in range(2):
+            for k in range(3):
+                for q in range(3):
+                    cov[i, j] += Minv[i, k] * S[k, q] * Minv[q, j]
+    g0, g1 = b / (2 * a * a), -1 / (2 * a)
+    var = s2 * (g0 * g0 * cov[0, 0] + 2 * g0 * g1 * cov[0, 1] + g1 * g1 * cov[1, 1])
+    return 0, vertex, np.sqrt(max(var, 0.0))

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from .consensus import _MAX_ELEVATION_SIGMA
-from .kernels import cap_weights
+from .kernels import cap_weights, parabola_vertex
 from .search import _M_PER_MM, _best_on_grid, _local_window, fibonacci_hemisphere, half_ball_samples
 from .settings import LocalizerConfig
 from .volume import LABEL_BRIGHT, SweepVolume
@@ -299,8 +299,10 @@ def _elevation_from_depths(
     dz, dy = vol.spacing[2], vol.spacing[1]
     zs = vol.z0 + np.arange(K) * dz
     depths, heights = [], []
-    for k in np.flatnonzero(np.abs(zs - z_guess) <= 0.8 * radius):
-        grey = vol.intensity(np.array([k]), rs, cs, level=level)
+    near = np.flatnonzero(np.abs(zs - z_guess) <= 0.8 * radius)
+    block = vol.intensity(near, rs, cs, level=level)  # one read for every frame
+    for i, k in enumerate(near):
+        grey = block[i : i + 1]
         if grey.max() <= 0:
             continue
         profile = np.maximum(grey.sum(axis=(0, 2)), 0.0)
@@ -473,15 +475,16 @@ def _parabola_vertex(
     if len(u) < 3:
         return None
     wt = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=float)
+    status, vertex, sigma = parabola_vertex(
+        np.asarray(u, dtype=float), np.asarray(y, dtype=float), wt
+    )
+    if status == 0:
+        return float(vertex), float(sigma)
+    if status == 1:
+        return None
+    # Degenerate abscissae: the pseudo-inverse's least-squares parabola.
     V = np.vander(u, 3)
-    M = V.T @ (wt[:, None] * V)
-    try:
-        # The normal matrix is symmetric positive definite unless the abscissae are
-        # degenerate: its inverse is the pseudo-inverse, at a fifth of the cost (the
-        # pseudo-inverse's SVD was half of this function's time, ≈ 3 % of a quick run).
-        Minv = np.linalg.inv(M)
-    except np.linalg.LinAlgError:
-        Minv = np.linalg.pinv(M)
+    Minv = np.linalg.pinv(V.T @ (wt[:, None] * V))
     coef = Minv @ (V.T @ (wt * y))
     a, b = coef[0], coef[1]
     if a >= 0:

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from ..errors import LocalizationError
 from ..image import pixel_axes, pixel_to_us, us_to_pixel
 from ..records import Sweep
-from .kernels import _frame_sums, _gather_labels, _pack_bits, candidate_sums
+from .kernels import _frame_sums, _gather_labels, _pack_bits, block_intensity, candidate_sums
 from .settings import frame_offsets
 
 __all__ = [
@@ -181,25 +181,23 @@ class SweepVolume:
         """Grey level minus its brightness level of the voxel block ks × rs × cs (0
         outside); rs and cs are consecutive index ranges. ``level`` subtracts that one
         level everywhere instead of each frame row's own."""
-        out = np.zeros((len(ks), len(rs), len(cs)))
         if not (len(ks) and len(rs) and len(cs)):
-            return out
-        H, W = self._frames.shape[1:]
+            return np.zeros((len(ks), len(rs), len(cs)))
         # rs and cs are consecutive ranges: each slice's block is a plain window of its frame.
-        for a, k in enumerate(ks):
-            j = self._nearest[k]
-            r_lo = max(rs[0] - self._frame_rows[j], 0)
-            r_hi = min(rs[-1] + 1 - self._frame_rows[j], H)
-            c_lo = max(cs[0] - self._frame_cols[j], 0)
-            c_hi = min(cs[-1] + 1 - self._frame_cols[j], W)
-            if r_hi <= r_lo or c_hi <= c_lo:
-                continue
-            sub = self._levels[j, r_lo:r_hi, None] if level is None else level
-            block = self._frames[j, r_lo:r_hi, c_lo:c_hi] - sub
-            ro = r_lo + self._frame_rows[j] - rs[0]
-            co = c_lo + self._frame_cols[j] - cs[0]
-            out[a, ro : ro + r_hi - r_lo, co : co + c_hi - c_lo] = block
-        return out
+        return block_intensity(
+            self._frames,
+            self._levels,
+            self._nearest,
+            self._frame_rows,
+            self._frame_cols,
+            np.asarray(ks, dtype=np.int64),
+            int(rs[0]),
+            len(rs),
+            int(cs[0]),
+            len(cs),
+            0.0 if level is None else float(level),
+            level is not None,
+        )
 
 
 def candidate_step(spacing: tuple[float, float, float], grid: float) -> tuple[int, int, int]:
