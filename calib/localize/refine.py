@@ -475,8 +475,11 @@ def _parabola_vertex(
     if len(u) < 3:
         return None
     wt = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=float)
+    # Contiguous float64 arrays: one compiled signature whatever the caller's views.
     status, vertex, sigma = parabola_vertex(
-        np.asarray(u, dtype=float), np.asarray(y, dtype=float), wt
+        np.ascontiguousarray(u, dtype=float),
+        np.ascontiguousarray(y, dtype=float),
+        np.ascontiguousarray(wt),
     )
     if status == 0:
         return float(vertex), float(sigma)

@@ -190,7 +190,7 @@ class SweepVolume:
             self._nearest,
             self._frame_rows,
             self._frame_cols,
-            np.asarray(ks, dtype=np.int64),
+            np.ascontiguousarray(ks, dtype=np.int64),
             int(rs[0]),
             len(rs),
             int(cs[0]),
