@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from .consensus import _MAX_ELEVATION_SIGMA
-from .kernels import cap_weights, parabola_vertex
+from .kernels import cap_weights, column_tops, parabola_vertex
 from .search import _M_PER_MM, _best_on_grid, _local_window, fibonacci_hemisphere, half_ball_samples
 from .settings import LocalizerConfig
 from .volume import LABEL_BRIGHT, SweepVolume
@@ -298,21 +298,14 @@ def _elevation_from_depths(
     K = vol.shape[0]
     dz, dy = vol.spacing[2], vol.spacing[1]
     zs = vol.z0 + np.arange(K) * dz
-    depths, heights = [], []
     near = np.flatnonzero(np.abs(zs - z_guess) <= 0.8 * radius)
-    block = vol.intensity(near, rs, cs, level=level)  # one read for every frame
-    for i, k in enumerate(near):
-        grey = block[i : i + 1]
-        if grey.max() <= 0:
-            continue
-        profile = np.maximum(grey.sum(axis=(0, 2)), 0.0)
-        if profile.sum() <= 0:
-            continue
-        depths.append(_axial_peak(grey, 255.0 - level, ys, profile))
-        heights.append(zs[k])
-    if len(depths) < 2:
+    # Each frame's top as _axial_peak reads it (its row sums as the weights), compiled.
+    tops, found = column_tops(
+        vol.intensity(near, rs, cs, level=level), 255.0 - level, np.ascontiguousarray(ys)
+    )
+    if found.sum() < 2:
         return None
-    d, z = np.array(depths), np.array(heights)
+    d, z = tops[found], zs[near[found]]
     lo, hi = z.max() - 0.999 * radius, z.min() + 0.999 * radius
     if hi <= lo:
         return None
