@@ -887,3 +887,44 @@ def test_a_sweep_off_the_image_normal_is_localized_between_the_pixels():
     # not this test's concern: the spread about it is.
     err[:, 1] -= err[:, 1].mean()
     assert np.abs(err).max() < 0.035, err.round(3)
+
+
+def _drawn_cap_sweep(dark_within_mm: float | None = None) -> tuple[Sweep, np.ndarray]:
+    """A bright cap 5 mm in radius drawn by hand in 21 frames 0.5 mm apart (as
+    localize_sphere's example draws it); the frames within ``dark_within_mm`` of the
+    centre's elevation left dark."""
+    from calib.image import pixel_axes
+
+    z = np.linspace(-5e-3, 5e-3, 21)
+    rows, cols = np.mgrid[0:151, 0:151]
+    x, y = pixel_axes(rows, cols, 151, (0.2e-3, 0.2e-3))
+    centre = np.array([1e-3, 15e-3, 0.3e-3])
+    frames = []
+    for zk in z:
+        d = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (zk - centre[2]) ** 2)
+        img = np.where((abs(d - 5e-3) < 0.3e-3) & (y < centre[1]), 200, 10)
+        if dark_within_mm is not None and abs(zk - centre[2]) <= dark_within_mm * 1e-3:
+            img = np.full_like(img, 10)
+        frames.append(img)
+    poses = np.array([se3.make(np.eye(3), [0.0, 0.0, zk]) for zk in z])
+    images = np.array(frames, np.uint8)
+    return Sweep("sphere_1", 0, images, (0.2e-3, 0.2e-3), np.zeros((21, 6)), poses), centre
+
+
+def test_a_candidate_with_no_echo_about_it_is_not_handed_back_as_refined():
+    """The cap refinement reads the elevation off the echo about the grid's candidate;
+    where none stands above its level there, it must not hand the candidate back as a
+    refined centre with an elevation error of 0 (in gel at +20 dB such centres were
+    0.7-1.1 mm off, every one): its error is NaN, and the localizer says why."""
+    from calib.localize.refine import _nothing_to_refine, _refine_centre
+    from calib.localize.volume import stack_sweep
+
+    sweep, centre = _drawn_cap_sweep()
+    vol = stack_sweep(sweep, np.eye(4), noise_floor=True)
+    found, z_sigma = _refine_centre(vol, centre + np.array([0.0, 0.0, 0.4e-3]), 5e-3)
+    assert np.isfinite(z_sigma) and np.linalg.norm(found - centre) < 0.2e-3
+    dark, _ = _drawn_cap_sweep(dark_within_mm=1.5)
+    vol = stack_sweep(dark, np.eye(4), noise_floor=True)
+    found, z_sigma = _refine_centre(vol, centre, 5e-3)
+    assert np.isnan(z_sigma) and np.array_equal(found, centre)
+    assert "elevation is not measured" in _nothing_to_refine()

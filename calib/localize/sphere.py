@@ -24,6 +24,7 @@ from .consensus import (
 )
 from .refine import (
     _did_not_settle,
+    _nothing_to_refine,
     _radial_band_passes,
     _refine_centre,
     apparent_radius,
@@ -212,6 +213,8 @@ def _conclude(
             fit = _refine_centre(vol, centre, radius)
             if fit is None:
                 accepted, reason = False, _did_not_settle()
+            elif np.isnan(fit[1]):
+                accepted, reason = False, _nothing_to_refine()
             else:
                 centre, z_sigma = fit
     elif cfg.method == "refined" and note is None:
@@ -222,6 +225,8 @@ def _conclude(
             fit = _refine_centre(vol, vol.position(*arc.voxel.astype(float)), radius)
             if fit is None:
                 reason = _did_not_settle()
+            elif np.isnan(fit[1]):
+                reason = _nothing_to_refine()
             else:
                 accepted, reason = True, ""
                 centre, z_sigma = fit
