@@ -71,7 +71,8 @@ target; a biased centre where the cap saturates):
   ``_refine_centre``), its elevation from a least-squares parabola through the cap's
   peak grey level per slice, slices clipped at 255 left out (``_elevation_vertex``); a
   centre whose elevation that fit gives only to worse than ``_MAX_ELEVATION_SIGMA``
-  (1 σ) is rejected with it.
+  (1 σ) is rejected with it, and so is a candidate about which nothing of the cap stands
+  above its brightness level (no elevation to read: ``_nothing_to_refine``).
 
 Frames of one sweep share their orientation (a linear sweep); the re-stack applies each
 frame's in-plane and elevational offset and treats the frames as parallel (the residual
