@@ -123,9 +123,14 @@ def link_transform(theta: ArrayLike, d: ArrayLike, a: ArrayLike, alpha: ArrayLik
     theta, d, a, alpha = np.broadcast_arrays(
         *(np.asarray(v, dtype=float) for v in (theta, d, a, alpha))
     )
+    return _links(theta, d, a, np.cos(alpha), np.sin(alpha))
+
+
+def _links(theta: Array, d: Array, a: Array, ca: Array, sa: Array) -> Array:
+    """:func:`link_transform` from the joint angles and the table's d, a, cos α and sin α
+    (broadcast against ``theta``)."""
     ct, st = np.cos(theta), np.sin(theta)
-    ca, sa = np.cos(alpha), np.sin(alpha)
-    A = np.zeros((*theta.shape, 4, 4))
+    A = np.zeros((*np.shape(theta), 4, 4))
     A[..., 0, 0], A[..., 0, 1], A[..., 0, 2], A[..., 0, 3] = ct, -st * ca, st * sa, a * ct
     A[..., 1, 0], A[..., 1, 1], A[..., 1, 2], A[..., 1, 3] = st, ct * ca, -ct * sa, a * st
     A[..., 2, 1], A[..., 2, 2], A[..., 2, 3] = sa, ca, d
@@ -163,13 +168,7 @@ def frame_transforms(table: DHTable, q: ArrayLike) -> Array:
     # link_transform's products with the table's constants, computed once per table:
     # the twin and the calibration evaluate the same few tables at many joint vectors.
     offset, d, a, ca, sa = _link_constants(table)
-    theta = q + offset
-    ct, st = np.cos(theta), np.sin(theta)
-    A = np.zeros((*theta.shape, 4, 4))  # (..., 6, 4, 4)
-    A[..., 0, 0], A[..., 0, 1], A[..., 0, 2], A[..., 0, 3] = ct, -st * ca, st * sa, a * ct
-    A[..., 1, 0], A[..., 1, 1], A[..., 1, 2], A[..., 1, 3] = st, ct * ca, -ct * sa, a * st
-    A[..., 2, 1], A[..., 2, 2], A[..., 2, 3] = sa, ca, d
-    A[..., 3, 3] = 1.0
+    A = _links(q + offset, d, a, ca, sa)  # (..., 6, 4, 4)
     out = np.empty((*q.shape[:-1], 7, 4, 4))
     out[..., 0, :, :] = np.eye(4)
     for i in range(6):
