@@ -157,25 +157,34 @@ def _add_lattice_lines(
     acc, rows, cols, offsets, weights, depth, medium_end, plane_of_line, table, key
 ):  # pragma: no cover - compiled
     H, W = acc.shape
-    shifted = np.empty((W, 3), dtype=np.float32)
+    # Two passes per row: the cells' table slots first (a loop of integer arithmetic the
+    # compiler vectorizes: 64-bit multiplies in SIMD lanes), then the table reads and the
+    # sums. Fused in one loop the reads kept the hashing scalar: 1.75× slower in gel.
+    shifted = np.empty((3, W), dtype=np.float32)
+    slot = np.empty(W, dtype=np.uint64)
     for j in range(offsets.shape[0]):
         k = plane_of_line[j]
         # cols + offset first (float32, as the numpy sum rows + (cols + offset)).
         for c in range(W):
             for a in range(3):
-                shifted[c, a] = cols[c, a] + offsets[j, a]
+                shifted[a, c] = cols[c, a] + offsets[j, a]
+        s0, s1, s2 = shifted[0], shifted[1], shifted[2]
         for r in range(H):
             b = weights[j, r]
             if b == 0.0:
                 continue
             r0, r1, r2 = rows[r, 0], rows[r, 1], rows[r, 2]
+            for c in range(W):
+                slot[c] = _cell_slot(
+                    np.int64(np.floor(r0 + s0[c])),
+                    np.int64(np.floor(r1 + s1[c])),
+                    np.int64(np.floor(r2 + s2[c])),
+                    key,
+                )
             y = depth[r]
             for c in range(W):
                 if not y < medium_end[k, c]:
                     continue
-                i0 = np.int64(np.floor(r0 + shifted[c, 0]))
-                i1 = np.int64(np.floor(r1 + shifted[c, 1]))
-                i2 = np.int64(np.floor(r2 + shifted[c, 2]))
-                v = table[_cell_slot(i0, i1, i2, key)]
+                v = table[slot[c]]
                 # Rounded to complex64 after every line, as the line-by-line sum was.
                 acc[r, c] = np.complex64(np.complex128(acc[r, c]) + np.complex128(v) * b)
