@@ -604,25 +604,10 @@ class BeamTables:
         d = np.asarray(depth_m, float)
         i0, i1, wd = _node_weights(self.depths, d)
         z = np.asarray(z, float)
-        shape = z.shape
-        extra = (slice(None),) + (None,) * (z.ndim - 1)
-
-        def flat(v: Array, dtype: type) -> Array:
-            return np.ascontiguousarray(np.broadcast_to(v, shape), dtype=dtype).reshape(-1)
-
         step = float(self.elevation_z[1] - self.elevation_z[0])
-        none = np.zeros(z.size, dtype=np.int64)  # one "slope": the profile itself
-        out = _trilinear(
-            self.elevation[:, None, :],
-            flat(i0[extra], np.int64),
-            flat(i1[extra], np.int64),
-            flat(wd[extra], np.float64),
-            np.abs(z.reshape(-1)) / step,
-            none,
-            none,
-            np.zeros(z.size),
-        )
-        return out.reshape(shape)
+        rows = np.ascontiguousarray(z.reshape(len(d), -1))
+        out = _profile_rows(self.elevation[:, None, :], i0, i1, wd, rows, step)
+        return out.reshape(z.shape)
 
     def lateral_profile(self, depth_m: Array | float, x: Array) -> Array:
         """Two-way lateral amplitude profiles (depths, len(x)) at offsets ``x`` (m): each
@@ -838,6 +823,18 @@ def _trilinear(table, i0, i1, wd, a, j0, j1, wj):  # pragma: no cover - compiled
     out = np.zeros(n)
     for k in range(n):
         out[k] = table_at(table, i0[k], i1[k], wd[k], a[k], j0[k], j1[k], wj[k])
+    return out
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _profile_rows(table, i0, i1, wd, z, step):  # pragma: no cover - compiled
+    """:func:`table_at` of a one-slope ``table`` at offsets ``|z[n, m]| / step`` of the
+    rows' own depth nodes (``i0``, ``i1``, ``wd`` per row)."""
+    N, M = z.shape
+    out = np.zeros((N, M))
+    for n in range(N):
+        for m in range(M):
+            out[n, m] = table_at(table, i0[n], i1[n], wd[n], np.abs(z[n, m]) / step, 0, 0, 0.0)
     return out
 
 
