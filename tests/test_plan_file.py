@@ -192,8 +192,12 @@ def test_the_sequential_acquisition_stops_when_the_predicted_bounds_are_reached(
     assert m["acquisition"]["sweeps"] == seq["sweeps"] < 25
     assert m["acquisition"]["robot_time_s"] < 0.6 * 349.5
     err = m["calibration"]["single"]["true_error"]
-    # The truth within about twice the predicted 1 σ.
-    assert err["rotation_deg"] <= 0.5 and err["translation_mm"] <= 0.25
+    # The truth within twice the 1 σ predicted where the acquisition stopped. (A fixed
+    # 0.5° stood here, 1.3 σ: which sweeps the sequential mode picks turns on last-bit
+    # differences between CPUs' vector units; this run stops after 10 sweeps 0.53° off
+    # with AVX-512 kernels, after 11 sweeps 0.49° and 0.19 mm off with AVX2 ones.)
+    assert err["rotation_deg"] <= 2 * seq["predicted_rotation_deg"]
+    assert err["translation_mm"] <= 2 * seq["predicted_translation_mm"]
 
 
 def test_the_sequential_acquisition_is_one_acquisition(capsys):
