@@ -295,3 +295,54 @@ def test_golden_frame():
     # levels on a few pixels, nothing more.
     assert diff.max() <= 2
     assert (diff > 0).mean() < 0.01
+
+
+def test_lattice_lines_sum_the_cells_at_cells_reads():
+    """The medium's speckle kernel (``ScattererField.add_lattice_lines``, compiled, its
+    cells hashed in a loop of their own) gives bit for bit the sums its contract states:
+    line by line, the cells ``floor(rows + (cols + offset))`` read by ``at_cells``, times
+    the line's weight per row, only before the medium's end along each column, rounded to
+    complex64 after every line."""
+    from sim_us.speckle import ScattererField
+
+    rng = np.random.default_rng(7)
+    field = ScattererField(3.6e-5, key=11)
+    H, W, J, K = 37, 29, 6, 3
+    rows = rng.uniform(-500, 500, (H, 3)).astype(np.float32)
+    cols = rng.uniform(-500, 500, (W, 3)).astype(np.float32)
+    offsets = rng.uniform(-50, 50, (J, 3)).astype(np.float32)
+    weights = rng.uniform(0.0, 1.0, (J, H))
+    weights[rng.random((J, H)) < 0.3] = 0.0  # rows a line does not reach
+    depth = np.linspace(0.0, 0.04, H)
+    medium_end = rng.uniform(0.0, 0.05, (K, W))
+    planes = rng.integers(0, K, J)
+    acc = (rng.standard_normal((H, W)) + 1j * rng.standard_normal((H, W))).astype(np.complex64)
+    expected = acc.copy()
+    field.add_lattice_lines(acc, rows, cols, offsets, weights, depth, medium_end, planes)
+    for j in range(J):
+        cells = np.floor(rows[:, None, :] + (cols[None, :, :] + offsets[j])).astype(np.int64)
+        value = field.at_cells(cells).astype(np.complex128) * weights[j][:, None]
+        seen = (depth[:, None] < medium_end[planes[j]][None, :]) & (weights[j][:, None] != 0)
+        expected = np.where(seen, (expected.astype(np.complex128) + value), expected).astype(
+            np.complex64
+        )
+    np.testing.assert_array_equal(acc, expected)
+
+
+def test_the_elevation_profile_per_row_is_the_tabulated_profile():
+    """``BeamTables.elevation_at`` (each row's offsets at its own depth, compiled) reads
+    the profile ``elevation_profile`` tabulates: linear in depth and |z|, 0 past reach."""
+    from sim_us import ProbeConfig
+    from sim_us.beam import beam_of
+
+    tables = beam_of(ProbeConfig(), 1482.3)
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.0005, 0.045, 40)
+    z = rng.normal(0.0, 0.003, (40, 9))
+    z[0, 0] = tables.elevation_z[-1] * 1.5  # past the table's reach
+    got = tables.elevation_at(depth, z)
+    want = np.array([tables.elevation_profile(d, row)[0] for d, row in zip(depth, z, strict=True)])
+    assert got[0, 0] == 0.0
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+    # One offset per row: the same reading, shaped as given.
+    np.testing.assert_array_equal(tables.elevation_at(depth, z[:, 3]), got[:, 3])
