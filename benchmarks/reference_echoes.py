@@ -45,7 +45,10 @@ How, reference side (pymust 0.1.9, ``simus`` + ``rf2iq`` + ``dasmtx``):
   scanline, always on the line x = 0, with the scatterers within a lateral margin of it
   (3 lateral FWHM: beyond it the two-way PSF is below −45 dB). Envelope = |I/Q| after
   ``rf2iq`` (low-pass at fc) and ``dasmtx``. 3-D (``param.height``, ``param.focus``: the
-  elevation lens), soft baffle, pymust's default element splitting.
+  elevation lens), soft baffle, pymust's default element splitting. pymust counts a
+  scatterer's elevation offset twice in its path (``physics_reference.pymust_depth``):
+  each scatterer is handed to it at the depth that cancels the second count (before,
+  the sphere's cap 2 mm beside the plane was drawn 0.10 mm too deep at 20 mm).
 - A short frequency grid (cost). ``simus`` samples the spectrum finely enough for the whole
   RF from t = 0 (≈ 400-1100 frequencies at 10-30 mm); a window's echoes last a few µs.
   Its public ``FrequencyStep`` scaling is set so that the grid has period P = K / fc
@@ -408,7 +411,13 @@ def envelope(line: Scanline, pts: Array, rc: Array) -> Array:
     logging.disable(logging.WARNING)
     try:
         rf, _ = pymust.simus(
-            x[None], y[None], z[None], rc[None].astype(float), line.delays.copy(), param, opt
+            x[None],
+            y[None],
+            PR.pymust_depth(y, z)[None],  # its elevation counted once (pymust_depth)
+            rc[None].astype(float),
+            line.delays.copy(),
+            param,
+            opt,
         )
     finally:
         logging.disable(logging.NOTSET)
@@ -666,8 +675,9 @@ def default_grid_envelope(line: Scanline, pts: Array, rc: Array) -> Array:
     p.RXdelay = np.zeros((1, line.delays.shape[1]))
     opt = utils.Options()
     opt.WaitBar = False
+    depth = PR.pymust_depth(pts[:, 1], pts[:, 2])  # its elevation counted once
     rf, _ = pymust.simus(
-        pts[:, 0][None], pts[:, 1][None], pts[:, 2][None], rc[None], line.delays.copy(), p, opt
+        pts[:, 0][None], pts[:, 1][None], depth[None], rc[None], line.delays.copy(), p, opt
     )
     iq = pymust.rf2iq(rf, p.fs, p.fc)
     q = p.copy()
@@ -938,7 +948,10 @@ METHOD: dict[str, str] = {
     "from the element directivity, 0.71 at the edge: physics_reference.py's "
     "receive_fnumber and aperture), only those elements simulated, the same f-number in "
     "receive (dasmtx fnumber); one simus per scanline on x = 0, the scatterers moved by "
-    "-x_l instead of the line, those within 3 lateral FWHM of it; envelope |I/Q|",
+    "-x_l instead of the line, those within 3 lateral FWHM of it; envelope |I/Q|; each "
+    "scatterer at elevation y, depth z handed to simus at depth sqrt(z^2 - y^2): pymust's "
+    "pfield takes r = sqrt(d^2 + y^2) and its MGBM term adds y^2/2r again, so its r is made "
+    "the in-plane distance (physics_reference.pymust_depth)",
     "frequency_grid": "options.FrequencyStep set so simus's grid has period P = K/fc "
     "(simus returns [0, P/2)); param.RXdelay = -t0 for every element (a uniform receive "
     "delay: a phase per frequency) shifts the window's echoes [t_lo, t_hi] (geometry, the "

@@ -76,7 +76,11 @@ How, reference side (``--write``):
   no echo of the flanks above −45 dB (the differences below: the weak dots down the
   cap's column and the line).
 - Elevation: each frame gets the points within ± 3 mm of its own plane (the outer 0.5 mm
-  tapered): the sphere moves through the elevation beam along the sweep. pymust's
+  tapered): the sphere moves through the elevation beam along the sweep. pymust counts
+  a scatterer's elevation offset twice in its path (``physics_reference.pymust_depth``):
+  each is handed to it at the depth that cancels the second count. Frames rendered
+  without it drew the cap of a frame 2-4 mm beside the centre 0.1-0.3 mm too deep (a
+  point 2 mm off at 20 mm: 0.19 mm late, 0.09 mm with it: the aperture's own paths). pymust's
   two-way elevation field 3 mm off the plane is −44 to −56 dB at 10-25 mm (pfield).
   Frames more than ≈ 6.5 mm off hold no surface within reach; the echo is below the
   60 dB display ≈ 3 mm off already: 7-9 frames at each end of a sweep are black.
@@ -600,7 +604,7 @@ def beamformed(s: Scanner, tx: Transmit, p_us: Array, rc: Array) -> NDArray[np.c
         rf, _ = pymust.simus(
             x[None].copy(),
             y[None].copy(),
-            z[None].copy(),
+            PR.pymust_depth(y, z)[None],  # its elevation counted once (pymust_depth)
             rc[None].astype(float),
             tx.delays.copy(),
             p,
@@ -802,7 +806,9 @@ def method_record(surface: str = "smooth") -> dict[str, Any]:
         "over the sphere), pymust simus (3-D, elevation lens) + rf2iq (low-pass at fc) + "
         "dasmtx at the scanner's 1540 m/s with the directivity f-number, the transmit and the "
         "receive Hann-apodized; "
-        "each transmit's I/Q phase referred to true time (exp(-2πj fc t0)) before compounding",
+        "each transmit's I/Q phase referred to true time (exp(-2πj fc t0)) before compounding; "
+        "each scatterer at elevation y, depth z handed to simus at depth sqrt(z^2 - y^2) "
+        "(pymust counts the elevation twice: physics_reference.pymust_depth)",
         "steer_deg": list(STEER_DEG),
         "receive_fnumber": round(PR.receive_fnumber(PR.paper_probe().array), 4),
         "medium": "water 20 °C (MediumConfig()): c from calib.sound, attenuation at fc "
