@@ -395,6 +395,7 @@ def envelope(line: Scanline, pts: Array, rc: Array) -> Array:
     param = line.param
     c, fc = param.c, param.fc
     x, y, z = (np.ascontiguousarray(pts[:, i]) for i in range(3))
+    z = PR.pymust_depth(y, z)  # its elevation counted once (pymust_depth)
     # simus's own frequency step (it spans the RF from t = 0, scatterers' in-plane range
     # plus the pulse); FrequencyStep scales it to fc / (K - 1/2), so that its grid,
     # fc / ceil(fc / step), has exactly the period K / fc.
@@ -413,7 +414,7 @@ def envelope(line: Scanline, pts: Array, rc: Array) -> Array:
         rf, _ = pymust.simus(
             x[None],
             y[None],
-            PR.pymust_depth(y, z)[None],  # its elevation counted once (pymust_depth)
+            z[None],
             rc[None].astype(float),
             line.delays.copy(),
             param,

@@ -585,6 +585,7 @@ def beamformed(s: Scanner, tx: Transmit, p_us: Array, rc: Array) -> NDArray[np.c
     from pymust import utils
 
     x, y, z = _pymust_xyz(p_us, s)
+    z = PR.pymust_depth(y, z)  # its elevation counted once (pymust_depth)
     p = s.medium.copy()
     fc = p.fc
     # simus's own frequency step (half the inverse of the longest path's time: its
@@ -604,7 +605,7 @@ def beamformed(s: Scanner, tx: Transmit, p_us: Array, rc: Array) -> NDArray[np.c
         rf, _ = pymust.simus(
             x[None].copy(),
             y[None].copy(),
-            PR.pymust_depth(y, z)[None],  # its elevation counted once (pymust_depth)
+            z[None].copy(),
             rc[None].astype(float),
             tx.delays.copy(),
             p,
