@@ -40,6 +40,7 @@ __all__ = [
     "beam_of",
     "elevation_amplitude",
     "elevation_amplitude_at",
+    "elevation_delay_at",
     "elevation_offsets",
     "elevation_weights",
     "lateral_amplitude",
@@ -216,6 +217,20 @@ def elevation_amplitude_at(
         return beam_of(probe, medium_speed_m_s).elevation_at(depths, z)
     st = slice_thickness(probe, depths, medium_speed_m_s)[:, None]
     return np.exp(-4.0 * np.log(2.0) * np.asarray(z, float) ** 2 / st**2)
+
+
+def elevation_delay_at(
+    probe: ProbeConfig,
+    depths_m: NDArray[np.float64],
+    z: NDArray[np.float64],
+    medium_speed_m_s: float | None = None,
+) -> NDArray[np.float64]:
+    """How much deeper (m of displayed depth) echoes at displayed depths ``depths_m`` and
+    elevation offsets ``z`` (arrays alike, m) are drawn than the same points in the image
+    plane: the lensed aperture's longer paths to them
+    (:func:`sim_us.transducer.elevation_delay`). From the aperture and its lens, also
+    where a slice thickness is stated (the delay is the paths', not the profile's)."""
+    return beam_of(probe, medium_speed_m_s).delay_at(np.asarray(depths_m, float), z)
 
 
 def elevation_weights(

@@ -34,6 +34,7 @@ from .beam import (
     axial_fwhm_m,
     band_attenuation_db,
     elevation_amplitude_at,
+    elevation_delay_at,
     elevation_offsets,
     elevation_weights,
     lateral_amplitude,
@@ -327,11 +328,27 @@ class BmodeSimulator:
         # Where the mirror's echo dominates what is drawn smooth, it is drawn from where
         # in the slab it comes from (all of it with surface speckle: the rest is speckle).
         mirror_like = (coherent**2 >= 0.5 * amplitude**2) | self._surface_speckle
-        row_smooth = row_f
+        sy = self.true_spacing[1]
+        if len(self.z) > 1:
+            # Beside the image plane an echo is drawn deeper than its depth: the lens's
+            # paths to it are longer (sim_us.transducer.elevation_delay). Each echo at its
+            # sub-plane's offset; the mirror's at the elevation in the slab it comes from.
+            z_plane = self.z[plane]
+            late = elevation_delay_at(self.probe, echoes.depth, z_plane, self._beam_speed)
+            late_smooth = late.copy()
+            moved = mirror_like & (shift != 0.0)
+            if moved.any():
+                late_smooth[moved] = elevation_delay_at(
+                    self.probe, echoes.depth[moved], z_plane[moved] + shift[moved], self._beam_speed
+                )
+            row_smooth = row_f + late_smooth / sy
+            row_f = row_f + late / sy
+        else:
+            row_smooth = row_f
         if self._smear:
             assert echoes.slope is not None
             slope = np.clip(echoes.slope, -_MAX_ELEVATION_SLOPE, _MAX_ELEVATION_SLOPE)
-            row_smooth = row_f + np.where(mirror_like, slope * shift, 0.0) / self.true_spacing[1]
+            row_smooth = row_smooth + np.where(mirror_like, slope * shift, 0.0) / sy
             span = np.where(mirror_like, span, self._slab[plane])
         speckled = None
         if self._surface_speckle:
@@ -615,10 +632,17 @@ class BmodeSimulator:
             loss_db=lambda depth: band_attenuation_db(probe, medium, depth),
             dynamic_range_db=probe.dynamic_range_db,
         )
+        rows = echoes.row
+        if len(self.z) > 1 and len(rows):
+            # Beside the image plane drawn deeper, as the surfaces' echoes (_echo_intensity).
+            sy = self.true_spacing[1]
+            depth = rows * sy + self.offset[1]
+            late = elevation_delay_at(probe, depth, self.z[echoes.plane], self._beam_speed)
+            rows = rows + late / sy
         c0 = np.floor(echoes.col).astype(np.int64)
-        keep = (c0 >= 0) & (c0 + 1 < W) & (echoes.row > -1) & (echoes.row < H - 1)
+        keep = (c0 >= 0) & (c0 + 1 < W) & (rows > -1) & (rows < H - 1)
         f, k, c0, row, energy = (
-            v[keep] for v in (echoes.frame, echoes.plane, c0, echoes.row, echoes.energy)
+            v[keep] for v in (echoes.frame, echoes.plane, c0, rows, echoes.energy)
         )
         frac = echoes.col[keep] - c0
         row_idx = np.clip(np.rint(row).astype(np.int64), 0, H - 1)

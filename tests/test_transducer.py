@@ -198,3 +198,51 @@ def test_the_tables_kept_on_disk_are_the_tables_computed(tmp_path, monkeypatch):
     kept.write_bytes(b"not an npz")
     np.testing.assert_array_equal(cached(t, depth).lateral, fresh.lateral)
     assert kept.read_bytes()[:2] == b"PK"  # written again, whole
+
+
+def _direct_delay(t, depth_m: float, z: float) -> float:
+    """How much deeper (displayed m) a point at elevation ``z`` is drawn than one in the
+    plane, summed directly: the element's height sampled every λ/8, each pair of
+    transmitting and receiving points a path at the exact distances (no paraxial
+    approximation) less the lens's delays (a thin lens focusing at F), the pulse's
+    spectrum summed over the pairs at each frequency, the envelope's peak on a fine time
+    grid. The elevation alone (one element's column): the test of the closed form."""
+    H, F = t.elevation_aperture_m, t.elevation_focus_m
+    c = t.c_medium
+    zeta = np.arange(-H / 2, H / 2 + 1e-12, c / t.f_hz / 8)
+    lens = np.sqrt(F**2 + (H / 2) ** 2) - np.sqrt(F**2 + zeta**2)  # thickest at the centre
+    d = depth_m * t.true_per_displayed
+    f = np.linspace(t.f_hz * (1 - t.bandwidth), t.f_hz * (1 + t.bandwidth), 257)
+    from sim_us.transducer import _excitation, _pulse_echo_response
+
+    pulse = _excitation(t, f) * _pulse_echo_response(t, f)
+    tau = np.arange(-1.5e-6, 1.5e-6, 1e-10)
+
+    def peak(zp: float) -> float:
+        one_way = (np.hypot(d, zp - zeta) + lens) / c  # per point of the height
+        # Σ over transmit × receive points of exp(2πi f (t_tx + t_rx)) = (Σ exp(..))².
+        field = np.exp(2j * np.pi * np.outer(f, one_way - (d + lens[len(zeta) // 2]) / c))
+        spectrum = pulse * field.sum(axis=1) ** 2
+        env = np.abs(np.exp(-2j * np.pi * np.outer(tau, f)) @ spectrum)
+        return float(tau[np.argmax(env)])
+
+    return (peak(z) - peak(0.0)) * t.speed_m_s / 2.0
+
+
+@pytest.mark.parametrize(("depth_mm", "offsets_mm"), [(20.0, (1.0, 2.0)), (35.0, (1.0, 2.0, 3.0))])
+def test_a_point_beside_the_plane_is_drawn_as_deep_as_its_paths_say(depth_mm, offsets_mm):
+    """The lens's longer paths to a point beside the image plane (paper probe in water):
+    the closed-form delay the simulator draws with is the direct sum's within 0.02 mm,
+    from 0.03 mm (1 mm off) to 0.25 mm (3 mm off at 35 mm); in the plane it is 0."""
+    from sim_us.transducer import elevation_delay
+
+    t = transducer(ProbeConfig(), water_speed_m_s(20.0))
+    depth = depth_mm * MM / t.true_per_displayed
+    z = np.array(offsets_mm) * MM
+    ours = elevation_delay(t, depth, np.concatenate([[0.0], z]))
+    assert ours[0] == pytest.approx(0.0, abs=1e-9)
+    direct = np.array([_direct_delay(t, depth, zi) for zi in z])
+    assert np.all(direct > 0.02 * MM)  # a real effect to check, not noise about 0
+    np.testing.assert_allclose(ours[1:], direct, atol=0.02 * MM)
+    # Farther off, later: the paths grow as z².
+    assert np.all(np.diff(ours[1:]) > 0)
