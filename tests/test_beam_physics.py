@@ -81,7 +81,8 @@ def test_discrete_elevation_reproduces_the_frame_from_before():
     grey levels on 17 % of the pixels; and when a surface's echo became the mirror lobe of
     the probe's apertures instead of a stated specular width; and when the gel's speckle
     level came to follow the broadband loss and the resolution cell; and when a surface's
-    diffuse return came to grow with the area a ray's tube meets)."""
+    diffuse return came to grow with the area a ray's tube meets; and when an echo beside
+    the image plane came to be drawn as much deeper as the lens's longer paths delay it)."""
     frame = golden_scene(replace(SMALL_PROBE, continuous_elevation=False)).render(
         T_IDENTITY, np.random.default_rng(2026)
     )[0]
