@@ -4,8 +4,9 @@ For each frame one ray per scanline (one scanline per image column) is cast alon
 axial direction in each elevation sub-plane; the echoes are weighted by the elevation
 beam profile at their depth and summed incoherently over the sub-planes (partial
 volume), splatted at their apparent depth (deeper beside the image plane by the lensed
-aperture's longer paths: :func:`sim_us.transducer.elevation_delay`) — spread over the depth interval the surface
-covers across each sub-plane's slab of elevation (continuous elevation integration) —
+aperture's longer paths: :func:`sim_us.transducer.elevation_delay`) — spread over the
+depth interval the surface covers across each sub-plane's slab of elevation (continuous
+elevation integration) —
 and blurred with the PSF (with its side lobes and the transducer's ring-down when
 configured). The scanner may draw at a geometry other than the one its frames report
 (pixel scale error, image origin and centre off the transducer face), and the medium
