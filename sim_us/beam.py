@@ -114,12 +114,17 @@ def speckle_cell_gain(
     medium_speed_m_s: float | None = None,
 ) -> NDArray[np.float64]:
     """Mean speckle intensity relative to a flat reflector's echo at depth(s), re the
-    elevation focus: a medium's speckle sums the scatterers of the resolution cell
-    (intensity ∝ its volume × the peak²) where a flat reflector sums the cell's area
-    coherently (∝ (area × peak)²), so their ratio goes as 1 / (lateral × elevation FWHM);
-    the axial width is the same at every depth."""
+    elevation focus. From the transducer (:func:`sim_us.transducer.speckle_per_flat`):
+    the speckle sums the resolution cell's scatterers incoherently where a flat reflector
+    sums the field over its plane coherently, so in focus their ratio goes as 1 / (lateral
+    × elevation FWHM), and away from the lens focus the flat reflector loses more (its
+    plane meets a curved wavefront). With stated widths: 1 / (lateral × elevation FWHM)
+    alone (the axial width is the same at every depth)."""
     focus = probe.elevation_focus_mm * 1e-3
     c = medium_speed_m_s
+    if probe.lateral_fwhm_mm is None and probe.slice_thickness_mm is None:
+        tables = beam_of(probe, c)
+        return tables.at("speckle_per_flat", depth_m) / tables.at("speckle_per_flat", focus)
     cell = lateral_fwhm_m(probe, depth_m, c) * slice_thickness(probe, depth_m, c)
     return lateral_fwhm_m(probe, focus, c) * slice_thickness(probe, focus, c) / cell
 
