@@ -448,6 +448,23 @@ def two_way_profile(t: Transducer, depth_m: float, x: Array, z: Array) -> Array:
     return out / np.max(out)
 
 
+def _lateral_field(
+    t: Transducer, f: float, x: Array, depth_m: float, transmit: tuple[Array, Array, Array]
+) -> NDArray[np.complex128]:
+    """One transmit's (or the receive's) lateral field at frequency ``f`` at points ``x``
+    (m) of the focal plane at displayed depth ``depth_m``, the elevation apart: each
+    element's far field (directivity, ``1/√r``) with the phase its delays leave, summed
+    over ``transmit`` = (the elements' offsets, the paths the beamformer assumes, their
+    weights), as :func:`two_way_profile` sums it."""
+    u, path, a = transmit
+    true_depth = depth_m * t.true_per_displayed
+    k, k_scan = 2.0 * np.pi * f / t.c_medium, 2.0 * np.pi * f / t.speed_m_s
+    d = np.asarray(x, float)[:, None] - u[None, :]
+    r = np.sqrt(d**2 + true_depth**2)
+    directivity = true_depth / r * np.sinc((t.pitch_m - t.kerf_m) * d / r / (t.c_medium / f))
+    return (a * directivity * np.exp(1j * (k * r - k_scan * path)) / np.sqrt(r)).sum(axis=1)
+
+
 def elevation_delay(t: Transducer, depth_m: float, z: Array) -> Array:
     """How much deeper (m of displayed depth) a point at elevation offsets ``z`` (m)
     beside the scanline's focus at displayed depth ``depth_m`` is drawn than the same
@@ -465,7 +482,6 @@ def elevation_delay(t: Transducer, depth_m: float, z: Array) -> Array:
     found on a time grid a quarter period apart and refined by a parabola through the
     log-envelope, less the in-plane point's. A point 2 mm beside the plane at 20 mm
     (paper probe in water): 0.09 mm; pymust with its elevation counted once: 0.09 mm."""
-    w = t.pitch_m - t.kerf_m
     true_depth = depth_m * t.true_per_displayed
     zz = np.concatenate([[0.0], np.abs(np.asarray(z, float))])
     # The window searched: the longest path through the aperture's far edge and the lens,
@@ -479,19 +495,17 @@ def elevation_delay(t: Transducer, depth_m: float, z: Array) -> Array:
     freqs = np.linspace(t.f_hz * (1 - t.bandwidth), t.f_hz * (1 + t.bandwidth), max(n_freq, 33))
     pulse = _excitation(t, freqs) * _pulse_echo_response(t, freqs)
     u = _aperture(t, depth_m)
-    weights = _receive_weights(t, depth_m, u)
-
-    def lateral(f: float, u: Array, path: Array, a: Array) -> complex:
-        k, k_scan = 2.0 * np.pi * f / t.c_medium, 2.0 * np.pi * f / t.speed_m_s
-        r = np.sqrt(u**2 + true_depth**2)
-        directivity = true_depth / r * np.sinc(w * u / r / (t.c_medium / f))
-        return complex(np.sum(a * directivity * np.exp(1j * (k * r - k_scan * path)) / np.sqrt(r)))
-
+    receive = (u, np.sqrt(u**2 + depth_m**2), _receive_weights(t, depth_m, u))
     transmits = _transmits(t, depth_m)
+    on_line = np.zeros(1)
     spectrum = np.empty((len(freqs), len(zz)), complex)
     for i, f in enumerate(freqs):
-        rx = lateral(f, u, np.sqrt(u**2 + depth_m**2), weights)
-        tx = rx if not t.plane_waves_rad else sum(lateral(f, *tr) for tr in transmits)
+        rx = _lateral_field(t, f, on_line, depth_m, receive)[0]
+        tx = (
+            rx
+            if not t.plane_waves_rad
+            else sum(_lateral_field(t, f, on_line, depth_m, tr)[0] for tr in transmits)
+        )
         k = 2.0 * np.pi * f / t.c_medium
         spectrum[i] = pulse[i] * tx * rx * _elevation_field(zz, np.array(true_depth), k, t) ** 2
     # The echo at time τ after the in-plane arrival: Σ_f S(f) exp(−2πi f τ) (the fields'
@@ -524,12 +538,11 @@ def speckle_per_flat(t: Transducer, depth_m: float) -> float:
     flat reflector's sum loses more than the speckle's: the paper probe's flat sheet at 10
     mm echoes 12 dB below one at 20 mm in pymust, the speckle relative to it is ≈ 4 dB
     higher at 10 than at 20 mm (pymust, attenuation apart: 3.8 dB)."""
-    w = t.pitch_m - t.kerf_m
     freqs = np.linspace(t.f_hz * (1 - t.bandwidth), t.f_hz * (1 + t.bandwidth), _CELL_FREQUENCIES)
     pulse = _excitation(t, freqs) * _pulse_echo_response(t, freqs)
     true_depth = depth_m * t.true_per_displayed
     u = _aperture(t, depth_m)
-    weights = _receive_weights(t, depth_m, u)
+    receive = (u, np.sqrt(u**2 + depth_m**2), _receive_weights(t, depth_m, u))
     lam = t.c_medium / t.f_hz
     span = len(u) * t.pitch_m
     x_reach = _CELL_REACH_CELLS * lam * true_depth / span + 1e-3
@@ -539,19 +552,15 @@ def speckle_per_flat(t: Transducer, depth_m: float) -> float:
     z = np.linspace(-z_reach, z_reach, _CELL_SAMPLES)
     dx, dz = x[1] - x[0], z[1] - z[0]
     transmits = _transmits(t, depth_m)
-
-    def lateral(f: float, u: Array, path: Array, a: Array) -> NDArray[np.complex128]:
-        k, k_scan = 2.0 * np.pi * f / t.c_medium, 2.0 * np.pi * f / t.speed_m_s
-        d = x[:, None] - u[None, :]
-        r = np.sqrt(d**2 + true_depth**2)
-        directivity = true_depth / r * np.sinc(w * d / r / (t.c_medium / f))
-        return (a * directivity * np.exp(1j * (k * r - k_scan * path)) / np.sqrt(r)).sum(axis=1)
-
     incoherent = 0.0
     coherent = np.empty(len(freqs), complex)
     for i, f in enumerate(freqs):
-        rx = lateral(f, u, np.sqrt(u**2 + depth_m**2), weights)
-        tx = rx if not t.plane_waves_rad else sum(lateral(f, *tr) for tr in transmits)
+        rx = _lateral_field(t, f, x, depth_m, receive)
+        tx = (
+            rx
+            if not t.plane_waves_rad
+            else sum(_lateral_field(t, f, x, depth_m, tr) for tr in transmits)
+        )
         lat = tx * rx
         el = _elevation_field(z, np.array(true_depth), 2.0 * np.pi * f / t.c_medium, t) ** 2
         incoherent += pulse[i] ** 2 * np.sum(np.abs(lat) ** 2) * dx * np.sum(np.abs(el) ** 2) * dz
