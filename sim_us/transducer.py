@@ -776,13 +776,10 @@ class BeamTables:
         d = np.asarray(depth_m, float)
         i0, i1, wd = _node_weights(self.depths, d)
         step = float(self.elevation_z[1] - self.elevation_z[0])
-        pos = np.minimum(np.abs(np.asarray(z, float)) / step, len(self.elevation_z) - 1.0)
-        j0 = np.minimum(pos.astype(np.int64), len(self.elevation_z) - 2)
-        wj = pos - j0
-        table = self.elevation_delay
-        near = (1.0 - wj) * table[i0, j0] + wj * table[i0, j0 + 1]
-        far = (1.0 - wj) * table[i1, j0] + wj * table[i1, j0 + 1]
-        return (1.0 - wd) * near + wd * far
+        # Held at the last offset (just inside it: the compiled lookup is 0 past it).
+        reach = (len(self.elevation_z) - 1 - 1e-9) * step
+        z = np.minimum(np.abs(np.asarray(z, float)), reach).reshape(len(d), 1)
+        return _profile_rows(self.elevation_delay[:, None, :], i0, i1, wd, z, step)[:, 0]
 
     def lateral_profile(self, depth_m: Array | float, x: Array) -> Array:
         """Two-way lateral amplitude profiles (depths, len(x)) at offsets ``x`` (m): each
