@@ -634,13 +634,11 @@ class BmodeSimulator:
             loss_db=lambda depth: band_attenuation_db(probe, medium, depth),
             dynamic_range_db=probe.dynamic_range_db,
         )
+        # No elevation delay (unlike a sphere's cap): a wire crossing the image plane is a
+        # line along the elevation, whose echo, by the image method, comes from the point
+        # of the wire midway between each transmitting and receiving point of the lens:
+        # the paths depend on their separation alone, as a flat mirror's do.
         rows = echoes.row
-        if len(self.z) > 1 and len(rows):
-            # Beside the image plane drawn deeper, as the surfaces' echoes (_echo_intensity).
-            sy = self.true_spacing[1]
-            depth = rows * sy + self.offset[1]
-            late = elevation_delay_at(probe, depth, self.z[echoes.plane], self._beam_speed)
-            rows = rows + late / sy
         c0 = np.floor(echoes.col).astype(np.int64)
         keep = (c0 >= 0) & (c0 + 1 < W) & (rows > -1) & (rows < H - 1)
         f, k, c0, row, energy = (
