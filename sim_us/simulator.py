@@ -638,11 +638,10 @@ class BmodeSimulator:
         # line along the elevation, whose echo, by the image method, comes from the point
         # of the wire midway between each transmitting and receiving point of the lens:
         # the paths depend on their separation alone, as a flat mirror's do.
-        rows = echoes.row
         c0 = np.floor(echoes.col).astype(np.int64)
-        keep = (c0 >= 0) & (c0 + 1 < W) & (rows > -1) & (rows < H - 1)
+        keep = (c0 >= 0) & (c0 + 1 < W) & (echoes.row > -1) & (echoes.row < H - 1)
         f, k, c0, row, energy = (
-            v[keep] for v in (echoes.frame, echoes.plane, c0, rows, echoes.energy)
+            v[keep] for v in (echoes.frame, echoes.plane, c0, echoes.row, echoes.energy)
         )
         frac = echoes.col[keep] - c0
         row_idx = np.clip(np.rint(row).astype(np.int64), 0, H - 1)

@@ -465,6 +465,25 @@ def _lateral_field(
     return (a * directivity * np.exp(1j * (k * r - k_scan * path)) / np.sqrt(r)).sum(axis=1)
 
 
+def _two_way_lateral(t: Transducer, f: float, x: Array, depth_m: float) -> NDArray[np.complex128]:
+    """The two-way lateral field (transmit × receive, the elevation apart) at frequency
+    ``f`` at points ``x`` (m) of the focal plane of the scanline focused at displayed depth
+    ``depth_m``: a focused scanner's transmit is its receive aperture, plane waves the
+    steered transmits summed as waves (:func:`_transmits`)."""
+    u = _aperture(t, depth_m)
+    receive = (u, np.hypot(u, depth_m), _receive_weights(t, depth_m, u))
+    rx = _lateral_field(t, f, x, depth_m, receive)
+    if not t.plane_waves_rad:
+        return rx * rx
+    return rx * sum(_lateral_field(t, f, x, depth_m, tr) for tr in _transmits(t, depth_m))
+
+
+def _echo_spectrum(t: Transducer, freqs: Array) -> Array:
+    """The echo pulse's amplitude spectrum: the excitation through the pulse-echo
+    response."""
+    return _excitation(t, freqs) * _pulse_echo_response(t, freqs)
+
+
 def elevation_delay(t: Transducer, depth_m: float, z: Array) -> Array:
     """How much deeper (m of displayed depth) a point at elevation offsets ``z`` (m)
     beside the scanline's focus at displayed depth ``depth_m`` is drawn than the same
@@ -493,21 +512,13 @@ def elevation_delay(t: Transducer, depth_m: float, z: Array) -> Array:
     # past it), so close that the grid's period (the echo repeats) is twice the window.
     n_freq = int(np.ceil(2.0 * t.bandwidth * t.f_hz * 4.0 * reach)) + 1
     freqs = np.linspace(t.f_hz * (1 - t.bandwidth), t.f_hz * (1 + t.bandwidth), max(n_freq, 33))
-    pulse = _excitation(t, freqs) * _pulse_echo_response(t, freqs)
-    u = _aperture(t, depth_m)
-    receive = (u, np.sqrt(u**2 + depth_m**2), _receive_weights(t, depth_m, u))
-    transmits = _transmits(t, depth_m)
+    pulse = _echo_spectrum(t, freqs)
     on_line = np.zeros(1)
     spectrum = np.empty((len(freqs), len(zz)), complex)
     for i, f in enumerate(freqs):
-        rx = _lateral_field(t, f, on_line, depth_m, receive)[0]
-        tx = (
-            rx
-            if not t.plane_waves_rad
-            else sum(_lateral_field(t, f, on_line, depth_m, tr)[0] for tr in transmits)
-        )
+        lateral = _two_way_lateral(t, f, on_line, depth_m)[0]
         k = 2.0 * np.pi * f / t.c_medium
-        spectrum[i] = pulse[i] * tx * rx * _elevation_field(zz, np.array(true_depth), k, t) ** 2
+        spectrum[i] = pulse[i] * lateral * _elevation_field(zz, np.array(true_depth), k, t) ** 2
     # The echo at time τ after the in-plane arrival: Σ_f S(f) exp(−2πi f τ) (the fields'
     # phase exp(+ikr) is a delay).
     step = 0.25 / t.f_hz
@@ -539,29 +550,20 @@ def speckle_per_flat(t: Transducer, depth_m: float) -> float:
     mm echoes 12 dB below one at 20 mm in pymust, the speckle relative to it is ≈ 4 dB
     higher at 10 than at 20 mm (pymust, attenuation apart: 3.8 dB)."""
     freqs = np.linspace(t.f_hz * (1 - t.bandwidth), t.f_hz * (1 + t.bandwidth), _CELL_FREQUENCIES)
-    pulse = _excitation(t, freqs) * _pulse_echo_response(t, freqs)
+    pulse = _echo_spectrum(t, freqs)
     true_depth = depth_m * t.true_per_displayed
-    u = _aperture(t, depth_m)
-    receive = (u, np.sqrt(u**2 + depth_m**2), _receive_weights(t, depth_m, u))
     lam = t.c_medium / t.f_hz
-    span = len(u) * t.pitch_m
+    span = len(_aperture(t, depth_m)) * t.pitch_m
     x_reach = _CELL_REACH_CELLS * lam * true_depth / span + 1e-3
     x = np.linspace(-x_reach, x_reach, _CELL_SAMPLES)
     H, F = t.elevation_aperture_m, t.elevation_focus_m
     z_reach = 1.5 * H * max(1.0, abs(true_depth - F) / F) + 2e-3
     z = np.linspace(-z_reach, z_reach, _CELL_SAMPLES)
     dx, dz = x[1] - x[0], z[1] - z[0]
-    transmits = _transmits(t, depth_m)
     incoherent = 0.0
     coherent = np.empty(len(freqs), complex)
     for i, f in enumerate(freqs):
-        rx = _lateral_field(t, f, x, depth_m, receive)
-        tx = (
-            rx
-            if not t.plane_waves_rad
-            else sum(_lateral_field(t, f, x, depth_m, tr) for tr in transmits)
-        )
-        lat = tx * rx
+        lat = _two_way_lateral(t, f, x, depth_m)
         el = _elevation_field(z, np.array(true_depth), 2.0 * np.pi * f / t.c_medium, t) ** 2
         incoherent += pulse[i] ** 2 * np.sum(np.abs(lat) ** 2) * dx * np.sum(np.abs(el) ** 2) * dz
         coherent[i] = pulse[i] * np.sum(lat) * dx * np.sum(el) * dz
