@@ -34,6 +34,13 @@ side lobes). This checks what the image is made of, for the same probes (the pap
 3. **The partial volume of a sphere**: a 5 mm sphere (steel, smooth) in water, centre at
    20 and 35 mm, moved in elevation by −4 … +4 mm: the cap's peak brightness (dB relative
    to offset 0) and the depth of that peak (true mm) against the offset.
+4. **A flat reflector against depth**: a perfect flat reflector facing the probe in water
+   at 5 … 40 mm, its echo's peak on the scanline focused at its depth, dB re 20 mm: the
+   lateral aperture grows with depth (``depth / F#``, up to the active elements) and the
+   elevation lens's wavefront is flat across the plane only near its focus (the paper
+   probe's sheet at 5 mm: −21 dB). The twin's level of every echo against depth is this
+   (``sim_us.transducer.flat_echo``); its speckle level of part 1 is taken against it at
+   each depth, as the reference's is against its own sheet.
 
 How, reference side (pymust 0.1.9, ``simus`` + ``rf2iq`` + ``dasmtx``):
 
@@ -93,6 +100,11 @@ How, reference side (pymust 0.1.9, ``simus`` + ``rf2iq`` + ``dasmtx``):
   invariant); rough: 30 lines 0.2 mm apart (6 mm of line, ≈ 15 roughness lengths).
   Water: c = 1482 m/s (20 °C, sim_us's water), no attenuation (levels are relative at
   one depth).
+- Flat: the planes' sheet facing the probe (λ / 4 grid, ± 3 lateral FWHM) reaching
+  ± max(1.5 slice thicknesses, H) in elevation (H the elevation aperture: the image
+  method's specular points lie within ± H / 2, and in front of the lens focus the beam
+  is wider than its slice), tapered; one line, transmit focus at the depth. Water as for
+  the planes.
 - Sphere: the probe-facing hemisphere's surface (outward normal not pointing away from
   the probe: below the equator the sphere shadows itself) within ±1.5 × max(slice
   thickness, H / 2) of the image plane in elevation (a raised-cosine taper over the
@@ -112,6 +124,8 @@ at these pixels for the paper probe); the level is compared relative to 10 mm, w
 that cancels, and the absolute level is printed at the probe's own pixels too. Planes:
 a 3 mm steel box in water (20 °C), its top face through (0, 20 mm) rotated about the
 elevation axis; each column's peak within ±0.5 mm of the line over the central 8 mm.
+Flat: the planes' steel box facing the probe at each depth, the mean over the central
+8 mm of each column's peak, the water's two-way loss (``band_attenuation_db``) taken off.
 Sphere: ``trimesh.creation.icosphere`` (5 subdivisions) of steel in water, the probe moved
 in elevation, a scanline over its centre, ``surface_speckle`` off and on; the frame's
 peak (no depth is shown for an echo below the −60 dB floor).
@@ -167,6 +181,7 @@ from sim_us import MediumConfig, ProbeConfig  # noqa: E402
 from sim_us.beam import (  # noqa: E402
     axial_fwhm_m,
     band_attenuation_db,
+    flat_echo_gain,
     lateral_fwhm_m,
     scanline_step,
     slice_thickness,
@@ -241,6 +256,14 @@ TAPER = 2.0 / 3.0
 BOX_THICKNESS_M = 3e-3
 TWIN_LINE_HALF_SPAN_M = 4e-3  # the twin's line: the central 8 mm
 TWIN_PEAK_BAND_M = 0.5e-3
+
+# A flat reflector facing the probe against depth (its level re FLAT_REFERENCE_MM).
+FLAT_DEPTHS_MM = (5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0)
+FLAT_REFERENCE_MM = 20.0
+
+# The sphere's cap in the image plane against depth (its centre's), re the flat sheet at
+# FLAT_REFERENCE_MM (per unit of surface: the same reflector, curved).
+CAP_DEPTHS_MM = (10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0)
 
 # Sphere: radius, centre depths, elevation offsets, surface sampling.
 SPHERE_RADIUS_M = 2.5e-3
@@ -533,6 +556,36 @@ def reference_speckle(case: Any, log: bool = True) -> dict[str, Any]:
     return out
 
 
+def reference_flat(case: Any, log: bool = True) -> dict[str, Any]:
+    """A perfect flat reflector facing the probe at each of ``FLAT_DEPTHS_MM`` in water:
+    its echo's peak on the scanline focused at its depth, dB re FLAT_REFERENCE_MM."""
+    a = _in_medium(case, WATER_C)
+    lam = WATER_C / (a.f_mhz * 1e6)
+    H = a.elevation_aperture_mm * 1e-3
+    peaks = []
+    for depth_mm in FLAT_DEPTHS_MM:
+        t0 = time.perf_counter()
+        d = depth_mm * 1e-3
+        lat, ax, st = _beam_widths(case, d)
+        # Laterally the focus's spot; in elevation the lens's wavefront, flat only near
+        # its focus: at least the aperture's height each side (the image method's
+        # specular points lie within ± H / 2), tapered.
+        m, ys = LATERAL_MARGIN_FWHM * lat, max(SHEET_REACH_ST * st, H)
+        u, v, w = _sheet(m, ys, SHEET_SPACING_LAMBDA * lam)
+        zp = np.arange(d - 4 * ax, d + 4 * ax, SAMPLE_SPACING_LAMBDA * lam / 4)
+        line = scanline(a, d, zp, (m, d, d, ys))
+        sheet = np.column_stack([u, v, np.full_like(u, d)])
+        peaks.append(float(np.max(envelope(line, sheet, w))))
+        if log:
+            print(
+                f"  pymust {case.name} flat {depth_mm:g} mm: {len(u)} scatterers, "
+                f"{time.perf_counter() - t0:.0f} s",
+                file=sys.stderr,
+            )
+    ref = peaks[FLAT_DEPTHS_MM.index(FLAT_REFERENCE_MM)]
+    return {"level_db": [db(p / ref) for p in peaks], "peak": peaks}
+
+
 def height_field(shape: tuple[int, int], spacing: float, rng: np.random.Generator) -> Array:
     """A Gaussian height field on a grid (σ = ``ROUGH_SIGMA_M``, covariance
     exp(−d² / 2ℓ²), ℓ = ``ROUGH_LENGTH_M``): white noise through a Gaussian of σ ℓ / √2
@@ -667,6 +720,41 @@ def reference_sphere(case: Any, log: bool = True) -> dict[str, Any]:
     return out
 
 
+def _sheet_peak(case: Any, depth_m: float) -> tuple[float, float]:
+    """A flat sheet's echo peak at ``depth_m`` in water (the flat part's) and its
+    scatterers' spacing (m)."""
+    a = _in_medium(case, WATER_C)
+    lam = WATER_C / (a.f_mhz * 1e6)
+    lat, ax, st = _beam_widths(case, depth_m)
+    m, ys = LATERAL_MARGIN_FWHM * lat, max(SHEET_REACH_ST * st, a.elevation_aperture_mm * 1e-3)
+    spacing = SHEET_SPACING_LAMBDA * lam
+    u, v, w = _sheet(m, ys, spacing)
+    zp = np.arange(depth_m - 4 * ax, depth_m + 4 * ax, SAMPLE_SPACING_LAMBDA * lam / 4)
+    line = scanline(a, depth_m, zp, (m, depth_m, depth_m, ys))
+    sheet = np.column_stack([u, v, np.full_like(u, depth_m)])
+    return float(np.max(envelope(line, sheet, w))), spacing
+
+
+def reference_cap_depth(case: Any, log: bool = True) -> dict[str, Any]:
+    """The sphere's cap in the image plane, its centre at each of ``CAP_DEPTHS_MM``: the
+    echo's peak per unit of surface, dB re a flat sheet's at FLAT_REFERENCE_MM."""
+    t0 = time.perf_counter()
+    lam = WATER_C / (case.array.f_mhz * 1e6)
+    sheet, sheet_spacing = _sheet_peak(case, FLAT_REFERENCE_MM * 1e-3)
+    levels = []
+    for depth_mm in CAP_DEPTHS_MM:
+        line, cap = _sphere_setup(case, depth_mm)
+        peak = float(np.max(envelope(line, *cap(0.0))))
+        # Per unit of surface: each point stands for its spacing² of it.
+        levels.append(db(peak * (CAP_SPACING_LAMBDA * lam) ** 2 / (sheet * sheet_spacing**2)))
+    if log:
+        print(
+            f"  pymust {case.name} cap against depth: {time.perf_counter() - t0:.0f} s",
+            file=sys.stderr,
+        )
+    return {"level_db": levels}
+
+
 def default_grid_envelope(line: Scanline, pts: Array, rc: Array) -> Array:
     """As :func:`envelope`, with pymust's own frequency grid (no shift): the check."""
     import pymust  # optional: only the reference needs pymust
@@ -741,13 +829,15 @@ def reference_figures(case: Any, parts: tuple[str, ...], log: bool = True) -> di
             ("speckle", reference_speckle),
             ("planes", reference_planes),
             ("sphere", reference_sphere),
+            ("flat", reference_flat),
+            ("cap_depth", reference_cap_depth),
         ):
             if part not in parts:
                 continue
             t0 = time.perf_counter()
             out[part] = fn(case, log)
             seconds[part] = round(time.perf_counter() - t0, 1)
-        if case.name == "paper":
+        if case.name == "paper" and "speckle" in parts and "sphere" in parts:
             t0 = time.perf_counter()
             out["aliasing_check"] = aliasing_check(case)
             seconds["aliasing_check"] = round(time.perf_counter() - t0, 1)
@@ -805,6 +895,7 @@ def twin_speckle(case: Any, depths_mm: tuple[float, ...] = SPECKLE_DEPTHS_MM) ->
     out: dict[str, Any] = {k: [] for k in ("lateral_acf_fwhm_mm", "axial_acf_fwhm_mm", "snr")}
     raw: list[float] = []
     native: list[float] = []
+    flat2: dict[float, float] = {}
     pooled: list[Array] = []
     for pixels, levels in (((sx, sz), raw), (im.pixel_spacing_mm, native)):
         probe = _measuring(im, frame_w, depth, pixels)
@@ -817,6 +908,10 @@ def twin_speckle(case: Any, depths_mm: tuple[float, ...] = SPECKLE_DEPTHS_MM) ->
             rows = np.abs(y - d) <= height / 2
             cols = np.abs(x) <= TWIN_WINDOWS * width / 2
             levels.append(float(np.mean(env[np.ix_(rows, cols)] ** 2)))
+            # The level is taken against a flat reflector at that depth, as the
+            # reference's: the twin's flat reflector's echo there (checked against
+            # pymust's, the "flat" part).
+            flat2[d] = float(flat_echo_gain(probe, d * 1e-3, sim._beam_speed)) ** 2
             if pixels != (sx, sz):
                 continue
             first = int(np.flatnonzero(cols)[0])
@@ -829,7 +924,8 @@ def twin_speckle(case: Any, depths_mm: tuple[float, ...] = SPECKLE_DEPTHS_MM) ->
             out["lateral_acf_fwhm_mm"].append(lat)
             out["axial_acf_fwhm_mm"].append(ax)
             out["snr"].append(snr(np.concatenate([w.ravel() for w in wins])))
-    out["level_db"] = [10.0 * np.log10(v / raw[0]) for v in raw]
+    per_flat = [v / flat2[d] for v, d in zip(raw, depths_mm, strict=True)]
+    out["level_db"] = [10.0 * np.log10(v / per_flat[0]) for v in per_flat]
     out["snr_pooled"] = snr(np.concatenate(pooled))
     out["absolute_db"] = [10.0 * np.log10(v) for v in raw]
     out["absolute_native_db"] = [10.0 * np.log10(v) for v in native]
@@ -896,6 +992,69 @@ def twin_planes(case: Any) -> dict[str, Any]:
     return out
 
 
+def twin_flat(
+    case: Any, depths_mm: tuple[float, ...] = FLAT_DEPTHS_MM, absolute: bool = False
+) -> dict[str, Any]:
+    """The twin's steel plate facing the probe in water at each of ``FLAT_DEPTHS_MM``: the
+    mean over the central 8 mm of each column's peak, the water's two-way loss taken off
+    (the reference's water does not attenuate), dB re FLAT_REFERENCE_MM."""
+    im = _in_water(case)
+    sx, sy = TWIN_SURFACE_PIXELS_MM
+    peaks = []
+    for depth_mm in depths_mm:
+        d = depth_mm * 1e-3
+        probe = _measuring(im, 12.0, depth_mm + 2.0, (sx, sy))
+        sim = BmodeSimulator(
+            AcousticScene((ScenePart("plate", _plate(d), "steel"),)), probe, MediumConfig()
+        )
+        env = sim.envelope(np.eye(4)[None])[0].astype(float)
+        H, W = env.shape
+        x = (np.arange(W) - (W - 1) / 2) * sx * 1e-3
+        y = np.arange(H) * sy * 1e-3  # displayed at the water's speed: true depth
+        band = np.abs(y - d) <= TWIN_PEAK_BAND_M
+        peak = float(np.mean(env[band][:, np.abs(x) <= TWIN_LINE_HALF_SPAN_M].max(axis=0)))
+        peaks.append(peak * 10.0 ** (float(band_attenuation_db(probe, sim.medium, d)) / 20.0))
+    if absolute:
+        return {"peak": peaks}
+    ref = peaks[depths_mm.index(FLAT_REFERENCE_MM)]
+    return {"level_db": [db(p / ref) for p in peaks]}
+
+
+def _twin_cap_peak(im: ProbeConfig, depth_m: float) -> tuple[float, ProbeConfig, BmodeSimulator]:
+    """The twin's envelope peak of a smooth steel sphere (radius SPHERE_RADIUS_M) centred
+    at ``depth_m`` in water in the image plane, a scanline over its centre."""
+    R = SPHERE_RADIUS_M
+    to_display = im.assumed_speed_m_s / WATER_C
+    sx, sy = TWIN_SURFACE_PIXELS_MM
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=R)
+    mesh.apply_translation([0.0, depth_m, 0.0])
+    probe = _measuring(im, 8.0, (depth_m + 1e-3) * to_display * 1e3, (sx, sy))
+    # A whole number of scanline steps each side of the centre column: a scanline runs
+    # over the sphere's centre (the simulator's lines start at column 0).
+    step = scanline_step(probe, sx * 1e-3)
+    half = step * np.ceil(4.0 / (step * sx))
+    probe = replace(probe, width_mm=round(2.0 * half * sx, 6))
+    sim = BmodeSimulator(
+        AcousticScene((ScenePart("sphere", mesh, "steel"),)), probe, MediumConfig()
+    )
+    return float(sim.envelope(np.eye(4)[None])[0].max()), probe, sim
+
+
+def twin_cap_depth(case: Any) -> dict[str, Any]:
+    """The twin's smooth steel sphere in the image plane at each of ``CAP_DEPTHS_MM``, its
+    peak dB re the steel plate's at FLAT_REFERENCE_MM (``twin_flat``'s measure), the
+    water's loss taken off both."""
+    im = _in_water(case)
+    flat = twin_flat(case, (FLAT_REFERENCE_MM,), absolute=True)["peak"][0]
+    levels = []
+    for depth_mm in CAP_DEPTHS_MM:
+        d = depth_mm * 1e-3
+        peak, probe, sim = _twin_cap_peak(im, d)
+        loss = float(band_attenuation_db(probe, sim.medium, d - SPHERE_RADIUS_M))
+        levels.append(db(peak * 10.0 ** (loss / 20.0) / flat))
+    return {"level_db": levels}
+
+
 def twin_sphere(case: Any) -> dict[str, Any]:
     """The twin's sphere cap against elevation offset, surface speckle off and on: peak
     (dB re offset 0) and its true depth (mm); keys "<depth>" and "<depth>_speckle"."""
@@ -934,7 +1093,13 @@ def twin_figures(case: Any, parts: tuple[str, ...]) -> dict[str, Any]:
     """Every twin figure of one probe (live), with the seconds each part took."""
     out: dict[str, Any] = {}
     seconds: dict[str, float] = {}
-    for part, fn in (("speckle", twin_speckle), ("planes", twin_planes), ("sphere", twin_sphere)):
+    for part, fn in (
+        ("speckle", twin_speckle),
+        ("planes", twin_planes),
+        ("sphere", twin_sphere),
+        ("flat", twin_flat),
+        ("cap_depth", twin_cap_depth),
+    ):
         if part in parts:
             t0 = time.perf_counter()
             out[part] = fn(case)
@@ -947,8 +1112,8 @@ def twin_figures(case: Any, parts: tuple[str, ...]) -> dict[str, Any]:
 
 # The parts computed per probe (linear75: the cheap ones, see the module docstring).
 PARTS: dict[str, tuple[str, ...]] = {
-    "paper": ("speckle", "planes", "sphere"),
-    "linear75": ("speckle", "sphere"),
+    "paper": ("speckle", "planes", "sphere", "flat", "cap_depth"),
+    "linear75": ("speckle", "sphere", "flat", "cap_depth"),
 }
 
 METHOD: dict[str, str] = {
@@ -990,6 +1155,14 @@ METHOD: dict[str, str] = {
     "angle; smooth: 3 lines, rough: 30 lines 0.2 mm apart; level = mean over lines of the "
     "envelope peak, dB re 0 deg of the same surface (floored at -60); granularity = "
     "std/mean of the peaks; water: c 1482.4 (20 C), no attenuation",
+    "flat": "a sheet of equal scatterers on a lambda/4 grid facing the probe, +-3 lateral "
+    "FWHM x +-max(1.5 slice thicknesses, the elevation aperture H), Tukey-tapered (the "
+    "outer third each side), at each depth; one line, transmit focus at the depth; "
+    "level = the envelope's peak, dB re 20 mm; water as for the planes",
+    "cap_depth": "the sphere part's scatterers (radius 2.5 mm, offset 0) centred at each "
+    "depth, one line over the centre, transmit focus at the cap top; level = the "
+    "envelope's peak per unit of surface (x the lattice spacing^2), dB re the flat part's "
+    "sheet at 20 mm (x its spacing^2): one reflector, curved against flat",
     "sphere": "radius 2.5 mm, centre at the depth, moved in elevation; scatterers: "
     "Fibonacci lattice at lambda/2 on the hemisphere facing the probe, within +-1.5 max("
     "slice thickness, H/2) of the image plane (raised-cosine taper over 0.5 mm), equal RC; "
@@ -1052,6 +1225,9 @@ def write_stored(records: dict[str, dict[str, Any]]) -> None:
             "rough_ra_um": ROUGH_RA_UM,
             "rough_sigma_um": ROUGH_SIGMA_M * 1e6,
             "rough_length_mm": ROUGH_LENGTH_M * 1e3,
+            "flat_depths_mm": list(FLAT_DEPTHS_MM),
+            "flat_reference_mm": FLAT_REFERENCE_MM,
+            "cap_depths_mm": list(CAP_DEPTHS_MM),
             "sphere_radius_mm": SPHERE_RADIUS_M * 1e3,
             "sphere_depths_mm": list(SPHERE_DEPTHS_MM),
             "sphere_offsets_mm": list(SPHERE_OFFSETS_MM),
@@ -1145,6 +1321,7 @@ def print_speckle(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: T
         GEL.backscatter_db
         - band_attenuation_db(im, GEL, depths_m)
         + 10 * np.log10(speckle_cell_gain(im, depths_m))
+        + 20 * np.log10(flat_echo_gain(im, depths_m))
     )
     print(
         "  twin absolute level dB (re a perfect reflector) at "
@@ -1199,6 +1376,31 @@ def print_planes(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: Ta
         )
 
 
+def print_flat(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: Tally) -> None:
+    print(
+        f"\n{case.name} flat reflector facing the probe (water, its loss taken off): echo "
+        f"level dB re {FLAT_REFERENCE_MM:g} mm (the lateral aperture growing with depth, "
+        "the elevation lens's wavefront flat across the plane only near its focus)"
+    )
+    print(f"{'depth mm':>8} | {'ref':>6} {'twin':>6} {'Δ dB':>6}")
+    for i, depth in enumerate(FLAT_DEPTHS_MM):
+        r, t = _num(ref["level_db"][i]), twin["level_db"][i]
+        d = tally.level(t, r) if depth != FLAT_REFERENCE_MM else t - r
+        print(f"{depth:8g} | {r:6.1f} {t:6.1f} {d:+6.1f}")
+
+
+def print_cap_depth(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: Tally) -> None:
+    print(
+        f"\n{case.name} sphere's cap in the image plane (radius "
+        f"{SPHERE_RADIUS_M * 1e3:g} mm, water, its loss taken off): echo level dB re a flat "
+        f"reflector at {FLAT_REFERENCE_MM:g} mm, against the centre's depth"
+    )
+    print(f"{'depth mm':>8} | {'ref':>6} {'twin':>6} {'Δ dB':>6}")
+    for i, depth in enumerate(CAP_DEPTHS_MM):
+        r, t = _num(ref["level_db"][i]), twin["level_db"][i]
+        print(f"{depth:8g} | {r:6.1f} {t:6.1f} {tally.level(t, r):+6.1f}")
+
+
 def print_sphere(case: Any, ref: dict[str, Any], twin: dict[str, Any], tally: Tally) -> None:
     print(
         f"\n{case.name} sphere (radius {SPHERE_RADIUS_M * 1e3:g} mm, smooth steel in water) "
@@ -1238,7 +1440,15 @@ def main() -> None:
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--write", action="store_true", help=f"store the reference in {STORED}")
     mode.add_argument("--stored", action="store_true", help="print from the stored reference")
+    parser.add_argument(
+        "--part",
+        choices=sorted({p for ps in PARTS.values() for p in ps}),
+        action="append",
+        help="with --write: compute only these parts (repeatable), the others kept as stored",
+    )
     args = parser.parse_args()
+    if args.part and not args.write:
+        parser.error("--part goes with --write")
     have_pymust = importlib.util.find_spec("pymust") is not None
     if args.write and not have_pymust:
         parser.error("--write needs pymust (pip install -e '.[reference]')")
@@ -1253,6 +1463,13 @@ def main() -> None:
         parts = PARTS[name]
         if stored is not None:
             rec = stored["probes"][name]
+        elif args.part:
+            # Only the parts asked for; the probe's other figures as stored.
+            rec = json.loads(STORED.read_text())["probes"][name]
+            fresh = reference_figures(case, tuple(p for p in parts if p in args.part))
+            seconds = {**rec.get("seconds", {}), **fresh.pop("seconds")}
+            rec.update(json.loads(json.dumps(_rounded(probe_record(case, fresh)))))
+            rec["seconds"] = seconds
         else:
             rec = json.loads(
                 json.dumps(_rounded(probe_record(case, reference_figures(case, parts))))
@@ -1273,6 +1490,10 @@ def main() -> None:
             print_planes(case, rec["planes"], twin["planes"], tally)
         if "sphere" in parts:
             print_sphere(case, rec["sphere"], twin["sphere"], tally)
+        if "flat" in parts:
+            print_flat(case, rec["flat"], twin["flat"], tally)
+        if "cap_depth" in parts:
+            print_cap_depth(case, rec["cap_depth"], twin["cap_depth"], tally)
     if args.write:
         write_stored(records)
         print(f"\nwrote {STORED.relative_to(ROOT)}")

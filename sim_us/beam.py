@@ -43,6 +43,7 @@ __all__ = [
     "elevation_delay_at",
     "elevation_offsets",
     "elevation_weights",
+    "flat_echo_gain",
     "lateral_amplitude",
     "lateral_fwhm_m",
     "mirror_of",
@@ -127,6 +128,18 @@ def speckle_cell_gain(
         return tables.at("speckle_per_flat", depth_m) / tables.at("speckle_per_flat", focus)
     cell = lateral_fwhm_m(probe, depth_m, c) * slice_thickness(probe, depth_m, c)
     return lateral_fwhm_m(probe, focus, c) * slice_thickness(probe, focus, c) / cell
+
+
+def flat_echo_gain(
+    probe: ProbeConfig,
+    depth_m: NDArray[np.float64] | float,
+    medium_speed_m_s: float | None = None,
+) -> NDArray[np.float64]:
+    """Echo amplitude of a perfect flat reflector facing the probe at displayed depth(s),
+    relative to one at the elevation focus (:func:`sim_us.transducer.flat_echo`): from
+    the transducer's datasheet figures, whatever widths it states (the level against
+    depth is the apertures', not a width)."""
+    return beam_of(probe, medium_speed_m_s).at("flat_echo", depth_m)
 
 
 def band_attenuation_db(probe: ProbeConfig, medium: Material, depth_m: Any) -> Any:

@@ -3,8 +3,8 @@
 Envelope intensity → + electronic noise (complex Gaussian, added before detection, so
 its intensity is exponential) → TGC (dB per cm of depth) and overall gain (dB) → log
 compression over the dynamic range, 0 dB (white) at the echo of a perfect reflector at
-zero gain → ``uint8`` grey levels, as a frame grabber captures them. A gain of +G dB
-raises every unsaturated grey level by ``G · 255 / DR``.
+the elevation focus at zero gain → ``uint8`` grey levels, as a frame grabber captures
+them. A gain of +G dB raises every unsaturated grey level by ``G · 255 / DR``.
 """
 
 from __future__ import annotations

@@ -40,9 +40,11 @@ class Material:
         Frequency exponent (1 for tissue and solids, 2 for water).
     backscatter_db : float or None
         Mean intensity of fully developed speckle relative to a perfect reflector (dB) at
-        the probe's elevation focus, before attenuation; elsewhere it follows the
-        resolution cell (:func:`sim_us.beam.speckle_cell_gain`). None for a medium
-        without scatterers (water).
+        the probe's elevation focus, before attenuation; elsewhere its ratio to a perfect
+        reflector at the same depth follows the resolution cell
+        (:func:`sim_us.beam.speckle_cell_gain`), and that reflector's echo the apertures
+        (:func:`sim_us.beam.flat_echo_gain`). None for a medium without scatterers
+        (water).
     diffuse : float
         Share (amplitude, of a mirror's) of the surface echo returned at every angle: what
         roughness finer than the wavelength and a print's fine structure (layer corners,

@@ -181,7 +181,8 @@ class ProbeConfig:
         default=-90.0,
         metadata={
             "doc": "Electronic noise (rms) at the receiver input, before gain and TGC, "
-            "relative to the echo of a perfect reflector. -90: a 13 MHz probe shows "
+            "relative to the echo of a perfect reflector at the elevation focus. -90: a "
+            "13 MHz probe shows "
             "tissue speckle (-38 dB) through 0.5 dB/cm/MHz to ≈ 4 cm, as real ones do "
             "(4-6 cm); in water it lies below the display unless the gain is raised.",
             "ge": -200,

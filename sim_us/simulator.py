@@ -35,10 +35,12 @@ from .beam import (
     FWHM_PER_SIGMA,
     axial_fwhm_m,
     band_attenuation_db,
+    beam_of,
     elevation_amplitude_at,
     elevation_delay_at,
     elevation_offsets,
     elevation_weights,
+    flat_echo_gain,
     lateral_amplitude,
     mirror_of,
     narrowest_lateral_fwhm_m,
@@ -207,6 +209,9 @@ class BmodeSimulator:
         sx, sy = self.true_spacing
         rows_y, dz = self._pixel_y, self._dz
         self.mirror = mirror_of(probe, c)
+        # A flat reflector's echo against depth (intensity per row, re the elevation
+        # focus): every echo drawn at a depth carries it (sim_us.transducer.flat_echo).
+        self._flat_rows = (flat_echo_gain(probe, rows_y, c) ** 2).astype(np.float32)
         self.weights = elevation_weights(probe, rows_y, self.z, dz, c).astype(np.float32)  # (K, H)
         # The beam profile's share at each slab's low-z edge, per row.
         self._edge_share = slab_edge_shares(probe, rows_y, self.z, dz, c)
@@ -245,6 +250,10 @@ class BmodeSimulator:
     def _floor_db(self, medium: Material) -> float:
         """Trace budget (dB) with this medium around the parts."""
         max_gain = float(np.max(gain_profile_db(self.probe, self.shape[0])))
+        # Past the elevation focus a flat reflector may echo stronger than at it (the
+        # lateral aperture still growing): the trace keeps what that could show.
+        strongest = float(np.max(beam_of(self.probe, medium.speed_m_s).flat_echo))
+        flat_db = 20 * np.log10(max(strongest, 1.0))
         # Every pair of the medium and the parts' materials at once (a loop over the pairs
         # of a 20-part scene cost ≈ 0.7 ms a frame when the water's temperature drifts).
         imped = np.array([m.impedance for m in [medium, *self.part_materials]])
@@ -253,6 +262,7 @@ class BmodeSimulator:
             self.probe.dynamic_range_db
             + max(max_gain, 0.0)
             + 20 * np.log10(max(r_max, 1e-6))
+            + flat_db
             + _TRACE_MARGIN_DB
         )
 
@@ -736,7 +746,9 @@ class BmodeSimulator:
     def intensity(
         self, T_scene_us: Array, temperature_c: float | None = None
     ) -> NDArray[np.float32]:
-        """Envelope intensity (n, H, W) relative to a perfect reflector, noise-free.
+        """Envelope intensity (n, H, W) relative to a perfect reflector facing the probe at
+        the elevation focus, noise-free (at other depths such a reflector echoes as the
+        apertures give it: :func:`sim_us.transducer.flat_echo`).
 
         ``T_scene_us`` (n, 4, 4) or (4, 4): probe image-frame poses in the scene frame.
         ``temperature_c``: the medium's true temperature for these frames (speed of sound,
@@ -760,6 +772,9 @@ class BmodeSimulator:
         if medium.backscatter_db is not None:
             sp = self._speckle(T, medium_end, medium)
             _add_blurred_intensity(image, sp, *self._speckle_kernels, self._speckle_norm)
+        # Every echo at a depth as a flat reflector's there re the elevation focus: applied
+        # per row once all are drawn (it varies over millimetres, the PSF over 0.1 mm).
+        image *= self._flat_rows[None, :, None]
         self.timings.formation += time.perf_counter() - t0
         self.timings.frames += len(T)
         return image

@@ -43,6 +43,14 @@ elevation aperture (element height) with its lens focus. From these follow:
   flat reflector loses more, so the medium's speckle relative to the surfaces is higher
   there (paper probe: 4.1 dB higher at 10 mm than at 20 mm, where the widths alone said
   3.5 dB lower; pymust 3.8 dB higher);
+- **a flat reflector's echo against depth** (:func:`flat_echo`): the same coherent sum
+  over the plane, relative to the elevation focus. The lateral aperture grows with depth
+  (``depth / F#``, up to the active elements) and the lens's wavefront is flat across the
+  plane only near its focus: a perfect reflector facing the probe echoes weaker in front
+  of the focus and past it (paper probe, 1540 m/s: −11.9 dB at 10 mm, +0.6 dB at 20 mm,
+  −4.1 dB at 40 mm re 18 mm; pymust's sheet: 12.0 dB between 10 and 20 mm). Every echo
+  the simulator draws at a depth (surfaces, wires, the medium's speckle, whose level
+  relative to the flat reflector :func:`speckle_per_flat` gives) carries it;
 - **plane-wave imaging** (``ProbeConfig.plane_waves_deg``): a research scanner may instead
   fire a few plane waves steered at symmetric angles θ from all active elements and
   compound the beamformed frames coherently. Each transmit is unfocused; the beamformer
@@ -118,6 +126,7 @@ __all__ = [
     "band_loss",
     "beam_tables",
     "elevation_delay",
+    "flat_echo",
     "mirror_response",
     "mirror_tables",
     "receive_fnumber",
@@ -549,6 +558,29 @@ def speckle_per_flat(t: Transducer, depth_m: float) -> float:
     flat reflector's sum loses more than the speckle's: the paper probe's flat sheet at 10
     mm echoes 12 dB below one at 20 mm in pymust, the speckle relative to it is ≈ 4 dB
     higher at 10 than at 20 mm (pymust, attenuation apart: 3.8 dB)."""
+    incoherent, flat = _cell_and_flat(t, depth_m)
+    return incoherent / flat**2
+
+
+def flat_echo(t: Transducer, depth_m: float) -> float:
+    """The envelope peak of a perfect flat reflector's echo facing the probe at displayed
+    depth ``depth_m``, on the scanline focused there (arbitrary but fixed units, those of
+    :func:`speckle_per_flat`: only ratios between depths mean anything).
+
+    The two-way field summed coherently over the reflector's plane: the lateral
+    aperture's focused sum (which grows with the aperture, ``depth / F#`` up to the active
+    elements) times the elevation lens's, whose wavefront is flat across the plane only
+    near its focus. In front of the lens focus and past it the plane meets a curved
+    wavefront and the sum loses: the paper probe's flat sheet (1540 m/s) echoes
+    12.7 dB weaker at 10 mm than at 20 mm (pymust: 12.0 dB; ``benchmarks/
+    reference_echoes.py``, the flat part)."""
+    return _cell_and_flat(t, depth_m)[1]
+
+
+def _cell_and_flat(t: Transducer, depth_m: float) -> tuple[float, float]:
+    """The medium's speckle intensity (the cell's incoherent sum) and a flat reflector's
+    echo peak (the plane's coherent sum) at displayed depth ``depth_m``
+    (:func:`speckle_per_flat`, :func:`flat_echo`)."""
     freqs = np.linspace(t.f_hz * (1 - t.bandwidth), t.f_hz * (1 + t.bandwidth), _CELL_FREQUENCIES)
     pulse = _echo_spectrum(t, freqs)
     true_depth = depth_m * t.true_per_displayed
@@ -570,7 +602,7 @@ def speckle_per_flat(t: Transducer, depth_m: float) -> float:
     # The flat reflector's echo about its in-focus arrival: its envelope's peak.
     tau = np.arange(-_CELL_WINDOW_S, _CELL_WINDOW_S, 0.05 / t.f_hz)
     peak = float(np.max(np.abs(np.exp(-2j * np.pi * np.outer(tau, freqs)) @ coherent)))
-    return float(incoherent) / peak**2
+    return float(incoherent), peak
 
 
 # ------------------------------------------------------------------ the mirror's echo
@@ -739,7 +771,8 @@ class BeamTables:
     ``elevation_delay`` how much deeper (m of displayed depth) a point at those offsets is
     drawn than in the plane (:func:`elevation_delay`); ``speckle_per_flat`` a medium's
     speckle intensity over a flat reflector's peak² at each node
-    (:func:`speckle_per_flat`).
+    (:func:`speckle_per_flat`); ``flat_echo`` a perfect flat reflector's echo facing the
+    probe relative to one at the elevation focus (:func:`flat_echo`).
     """
 
     depths: Array
@@ -755,6 +788,7 @@ class BeamTables:
     elevation: Array
     elevation_delay: Array
     speckle_per_flat: Array
+    flat_echo: Array
 
     def at(self, name: str, depth_m: Array | float) -> Array:
         """A per-node figure interpolated (linearly, held past the ends) at depths."""
@@ -846,7 +880,7 @@ def beam_tables(t: Transducer, max_depth_m: float) -> BeamTables:
     ez = np.linspace(0.0, reach, _ELEVATION_SAMPLES)
     elevation = np.empty((n, len(ez)))
     delay = np.empty((n, len(ez)))
-    cell = np.empty(n)
+    cell, flat = np.empty(n), np.empty(n)
     for i, d in enumerate(depths):
         lateral[i] = two_way_profile(t, float(d), x, np.zeros_like(x))
         xm, pm = np.concatenate([-x[:0:-1], x]), np.concatenate([lateral[i][:0:-1], lateral[i]])
@@ -854,10 +888,14 @@ def beam_tables(t: Transducer, max_depth_m: float) -> BeamTables:
         sl_db[i], sl_x[i] = _first_side_lobe(x, lateral[i])
         elevation[i] = two_way_profile(t, float(d), np.zeros_like(ez), ez)
         delay[i] = elevation_delay(t, float(d), ez)
-        cell[i] = speckle_per_flat(t, float(d))
+        incoherent, flat[i] = _cell_and_flat(t, float(d))
+        cell[i] = incoherent / flat[i] ** 2
         zm = np.concatenate([-ez[:0:-1], ez])
         el_fwhm[i] = _fwhm(zm, np.concatenate([elevation[i][:0:-1], elevation[i]]), outer=True)
     elevation /= elevation.max(axis=1, keepdims=True)
+    # A flat reflector's echo relative to one at the elevation focus (as displayed), which
+    # may lie past the tables' last node.
+    flat /= flat_echo(t, F)
     return BeamTables(
         depths=depths,
         lateral_x=x,
@@ -872,6 +910,7 @@ def beam_tables(t: Transducer, max_depth_m: float) -> BeamTables:
         elevation=elevation,
         elevation_delay=delay,
         speckle_per_flat=cell,
+        flat_echo=flat,
     )
 
 

@@ -82,7 +82,8 @@ def test_discrete_elevation_reproduces_the_frame_from_before():
     the probe's apertures instead of a stated specular width; and when the gel's speckle
     level came to follow the broadband loss and the resolution cell; and when a surface's
     diffuse return came to grow with the area a ray's tube meets; and when an echo beside
-    the image plane came to be drawn as much deeper as the lens's longer paths delay it)."""
+    the image plane came to be drawn as much deeper as the lens's longer paths delay it;
+    and when every echo came to carry a flat reflector's level against depth)."""
     frame = golden_scene(replace(SMALL_PROBE, continuous_elevation=False)).render(
         T_IDENTITY, np.random.default_rng(2026)
     )[0]

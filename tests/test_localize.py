@@ -213,9 +213,12 @@ def deep_weak_scan():
 
 @pytest.fixture(scope="module")
 def deeper_weak_scan():
-    """Gain −25 dB and a 60 mm image: the cap fainter still, the flanks at the display's
-    floor; an uncalibrated first pass takes the plate in a few sweeps."""
-    return _quick_scan([*STATED_PROBE, "imaging.gain_db=-25", "imaging.depth_mm=60"], 1)
+    """Gain −23 dB and a 60 mm image: the cap fainter still, the flanks at the display's
+    floor; an uncalibrated first pass takes the plate in a few sweeps (2 of 45). It was
+    −25 dB before a flat reflector's echo followed the apertures against depth: the plate,
+    15 mm under the sphere, now echoes ≈ 4 dB weaker against the cap, and at −25 dB the
+    first pass took it in one sweep and lost the faint cap in four others."""
+    return _quick_scan([*STATED_PROBE, "imaging.gain_db=-23", "imaging.depth_mm=60"], 1)
 
 
 def test_plate_is_not_accepted_for_a_small_sphere(small_sphere_scan):
@@ -272,21 +275,35 @@ def test_faint_deep_cap_is_found_not_the_plate(deep_weak_scan):
 def test_calibration_searches_a_wrong_sweep_again_about_the_consensus(deeper_weak_scan):
     """Without a calibration the first localization takes the plate in some sweeps; the
     alternation searches those again about the other sweeps' consensus instead of over
-    their whole grid, so they come back instead of being dropped."""
+    their whole grid, so they come back instead of being dropped, and what the
+    calibration keeps is the sphere. Measured at −23 dB: the first calibration kept 36 of
+    45, the last 39, every kept centre within 0.21 mm. Since a flat reflector's echo
+    follows the apertures against depth (the cap fainter against the display's floor),
+    three of the searched-again sweeps find something 3.7–21 mm off that the calibration
+    then rejects as an outlier, with its reason: before, 44 of 45 came back (−25 dB)."""
     from bench.config.scenario import load_scenario
     from bench.truth import image_error_mm
     from calib.calibration.alternation import AlternationSettings, alternate
 
-    sweeps, _, T_true, scale, T_coarse = deeper_weak_scan
+    sweeps, truths, T_true, scale, T_coarse = deeper_weak_scan
     settings = AlternationSettings(LocalizerConfig(), axial_scale=scale)
     alt = alternate({"sphere_1": sweeps}, 5 * MM, settings, T_coarse=T_coarse)
     # The premise: the first calibration, on the uncalibrated pass, kept few sweeps.
-    assert alt.history[0]["n_retained"] < 0.9 * len(sweeps)
-    final = alt.localizations["sphere_1"]
-    assert sum(r.accepted for r in final) >= 0.9 * len(sweeps)
-    assert alt.result.retained.sum() >= 0.9 * len(sweeps)
+    first = alt.history[0]["n_retained"]
+    assert first < 0.9 * len(sweeps)
+    # They come back: the last calibration keeps more, each the sphere.
+    assert alt.result.retained.sum() > first
+    kept = alt.retained_localizations()["sphere_1"]
+    err = [
+        np.linalg.norm(r.centre - p) / MM for r, p in zip(kept, truths, strict=True) if r.accepted
+    ]
+    assert len(err) == alt.result.retained.sum() and max(err) < 1.0
+    # A centre the localizer accepted and the calibration did not is shown rejected, why.
+    for raw, shown in zip(alt.localizations["sphere_1"], kept, strict=True):
+        if raw.accepted and not shown.accepted:
+            assert shown.reason.startswith("rejected by the calibration")
     s = load_scenario(
-        "scenarios/quick.yaml", [*STATED_PROBE, "imaging.gain_db=-25", "imaging.depth_mm=60"]
+        "scenarios/quick.yaml", [*STATED_PROBE, "imaging.gain_db=-23", "imaging.depth_mm=60"]
     )
     assert image_error_mm(s, alt.result.T_ee_us, T_true) < 0.3
 
@@ -502,9 +519,11 @@ def test_sparse_sweeps_measure_the_elevation_or_say_why_not(frames, gain):
     the cap's depth in each frame says through the radius, the centres are found within
     0.4 mm in elevation (none a millimetre off), and a sweep whose elevation stays
     uncertain is rejected naming the frame spacing. Which sweeps can be measured depends
-    on where the sphere falls between two frames: about half at 9 frames and −20 dB (23
-    of 45 with the beam focused for water, 22 in water's defocused beam); nearly every
-    other one names the spacing."""
+    on where the sphere falls between two frames: 40–50 % at 9 frames and −20 dB (23 of
+    45 with the beam focused for water, 21–22 in water's defocused beam, 18 since a flat
+    reflector's echo follows the apertures against depth: two more sweeps name the
+    spacing, one is rejected by its siblings); nearly every other one names the
+    spacing."""
     sweeps, truths, T_ee_us, scale, _ = _quick_scan(
         [
             f"imaging.gain_db={gain}",
@@ -516,7 +535,7 @@ def test_sparse_sweeps_measure_the_elevation_or_say_why_not(frames, gain):
     cfg = LocalizerConfig(expected_depth_mm=20.0)
     locs = localize_sphere(sweeps, T_ee_us, 3 * MM, cfg, axial_scale=scale)
     err = np.array([(r.centre - p) / MM for r, p in zip(locs, truths, strict=True) if r.accepted])
-    assert len(err) >= 0.45 * len(sweeps)
+    assert len(err) >= 0.4 * len(sweeps)
     spacing_named = sum("mm apart; take more frames per sweep" in r.reason for r in locs)
     assert len(err) + spacing_named >= 0.95 * len(sweeps)
     assert np.abs(err[:, 2]).max() < 0.4
@@ -546,12 +565,17 @@ def test_profile_bands_are_a_shell_outside_an_interior():
 @pytest.fixture(scope="module")
 def noisy_deep_scan():
     """Gain +10 dB, target 45 mm deep in a 60 mm image: the cap is plain to see, but the
-    electronic noise fills the image at about the frame mean."""
+    electronic noise fills the image at about the frame mean. The noise 5 dB below the
+    stated probe's: a flat reflector's echo now follows the apertures against depth,
+    5.6 dB weaker at 45 mm than at the lens focus in water, and the noise keeps its ratio
+    to the cap of before (at −55 dB the frame mean rose to the noise's and the failure
+    below no longer showed)."""
     overrides = [
         *STATED_PROBE,
         "imaging.gain_db=10",
         "protocol.target_depth_mm=45",
         "imaging.depth_mm=60",
+        "imaging.noise_db=-60",
     ]
     return _quick_scan(overrides, 1)[:4]
 

@@ -14,7 +14,13 @@ import pytest
 
 from calib import se3
 from sim_us import MediumConfig
-from sim_us.beam import band_attenuation_db, mirror_of, slice_thickness, speckle_cell_gain
+from sim_us.beam import (
+    band_attenuation_db,
+    flat_echo_gain,
+    mirror_of,
+    slice_thickness,
+    speckle_cell_gain,
+)
 from sim_us.materials import (
     MATERIALS,
     amplitude_reflection,
@@ -151,7 +157,9 @@ def test_shadow_below_pla_sphere():
     floor_row = round(25.0 * 1540 / water_speed_m_s(20.0) / 0.1)
     beside = env[floor_row - 3 : floor_row + 4, np.abs(x_mm) > 5.5].max(axis=0)
     below = env[floor_row - 3 : floor_row + 4, np.abs(x_mm) < 3.0].max(axis=0)
-    assert beside.min() > 0.1  # the plate echoes where nothing covers it
+    # The plate echoes where nothing covers it: a tenth of a perfect reflector there.
+    flat = float(flat_echo_gain(sim.probe, floor_row * 0.1 * MM, sim._beam_speed))
+    assert beside.min() > 0.1 * flat
     assert below.max() < 1e-6  # complete shadow: ≥ 100 dB below the plate echo
     frame = sim.render(T_IDENTITY, np.random.default_rng(0))[0]
     noise_only = sim.render(
@@ -219,19 +227,30 @@ def test_gain_shifts_grey_levels(gain_db):
 def test_gel_attenuation_slope_without_tgc():
     """The gel's speckle fades with depth as the broadband echo's two-way loss (less than
     the centre frequency's 13 dB/cm: the spectrum shifts down) and the resolution cell
-    (speckle against a flat reflector ∝ 1 / (lateral × elevation width)) make it."""
+    (speckle against a flat reflector ∝ 1 / (lateral × elevation width)) make it, with
+    the flat reflector's own echo against depth (the apertures')."""
     sim = simulator([], medium=MediumConfig(kind="gel"), width_mm=10.0, depth_mm=30.0)
     poses = np.array([se3.make(np.eye(3), [i * 4 * MM, 0, 0]) for i in range(4)])
     intensity = sim.intensity(poses)
     log_mean = np.mean(10 * np.log10(intensity[:, 20:-20]), axis=(0, 2))
     depth_cm = (np.arange(20, intensity.shape[1] - 20)) * 0.01
-    slope = np.polyfit(depth_cm, log_mean, 1)[0]
     gel = MATERIALS["gel"]
     depth_m = depth_cm * 1e-2
+    flat_db = 20 * np.log10(flat_echo_gain(sim.probe, depth_m))
     model = -band_attenuation_db(sim.probe, gel, depth_m) + 10 * np.log10(
         speckle_cell_gain(sim.probe, depth_m)
     )
+    # The speckle against a flat reflector's echo at each depth: the loss and the cell.
+    slope = np.polyfit(depth_cm, log_mean - flat_db, 1)[0]
     assert slope == pytest.approx(np.polyfit(depth_cm, model, 1)[0], rel=0.05)
+    # In the image the speckle re the flat reflector carries the flat reflector's own
+    # level against depth (−21 dB at 5 mm re 20 mm here): the near rows' level against
+    # the focus's as the two together give (speckle: ±2 dB over 2 mm).
+    near, focus = (np.abs(depth_cm - d) <= 0.1 for d in (0.5, 2.0))
+    seen = log_mean[near].mean() - log_mean[focus].mean()
+    expected = (model + flat_db)[near].mean() - (model + flat_db)[focus].mean()
+    assert seen == pytest.approx(expected, abs=2.0)
+    assert expected - (model[near].mean() - model[focus].mean()) < -10.0
     at_fc = -2 * gel.attenuation_db_cm_mhz * SMALL_PROBE.f_mhz
     assert at_fc < np.polyfit(depth_cm, -band_attenuation_db(sim.probe, gel, depth_m), 1)[0]
 

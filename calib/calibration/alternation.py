@@ -47,7 +47,10 @@ class AlternationResult:
     images draw (metres, :func:`calib.localize.apparent_sphere_radius`) with the sweeps
     it rests on, when measured. ``averaged``: where the alternation reached its
     iteration limit without converging, how many estimates its ``T_ee_us`` is the mean
-    of (0: it converged, or too few to average).
+    of (0: it converged, or too few to average). ``lost_on_restack``: why the alternation
+    stopped where re-stacked under its own estimate the sweeps no longer showed enough of
+    the sphere to fit again (the estimate is far off; the last fit stands, unconverged);
+    empty when it did not.
     """
 
     result: CalibrationResult
@@ -56,6 +59,7 @@ class AlternationResult:
     history: list[dict[str, float]]
     sphere_size: tuple[float, float, int] | None = None
     averaged: int = 0
+    lost_on_restack: str = ""
 
     def retained_localizations(self) -> dict[str, list[SweepLocalization]]:
         """The final localizations as the calibration used them: a centre the localizer
@@ -266,11 +270,22 @@ def alternate(
     T_prev: Array | None = None
     result = None
     converged = settings.max_iterations <= 1
+    lost = ""
     for it in range(settings.max_iterations):
         obs = _observations(sweeps, locs)
-        used = locs
         t0 = time.perf_counter()
-        result = _first_or_next(obs, cad_centres, T_prev, layout_sigma_mm)
+        try:
+            fitted = _first_or_next(obs, cad_centres, T_prev, layout_sigma_mm)
+        except CalibrationError as exc:
+            if T_prev is None:
+                raise
+            # Re-stacked under the last estimate, too few sweeps show the sphere to fit
+            # again: that estimate is far off (e.g. a rotation the sweeps do not
+            # determine). The last fit stands, on the localizations it used, unconverged.
+            lost = f"{exc} after re-stacking under the estimate of iteration {it - 1}"
+            result, obs, used = iterates[-1]
+            break
+        result, used = fitted, locs
         if T_prev is None and T_coarse is not None:
             far = (
                 se3.translation_distance(result.T_ee_us, T_coarse) > 0.03
@@ -335,7 +350,7 @@ def alternate(
         locs, t_localize = localize_all(T_prev, seeds, expected)
     assert result is not None
     averaged = 0
-    if not converged and len(iterates) >= 3:
+    if not converged and not lost and len(iterates) >= 3:
         # Stopped at the limit with the estimate still moving (the localizations follow
         # it back and forth): where it stopped is as good as chance. The estimate is the
         # mean of those after the first (which stacks at the robot-measured spacing), on
@@ -370,4 +385,4 @@ def alternate(
         axial_scale=settings.axial_scale,
     )
     sphere_size = None if size is None else (radius, size[0], size[1])
-    return AlternationResult(result, obs, used, history, sphere_size, averaged)
+    return AlternationResult(result, obs, used, history, sphere_size, averaged, lost)

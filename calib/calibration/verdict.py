@@ -398,6 +398,12 @@ def judge(
             f"{scale_deg:.2f}°); {kept} — check the localizations (rejections, the sphere "
             "profile) or use the refined localizer"
         )
+    if alt.lost_on_restack:
+        rejected.append(
+            f"re-stacked under its own estimate the sweeps no longer showed the sphere "
+            f"({alt.lost_on_restack}): the estimate is far off and the alternation stopped "
+            "there"
+        )
     agreement = pose_agreement(alt)
     if agreement is not None and agreement.disagree:
         suspect.append(
