@@ -1020,24 +1020,20 @@ def twin_flat(
     return {"level_db": [db(p / ref) for p in peaks]}
 
 
-def _twin_cap_peak(im: ProbeConfig, depth_m: float) -> tuple[float, ProbeConfig, BmodeSimulator]:
-    """The twin's envelope peak of a smooth steel sphere (radius SPHERE_RADIUS_M) centred
-    at ``depth_m`` in water in the image plane, a scanline over its centre."""
-    R = SPHERE_RADIUS_M
-    to_display = im.assumed_speed_m_s / WATER_C
-    sx, sy = TWIN_SURFACE_PIXELS_MM
-    mesh = trimesh.creation.icosphere(subdivisions=5, radius=R)
+def _twin_sphere_setup(im: ProbeConfig, depth_m: float) -> tuple[AcousticScene, ProbeConfig]:
+    """A smooth steel sphere (radius SPHERE_RADIUS_M) centred at ``depth_m`` in water, and
+    the measuring probe whose scanline runs over its centre."""
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS_M)
     mesh.apply_translation([0.0, depth_m, 0.0])
+    sx, sy = TWIN_SURFACE_PIXELS_MM
+    to_display = im.assumed_speed_m_s / WATER_C
     probe = _measuring(im, 8.0, (depth_m + 1e-3) * to_display * 1e3, (sx, sy))
     # A whole number of scanline steps each side of the centre column: a scanline runs
     # over the sphere's centre (the simulator's lines start at column 0).
     step = scanline_step(probe, sx * 1e-3)
     half = step * np.ceil(4.0 / (step * sx))
     probe = replace(probe, width_mm=round(2.0 * half * sx, 6))
-    sim = BmodeSimulator(
-        AcousticScene((ScenePart("sphere", mesh, "steel"),)), probe, MediumConfig()
-    )
-    return float(sim.envelope(np.eye(4)[None])[0].max()), probe, sim
+    return AcousticScene((ScenePart("sphere", mesh, "steel"),)), probe
 
 
 def twin_cap_depth(case: Any) -> dict[str, Any]:
@@ -1049,7 +1045,9 @@ def twin_cap_depth(case: Any) -> dict[str, Any]:
     levels = []
     for depth_mm in CAP_DEPTHS_MM:
         d = depth_mm * 1e-3
-        peak, probe, sim = _twin_cap_peak(im, d)
+        scene, probe = _twin_sphere_setup(im, d)
+        sim = BmodeSimulator(scene, probe, MediumConfig())
+        peak = float(sim.envelope(np.eye(4)[None])[0].max())
         loss = float(band_attenuation_db(probe, sim.medium, d - SPHERE_RADIUS_M))
         levels.append(db(peak * 10.0 ** (loss / 20.0) / flat))
     return {"level_db": levels}
@@ -1059,23 +1057,13 @@ def twin_sphere(case: Any) -> dict[str, Any]:
     """The twin's sphere cap against elevation offset, surface speckle off and on: peak
     (dB re offset 0) and its true depth (mm); keys "<depth>" and "<depth>_speckle"."""
     im = _in_water(case)
-    R = SPHERE_RADIUS_M
     to_display = im.assumed_speed_m_s / WATER_C
-    sx, sy = TWIN_SURFACE_PIXELS_MM
+    sy = TWIN_SURFACE_PIXELS_MM[1]
     out: dict[str, Any] = {}
     for depth_mm in SPHERE_DEPTHS_MM:
-        d = depth_mm * 1e-3
-        mesh = trimesh.creation.icosphere(subdivisions=5, radius=R)
-        mesh.apply_translation([0.0, d, 0.0])
-        probe = _measuring(im, 8.0, (d + 1e-3) * to_display * 1e3, (sx, sy))
-        # A whole number of scanline steps each side of the centre column: a scanline
-        # runs over the sphere's centre (the simulator's lines start at column 0).
-        step = scanline_step(probe, sx * 1e-3)
-        half = step * np.ceil(4.0 / (step * sx))
-        probe = replace(probe, width_mm=round(2.0 * half * sx, 6))
+        scene, probe = _twin_sphere_setup(im, depth_mm * 1e-3)
         # The probe moved by −e in elevation: the sphere at +e in the image.
         poses = np.array([_pose(elevation_m=-e * 1e-3) for e in SPHERE_OFFSETS_MM])
-        scene = AcousticScene((ScenePart("sphere", mesh, "steel"),))
         for speckle in (False, True):
             sim = BmodeSimulator(scene, replace(probe, surface_speckle=speckle), MediumConfig())
             env = sim.envelope(poses).astype(float)
