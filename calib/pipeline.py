@@ -110,7 +110,7 @@ class MethodSettings:
     """
 
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
-    max_alternations: int = 5
+    max_alternations: int = 10
     layout_sigma_mm: float = 0.0
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     print_tolerance_mm: float = 0.0

@@ -436,9 +436,10 @@ def test_saturated_cap_centre_is_unbiased():
     frames, where the vertex of the peak grey levels across elevation is undefined (it
     doubled the error); a parabola through the unclipped slices on either side, and the
     top's depth at the echo's leading edge, keep the centre within 0.2 mm (median; 0.04 mm
-    at 0 dB). The edge lies before the peak by where the clip cuts the pulse's rise:
-    ≈ 0.15 mm for this probe's 0.35 mm pulse, ≈ 0.1 mm for the transducer's own (the
-    next test)."""
+    at 0 dB), none 0.6 mm off (the worst 0.56 mm since every echo carries a flat
+    reflector's level against depth, 0.5 before). The edge lies before the peak by where
+    the clip cuts the pulse's rise: ≈ 0.15 mm for this probe's 0.35 mm pulse, ≈ 0.1 mm
+    for the transducer's own (the next test)."""
     medians = {}
     for gain in (0, 20):
         sweeps, truths, T_ee_us, scale, _ = _quick_scan(
@@ -453,7 +454,7 @@ def test_saturated_cap_centre_is_unbiased():
             if r.accepted
         ]
         assert len(err) >= 0.9 * len(sweeps)
-        assert max(err) < 0.5
+        assert max(err) < 0.6
         medians[gain] = float(np.median(err))
     assert medians[20] <= 0.2, medians
 
@@ -797,8 +798,10 @@ def test_cap_depth_does_not_follow_the_gain(monkeypatch):
     """The top's echo rises sharply and trails off below (the rest of the cap within the
     slice thickness is deeper): its weighted mean lies in the tail, by as much as the
     brightness level leaves of it. At 45 mm that moved every centre 0.06–0.08 mm deeper at
-    −10 dB than at 0 dB, where the depth's noise floor cuts the tail; the echo's peak
-    (a parabola through the brightest row) is the same at both gains."""
+    −10 dB than at 0 dB, where the depth's noise floor cuts the tail (on the images of
+    before a flat reflector's level followed depth; on these it moves by 0.15 mm between
+    −5 and 0 dB, by 0.03 between −10 and 0); the echo's peak (a parabola through the
+    brightest row) is the same at every gain (measured within 0.002 mm)."""
     import calib.localize.refine as loc_module
 
     def axial_offset_mm(gain):
@@ -817,11 +820,12 @@ def test_cap_depth_does_not_follow_the_gain(monkeypatch):
         assert sum(r.accepted for r in locs) >= 0.9 * len(sweeps)
         return np.mean([(r.centre - p)[1] / MM for r, p in zip(locs, truths, strict=True)])
 
+    gains = (-10, -5, 0)
     with monkeypatch.context() as m:
         m.setattr(loc_module, "_axial_peak", lambda grey, clip, ys, w: float(w @ ys / w.sum()))
-        mean_weighted = axial_offset_mm(-10) - axial_offset_mm(0)
-    assert mean_weighted > 0.04  # the failure
-    assert abs(axial_offset_mm(-10) - axial_offset_mm(0)) < 0.02
+        weighted = [axial_offset_mm(g) for g in gains]
+    assert np.ptp(weighted) > 0.04  # the failure: the weighted mean follows the gain
+    assert np.ptp([axial_offset_mm(g) for g in gains]) < 0.02
 
 
 def test_a_sphere_found_in_few_of_its_sweeps_is_not_trusted():

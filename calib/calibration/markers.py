@@ -76,7 +76,14 @@ class CalibrationConfig:
         },
     )
     max_alternations: int = field(
-        default=5, metadata={"doc": "Localize/calibrate alternations at most.", "ge": 1, "le": 50}
+        default=10,
+        metadata={
+            "doc": "Localize/calibrate alternations at most (from a coarse mount 20° off, "
+            "quick.yaml's sphere 1 needs 9; an alternation that stops unconverged returns "
+            "the mean of its estimates and its verdict says so).",
+            "ge": 1,
+            "le": 50,
+        },
     )
     layout: Literal["estimated", "cad"] = field(
         default="estimated",
