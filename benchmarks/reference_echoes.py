@@ -559,27 +559,13 @@ def reference_speckle(case: Any, log: bool = True) -> dict[str, Any]:
 def reference_flat(case: Any, log: bool = True) -> dict[str, Any]:
     """A perfect flat reflector facing the probe at each of ``FLAT_DEPTHS_MM`` in water:
     its echo's peak on the scanline focused at its depth, dB re FLAT_REFERENCE_MM."""
-    a = _in_medium(case, WATER_C)
-    lam = WATER_C / (a.f_mhz * 1e6)
-    H = a.elevation_aperture_mm * 1e-3
     peaks = []
     for depth_mm in FLAT_DEPTHS_MM:
         t0 = time.perf_counter()
-        d = depth_mm * 1e-3
-        lat, ax, st = _beam_widths(case, d)
-        # Laterally the focus's spot; in elevation the lens's wavefront, flat only near
-        # its focus: at least the aperture's height each side (the image method's
-        # specular points lie within ± H / 2), tapered.
-        m, ys = LATERAL_MARGIN_FWHM * lat, max(SHEET_REACH_ST * st, H)
-        u, v, w = _sheet(m, ys, SHEET_SPACING_LAMBDA * lam)
-        zp = np.arange(d - 4 * ax, d + 4 * ax, SAMPLE_SPACING_LAMBDA * lam / 4)
-        line = scanline(a, d, zp, (m, d, d, ys))
-        sheet = np.column_stack([u, v, np.full_like(u, d)])
-        peaks.append(float(np.max(envelope(line, sheet, w))))
+        peaks.append(_sheet_peak(case, depth_mm * 1e-3)[0])
         if log:
             print(
-                f"  pymust {case.name} flat {depth_mm:g} mm: {len(u)} scatterers, "
-                f"{time.perf_counter() - t0:.0f} s",
+                f"  pymust {case.name} flat {depth_mm:g} mm: {time.perf_counter() - t0:.0f} s",
                 file=sys.stderr,
             )
     ref = peaks[FLAT_DEPTHS_MM.index(FLAT_REFERENCE_MM)]
@@ -721,11 +707,14 @@ def reference_sphere(case: Any, log: bool = True) -> dict[str, Any]:
 
 
 def _sheet_peak(case: Any, depth_m: float) -> tuple[float, float]:
-    """A flat sheet's echo peak at ``depth_m`` in water (the flat part's) and its
-    scatterers' spacing (m)."""
+    """A flat sheet facing the probe at ``depth_m`` in water: its echo's peak on the
+    scanline focused there, and its scatterers' spacing (m)."""
     a = _in_medium(case, WATER_C)
     lam = WATER_C / (a.f_mhz * 1e6)
     lat, ax, st = _beam_widths(case, depth_m)
+    # Laterally the focus's spot; in elevation the lens's wavefront, flat only near its
+    # focus: at least the aperture's height each side (the image method's specular points
+    # lie within ± H / 2), tapered.
     m, ys = LATERAL_MARGIN_FWHM * lat, max(SHEET_REACH_ST * st, a.elevation_aperture_mm * 1e-3)
     spacing = SHEET_SPACING_LAMBDA * lam
     u, v, w = _sheet(m, ys, spacing)
@@ -895,7 +884,6 @@ def twin_speckle(case: Any, depths_mm: tuple[float, ...] = SPECKLE_DEPTHS_MM) ->
     out: dict[str, Any] = {k: [] for k in ("lateral_acf_fwhm_mm", "axial_acf_fwhm_mm", "snr")}
     raw: list[float] = []
     native: list[float] = []
-    flat2: dict[float, float] = {}
     pooled: list[Array] = []
     for pixels, levels in (((sx, sz), raw), (im.pixel_spacing_mm, native)):
         probe = _measuring(im, frame_w, depth, pixels)
@@ -908,10 +896,6 @@ def twin_speckle(case: Any, depths_mm: tuple[float, ...] = SPECKLE_DEPTHS_MM) ->
             rows = np.abs(y - d) <= height / 2
             cols = np.abs(x) <= TWIN_WINDOWS * width / 2
             levels.append(float(np.mean(env[np.ix_(rows, cols)] ** 2)))
-            # The level is taken against a flat reflector at that depth, as the
-            # reference's: the twin's flat reflector's echo there (checked against
-            # pymust's, the "flat" part).
-            flat2[d] = float(flat_echo_gain(probe, d * 1e-3, sim._beam_speed)) ** 2
             if pixels != (sx, sz):
                 continue
             first = int(np.flatnonzero(cols)[0])
@@ -924,7 +908,10 @@ def twin_speckle(case: Any, depths_mm: tuple[float, ...] = SPECKLE_DEPTHS_MM) ->
             out["lateral_acf_fwhm_mm"].append(lat)
             out["axial_acf_fwhm_mm"].append(ax)
             out["snr"].append(snr(np.concatenate([w.ravel() for w in wins])))
-    per_flat = [v / flat2[d] for v, d in zip(raw, depths_mm, strict=True)]
+    # The level is taken against a flat reflector at each depth, as the reference's: the
+    # twin's flat reflector's echo there (checked against pymust's, the "flat" part).
+    flat = flat_echo_gain(im, np.array(depths_mm) * 1e-3, GEL.speed_m_s)
+    per_flat = list(np.array(raw) / flat**2)
     out["level_db"] = [10.0 * np.log10(v / per_flat[0]) for v in per_flat]
     out["snr_pooled"] = snr(np.concatenate(pooled))
     out["absolute_db"] = [10.0 * np.log10(v) for v in raw]
@@ -992,31 +979,31 @@ def twin_planes(case: Any) -> dict[str, Any]:
     return out
 
 
-def twin_flat(
-    case: Any, depths_mm: tuple[float, ...] = FLAT_DEPTHS_MM, absolute: bool = False
-) -> dict[str, Any]:
-    """The twin's steel plate facing the probe in water at each of ``FLAT_DEPTHS_MM``: the
-    mean over the central 8 mm of each column's peak, the water's two-way loss taken off
-    (the reference's water does not attenuate), dB re FLAT_REFERENCE_MM."""
+def _twin_plate_peak(case: Any, depth_mm: float) -> float:
+    """The twin's steel plate facing the probe in water at ``depth_mm``: the mean over the
+    central 8 mm of each column's peak, the water's two-way loss taken off (the
+    reference's water does not attenuate)."""
     im = _in_water(case)
     sx, sy = TWIN_SURFACE_PIXELS_MM
-    peaks = []
-    for depth_mm in depths_mm:
-        d = depth_mm * 1e-3
-        probe = _measuring(im, 12.0, depth_mm + 2.0, (sx, sy))
-        sim = BmodeSimulator(
-            AcousticScene((ScenePart("plate", _plate(d), "steel"),)), probe, MediumConfig()
-        )
-        env = sim.envelope(np.eye(4)[None])[0].astype(float)
-        H, W = env.shape
-        x = (np.arange(W) - (W - 1) / 2) * sx * 1e-3
-        y = np.arange(H) * sy * 1e-3  # displayed at the water's speed: true depth
-        band = np.abs(y - d) <= TWIN_PEAK_BAND_M
-        peak = float(np.mean(env[band][:, np.abs(x) <= TWIN_LINE_HALF_SPAN_M].max(axis=0)))
-        peaks.append(peak * 10.0 ** (float(band_attenuation_db(probe, sim.medium, d)) / 20.0))
-    if absolute:
-        return {"peak": peaks}
-    ref = peaks[depths_mm.index(FLAT_REFERENCE_MM)]
+    d = depth_mm * 1e-3
+    probe = _measuring(im, 12.0, depth_mm + 2.0, (sx, sy))
+    sim = BmodeSimulator(
+        AcousticScene((ScenePart("plate", _plate(d), "steel"),)), probe, MediumConfig()
+    )
+    env = sim.envelope(np.eye(4)[None])[0].astype(float)
+    H, W = env.shape
+    x = (np.arange(W) - (W - 1) / 2) * sx * 1e-3
+    y = np.arange(H) * sy * 1e-3  # displayed at the water's speed: true depth
+    band = np.abs(y - d) <= TWIN_PEAK_BAND_M
+    peak = float(np.mean(env[band][:, np.abs(x) <= TWIN_LINE_HALF_SPAN_M].max(axis=0)))
+    return peak * 10.0 ** (float(band_attenuation_db(probe, sim.medium, d)) / 20.0)
+
+
+def twin_flat(case: Any) -> dict[str, Any]:
+    """The twin's plate (:func:`_twin_plate_peak`) at each of ``FLAT_DEPTHS_MM``, dB re
+    FLAT_REFERENCE_MM."""
+    peaks = [_twin_plate_peak(case, depth_mm) for depth_mm in FLAT_DEPTHS_MM]
+    ref = peaks[FLAT_DEPTHS_MM.index(FLAT_REFERENCE_MM)]
     return {"level_db": [db(p / ref) for p in peaks]}
 
 
@@ -1038,10 +1025,10 @@ def _twin_sphere_setup(im: ProbeConfig, depth_m: float) -> tuple[AcousticScene, 
 
 def twin_cap_depth(case: Any) -> dict[str, Any]:
     """The twin's smooth steel sphere in the image plane at each of ``CAP_DEPTHS_MM``, its
-    peak dB re the steel plate's at FLAT_REFERENCE_MM (``twin_flat``'s measure), the
+    peak dB re the steel plate's at FLAT_REFERENCE_MM (:func:`_twin_plate_peak`), the
     water's loss taken off both."""
     im = _in_water(case)
-    flat = twin_flat(case, (FLAT_REFERENCE_MM,), absolute=True)["peak"][0]
+    flat = _twin_plate_peak(case, FLAT_REFERENCE_MM)
     levels = []
     for depth_mm in CAP_DEPTHS_MM:
         d = depth_mm * 1e-3
