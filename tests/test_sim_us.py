@@ -320,8 +320,8 @@ def test_lattice_lines_sum_the_cells_at_cells_reads():
     """The medium's speckle kernel (``ScattererField.add_lattice_lines``, compiled, its
     cells hashed in a loop of their own) gives bit for bit the sums its contract states:
     line by line, the cells ``floor(rows + (cols + offset))`` read by ``at_cells``, times
-    the line's weight per row, only before the medium's end along each column, rounded to
-    complex64 after every line."""
+    the line's weight per row (rounded to float32), only before the medium's end along
+    each column, summed in complex64."""
     from sim_us.speckle import ScattererField
 
     rng = np.random.default_rng(7)
@@ -340,11 +340,10 @@ def test_lattice_lines_sum_the_cells_at_cells_reads():
     field.add_lattice_lines(acc, rows, cols, offsets, weights, depth, medium_end, planes)
     for j in range(J):
         cells = np.floor(rows[:, None, :] + (cols[None, :, :] + offsets[j])).astype(np.int64)
-        value = field.at_cells(cells).astype(np.complex128) * weights[j][:, None]
+        value = field.at_cells(cells) * weights[j].astype(np.float32)[:, None]
         seen = (depth[:, None] < medium_end[planes[j]][None, :]) & (weights[j][:, None] != 0)
-        expected = np.where(seen, (expected.astype(np.complex128) + value), expected).astype(
-            np.complex64
-        )
+        expected = np.where(seen, expected + value, expected)
+        assert expected.dtype == np.complex64
     np.testing.assert_array_equal(acc, expected)
 
 
