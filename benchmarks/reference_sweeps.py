@@ -101,14 +101,18 @@ How, reference side (``--write``):
   (``calib.image.pixel_axes``, displayed depth) over ± 6 mm about its column, from 4 mm
   above its cap's top to 3 mm below its centre (true depths); the rest of the 401 × 381
   frame is 0, as sim_us's noise-free water. The pixel ↔ image mapping is exact.
-- Display: 0 dB is a perfect reflector's echo, as sim_us's: the same compounded
-  envelope of a smooth unit sheet (λ/2 square grid: no Bragg echo) at the cap's depth on
-  the sphere's column, under the aperture (± 6.4 mm + the steered waves' shift + 1 mm,
-  1.5 mm tapered), ± 3 mm in elevation, without attenuation. Grey = (20 log10(envelope /
-  0 dB) + 60) · 255 / 60, rounded and clipped (sim_us's display at gain 0). The caps
-  peak at −16 to −24 dB (grey 151-187) in the frame nearest the centre (0.15-0.45 mm
-  off it), sim_us's at −13 dB (200): a sphere's cap returns less than a flat plate of
-  PLA (−10.4 dB).
+- Display: 0 dB is a perfect reflector's echo at the elevation focus as displayed
+  (18 mm), as sim_us's: the same compounded envelope of a smooth unit sheet (λ/2 square
+  grid: no Bragg echo) there on the sphere's column, under the aperture (± 6.4 mm + the
+  steered waves' shift + 1 mm, 1.5 mm tapered), ± 3 mm in elevation, without
+  attenuation. Grey = (20 log10(envelope / 0 dB) + 60) · 255 / 60, rounded and clipped
+  (sim_us's display at gain 0). The same sheet at each cap's depth (the diffuse share's
+  calibration, below) echoes −7.4 / −1.2 / −0.2 dB re the focus at 10 / 15 / 20 mm
+  (sim_us's flat reflector with this imaging: −7.1 / −1.3 / −0.3 dB). The frames stored
+  before 2026-11-30 had the cap's depth as their 0 dB (sim_us's 0 dB was then the same
+  at every depth); ``--write-zero-db`` showed them again with the focus's (each lit grey
+  level moved by the ratio and rounded again), which moved the shallowest sweep's
+  frames 7.4 dB down.
 
 What remains of a plane-wave image's artefacts (the smooth sphere, frame nearest the
 centre, dB below the cap's peak): the horizontal line a specular top throws across the
@@ -659,14 +663,16 @@ def to_grey(envelope: Array, reference: float, dynamic_range_db: float) -> NDArr
     return np.clip(grey, 0.0, 255.0).astype(np.uint8)
 
 
-def sheet(s: Scanner, centre_us: Array, steer_deg: tuple[float, ...]) -> tuple[Array, Array]:
+def sheet(
+    s: Scanner, centre_us: Array, steer_deg: tuple[float, ...], depth: float | None = None
+) -> tuple[Array, Array]:
     """A perfect flat reflector (reflection coefficient 1, smooth) at the cap's true
-    depth, under the aperture: points (n, 3, us frame) of a λ/2 square grid (its first
-    Bragg echo would need sin θ_in + sin θ_out = 2: none) and their weights (taper ×
-    area per point / λ², as the sphere's)."""
+    depth (or at true ``depth``, m), under the aperture: points (n, 3, us frame) of a λ/2
+    square grid (its first Bragg echo would need sin θ_in + sin θ_out = 2: none) and their
+    weights (taper × area per point / λ², as the sphere's)."""
     lam = wavelength_m(s.array)
     spacing = 0.5 * lam
-    depth = centre_us[1] - RADIUS_M
+    depth = centre_us[1] - RADIUS_M if depth is None else depth
     a = s.array
     half_array = a.active_elements * a.pitch_mm * MM / 2
     hx = half_array + depth * np.tan(np.radians(max(abs(v) for v in steer_deg))) + SHEET_MARGIN_M
@@ -682,12 +688,14 @@ def sheet(s: Scanner, centre_us: Array, steer_deg: tuple[float, ...]) -> tuple[A
     return p[keep], w.ravel()[keep] * spacing**2 / lam**2
 
 
-def reference_level(s: Scanner, centre_us: Array, x_px: float, shown: float) -> tuple[float, float]:
+def reference_level(
+    s: Scanner, centre_us: Array, x_px: float, shown: float, depth: float | None = None
+) -> tuple[float, float]:
     """The envelope (× K, compounded as the frames) of the perfect reflector at the cap's
-    depth on the sphere's column ``x_px`` (pymust's x): the frames' 0 dB; and the
+    depth (or at true ``depth``, m) on the sphere's column ``x_px`` (pymust's x), and the
     displayed depth of its peak (m). ``shown`` is displayed / true depth."""
-    p, w = sheet(s, centre_us, STEER_DEG)
-    depth = (centre_us[1] - RADIUS_M) * shown
+    p, w = sheet(s, centre_us, STEER_DEG, depth)
+    depth = (centre_us[1] - RADIUS_M if depth is None else depth) * shown
     z = depth + np.arange(-1e-3, 1e-3 + 1e-9, 0.01e-3)
     x = np.full_like(z, x_px)
     medium = s.medium
@@ -696,6 +704,27 @@ def reference_level(s: Scanner, centre_us: Array, x_px: float, shown: float) -> 
     iq = sum(beamformed(s_flat, transmit(s_flat, a, p, x, z), p, w) for a in STEER_DEG)
     env = np.abs(np.asarray(iq)).ravel()
     return float(np.max(env)), float(z[int(np.argmax(env))])
+
+
+def zero_db_level(s: Scanner, centre_us: Array, x_px: float, probe: ProbeConfig) -> float:
+    """The frames' 0 dB: the perfect reflector's envelope (as :func:`reference_level`) at
+    the elevation focus as displayed, where sim_us's display puts its 0 dB
+    (:func:`sim_us.beam.flat_echo_gain` is 1 there)."""
+    shown = 1.0 / axial_scale(probe)
+    focus = probe.elevation_focus_mm * MM / shown  # true depth
+    return reference_level(s, centre_us, x_px, shown, focus)[0]
+
+
+def regreyed(frames: NDArray[np.uint8], envelope_from: float, envelope_to: float, dr: float):
+    """Frames displayed with 0 dB at ``envelope_from`` shown with 0 dB at ``envelope_to``
+    (≥ it: darker, so nothing lit was clipped black): every lit grey level moved by the
+    ratio in dB and rounded again (±0.5 grey, 0.12 dB, of re-quantization), black kept
+    black."""
+    if envelope_to < envelope_from:
+        raise ValueError("re-displaying brighter would need the pixels clipped black")
+    shift = 20.0 * np.log10(envelope_from / envelope_to) * 255.0 / dr
+    grey = np.clip(np.floor(frames.astype(float) + shift + 0.5), 0.0, 255.0)
+    return np.where(frames > 0, grey, 0.0).astype(np.uint8)
 
 
 def diffuse_scale(
@@ -738,6 +767,20 @@ def _surface_weights(n_points: int, lam: float) -> float:
     return 4 * np.pi * RADIUS_M**2 / n_points / lam**2
 
 
+def sweep_scanner(
+    a: Any, probe: ProbeConfig, spec: SweepSpec
+) -> tuple[Array, Scanner, Crop, Array, Array, float]:
+    """A sweep's sphere centre (its reference frame), its scanner (the aperture over the
+    sphere), the frames' crop and its pixel axes (x, displayed depth), and the sphere's
+    column in pymust's x."""
+    centre = true_centre(sweep_poses(spec))
+    s = scanner(a, float(centre[0]))
+    crop = crop_of(probe, centre)
+    x, y = pixel_axes(crop.rows, crop.cols, probe.image_shape[1], probe.spacing_m)
+    col = int(np.argmin(np.abs(x - centre[0])))
+    return centre, s, crop, x, y, float(x[col] - s.x_aperture)
+
+
 def render_sweep(
     a: Any,
     probe: ProbeConfig,
@@ -750,27 +793,23 @@ def render_sweep(
     mirror's lattice, and with ``diffuse`` its share as random scatterers."""
     t_start = time.perf_counter()
     T = sweep_poses(spec)
-    centre = true_centre(T)
-    s = scanner(a, float(centre[0]))
-    crop = crop_of(probe, centre)
-    H, W = probe.image_shape
-    x, y = pixel_axes(crop.rows, crop.cols, W, probe.spacing_m)
+    centre, s, crop, x, y, x_col = sweep_scanner(a, probe, spec)
     X, Z = np.meshgrid(x - s.x_aperture, y)  # pymust's x; displayed depth
     points, normals = surface
     p_mid, w_cap = cap_in_frame(points, normals, T[FRAMES // 2])
     rc = w_cap * PLA_REFLECTION * _surface_weights(len(points), wavelength_m(a))
     shown = 1.0 / axial_scale(probe)
-    col = int(np.argmin(np.abs(x - centre[0])))
-    reference, z_peak = reference_level(s, centre, float(x[col] - s.x_aperture), shown)
+    reference, z_peak = reference_level(s, centre, x_col, shown)
+    zero_db = zero_db_level(s, centre, x_col, probe)
     scale = None
     if diffuse is not None:
         # The mirror keeps 1 − d² of the energy; the diffuse share d² is the scatterers'.
-        scale = diffuse_scale(s, centre, float(x[col] - s.x_aperture), z_peak, reference, diffuse)
+        scale = diffuse_scale(s, centre, x_col, z_peak, reference, diffuse)
         p_d, amp_d = facing_in_frame(diffuse, T[FRAMES // 2])
         p_mid = np.concatenate([p_mid, p_d])
         rc = np.concatenate([rc * np.sqrt(1.0 - DIFFUSE_SHARE**2), amp_d * scale])
     txs = [transmit(s, angle, p_mid, X, Z) for angle in STEER_DEG]
-    frames = np.zeros((FRAMES, H, W), np.uint8)
+    frames = np.zeros((FRAMES, *probe.image_shape), np.uint8)
     z = (np.arange(FRAMES) - FRAMES // 2) * FRAME_STEP_M
     counts = []
     for k, zk in enumerate(z):
@@ -780,7 +819,7 @@ def render_sweep(
             continue  # nothing within the elevation reach: a black frame
         iq = sum(beamformed(s, tx, p, w) for tx in txs)
         env = np.abs(np.asarray(iq)).reshape(X.shape, order="F")
-        frames[k][np.ix_(crop.rows, crop.cols)] = to_grey(env, reference, probe.dynamic_range_db)
+        frames[k][np.ix_(crop.rows, crop.cols)] = to_grey(env, zero_db, probe.dynamic_range_db)
     seconds = time.perf_counter() - t_start
     if log:
         print(
@@ -791,6 +830,7 @@ def render_sweep(
         "scatterers_per_frame": counts,
         "aperture_centre_mm": s.x_aperture / MM,
         "reference_envelope": reference,
+        "zero_db_envelope": zero_db,
         "diffuse_scale": scale,
         "window_periods_k": [tx.k for tx in txs],
         "crop_rows": [int(crop.rows[0]), int(crop.rows[-1])],
@@ -798,6 +838,14 @@ def render_sweep(
         "seconds": round(seconds, 1),
     }
     return frames, info
+
+
+ZERO_DB_RECORD = (
+    "the compounded envelope of a smooth perfect reflector (unit sheet) at the elevation "
+    "focus as displayed (18 mm), on the sphere's column, no attenuation (sim_us's 0 dB); "
+    "the diffuse share is calibrated against the same sheet at the cap's depth "
+    "(reference_envelope)"
+)
 
 
 def method_record(surface: str = "smooth") -> dict[str, Any]:
@@ -827,8 +875,7 @@ def method_record(surface: str = "smooth") -> dict[str, Any]:
         "elevation_taper_m": ELEVATION_TAPER_M,
         "crop_m": {"half_width": CROP_HALF_WIDTH_M, "above_cap": CROP_ABOVE_M},
         "crop_below_centre_m": CROP_BELOW_M,
-        "zero_db": "the compounded envelope of a smooth perfect reflector (unit sheet) at "
-        "the cap's depth on the sphere's column, no attenuation (sim_us's 0 dB)",
+        "zero_db": ZERO_DB_RECORD,
         "grey": "(20 log10(envelope / 0 dB) + DR) · 255 / DR, rounded, clipped (sim_us's "
         "display at gain 0); outside the crop 0",
         "dynamic_range_db": probe_config().dynamic_range_db,
@@ -905,6 +952,51 @@ def write_stored(
             axial_scale=np.array(axial_scale(probe)),
             meta=np.array(json.dumps(meta, ensure_ascii=False)),
         )
+
+
+def write_zero_db() -> None:
+    """Frames stored with the cap's depth as their 0 dB (before 2026-11-30: sim_us's 0 dB
+    was the same perfect reflector at every depth until its echoes carried the flat
+    reflector's level against depth) shown again with the elevation focus's: pymust's
+    perfect reflector at the focus, per sweep (≈ 1.5 min of one core each, once for every
+    stored file: the sweeps' apertures are the same), each file's lit grey levels moved by
+    the ratio (:func:`regreyed`) and its record updated."""
+    from threadpoolctl import threadpool_limits
+
+    a = PR.paper_probe().array
+    probe = probe_config()
+    levels: dict[int, float] = {}
+    for surface in SURFACES:
+        for k in stored_realizations(surface):
+            path = stored_path(surface, k)
+            with np.load(path, allow_pickle=False) as f:
+                arrays = {name: f[name] for name in f.files}
+            meta = json.loads(str(arrays["meta"]))
+            if all("zero_db_envelope" in p for p in meta["per_sweep"]):
+                continue
+            for i, spec in enumerate(SWEEPS):
+                if i not in levels:
+                    centre, s, _, _, _, x_col = sweep_scanner(a, probe, spec)
+                    with threadpool_limits(1):
+                        levels[i] = zero_db_level(s, centre, x_col, probe)
+                info = meta["per_sweep"][i]
+                arrays["frames"][i] = regreyed(
+                    arrays["frames"][i],
+                    info["reference_envelope"],
+                    levels[i],
+                    probe.dynamic_range_db,
+                )
+                info["zero_db_envelope"] = levels[i]
+            meta["method"]["zero_db"] = ZERO_DB_RECORD
+            meta["method"]["regreyed"] = (
+                "rendered with the cap's depth as 0 dB and shown again with the elevation "
+                "focus's (write_zero_db: each lit grey level moved by 20 log10(reference / "
+                "zero_db) · 255 / DR and rounded again)"
+            )
+            arrays["meta"] = np.array(json.dumps(meta, ensure_ascii=False))
+            with replaced_atomically(path) as tmp, open(tmp, "wb") as f:
+                np.savez_compressed(f, **arrays)
+            print(f"re-displayed {path.relative_to(ROOT)}")
 
 
 # ------------------------------------------------------------------ the beam in water
@@ -1360,6 +1452,12 @@ def main() -> None:
         help="render a surface's sweeps with pymust (default: smooth) and store them",
     )
     parser.add_argument(
+        "--write-zero-db",
+        action="store_true",
+        help="show stored frames rendered with the cap's depth as 0 dB with the elevation "
+        "focus's instead (pymust, ≈ 5 min once)",
+    )
+    parser.add_argument(
         "--write-psf",
         action="store_true",
         help="compute a point's PSF in water with pymust (≈ 1 min) and store it",
@@ -1380,6 +1478,9 @@ def main() -> None:
         "compare its lit pixels with the plane waves' and sim_us's",
     )
     args = parser.parse_args()
+    if args.write_zero_db:
+        write_zero_db()
+        return
     if args.focused_frame:
         surface, sweep, frame = args.focused_frame
         if surface not in SURFACES:

@@ -17,6 +17,7 @@ import pytest
 
 from calib import se3
 from calib.image import us_to_pixel
+from sim_us.beam import flat_echo_gain
 
 from .benchmark_scripts import load_benchmark
 
@@ -42,7 +43,12 @@ def test_the_file_says_where_it_comes_from(data):
     surface = data["surface"]
     assert meta["command"] == RS.command(surface)
     assert meta["pymust_version"]
-    assert meta["method"] == RS.method_record(surface)
+    method = dict(meta["method"])
+    # Frames rendered before the display's 0 dB moved to the elevation focus were shown
+    # again with it (write_zero_db), which the record says.
+    regreyed = method.pop("regreyed", None)
+    assert regreyed is None or "write_zero_db" in regreyed
+    assert method == RS.method_record(surface)
     assert meta["array"] == asdict(RS.PR.paper_probe().array)
     probe = RS.probe_config()
     for key, value in meta["probe"].items():
@@ -51,6 +57,34 @@ def test_the_file_says_where_it_comes_from(data):
         (s.lateral_mm, s.depth_mm, s.elevation_mm, list(s.rotation_deg)) for s in RS.SWEEPS
     ]
     assert RS.stored_path(surface).stat().st_size <= 3e6
+
+
+def test_the_frames_0_db_is_sim_us_s(data):
+    """The frames' 0 dB is pymust's perfect reflector at the elevation focus as displayed
+    (sim_us's 0 dB), and pymust's perfect reflector at each cap's depth against it agrees
+    with sim_us's flat reflector against depth (``flat_echo_gain``, same imaging) within
+    1 dB: −7.4 / −1.0 / −0.5 dB against −7.1 / −1.3 / −0.3 dB at 10 / 15 / 20 mm. Before,
+    pymust's frames were shown with the cap's depth as 0 dB, 7.4 dB brighter than sim_us's
+    at the shallowest sweep."""
+    probe = RS.probe_config()
+    shown = 1.0 / float(data["axial_scale"])
+    for i, info in enumerate(data["meta"]["per_sweep"]):
+        cap_depth = (data["centre_ref"][i][1] - RS.RADIUS_M) * shown
+        pymust_db = 20 * np.log10(info["reference_envelope"] / info["zero_db_envelope"])
+        twin_db = 20 * np.log10(float(flat_echo_gain(probe, cap_depth, RS.WATER_C)))
+        assert abs(pymust_db - twin_db) <= 1.0, (i, pymust_db, twin_db)
+
+
+def test_regreyed_frames_move_lit_levels_only():
+    """Shown again with a stronger 0 dB, every lit grey level moves down by the ratio in
+    dB (rounded), levels that fall below black become black, black stays black, and a
+    weaker 0 dB is refused (the pixels it would light were clipped black)."""
+    frames = np.array([[0, 1, 40, 200, 255]], np.uint8)
+    out = RS.regreyed(frames, 1.0, 10 ** (6.0 / 20), 60.0)  # 6 dB darker: 25.5 grey
+    np.testing.assert_array_equal(out, [[0, 0, 15, 175, 230]])
+    np.testing.assert_array_equal(RS.regreyed(frames, 2.0, 2.0, 60.0), frames)
+    with pytest.raises(ValueError):
+        RS.regreyed(frames, 2.0, 1.0, 60.0)
 
 
 def test_frames_poses_and_truth_are_consistent(data):
@@ -157,8 +191,10 @@ def test_the_refined_error_on_pymust_frames_is_within_1_5_x_sim_us():
     ``SPECKLE_REALIZATIONS`` of its speckle. With the reference counting the elevation
     once and sim_us drawing the elevation delay, three corrected draws gave 1.43 / 0.96 /
     1.05×; all five (the fourth and fifth rendered again), with every echo at a flat
-    reflector's level against depth: 0.68 / 1.16 / 1.76× (before the correction, five
-    double-counted draws gave 1.23 / 0.97 / 1.86×)."""
+    reflector's level against depth: 0.68 / 1.16 / 1.76×, and with pymust's frames shown
+    with the same 0 dB as sim_us's (the elevation focus's, not the cap's depth's):
+    0.63 / 1.18 / 1.76× (before the correction, five double-counted draws gave 1.23 /
+    0.97 / 1.86×)."""
     for surface in RS.SURFACES:
         if not RS.stored_path(surface).exists():
             continue
