@@ -73,7 +73,13 @@ laterally, 3-D, soft baffle, the element directivity at the centre frequency):
 
 How, twin side: ``sim_us`` as the simulator uses it. Lateral and axial FWHM and the side
 lobe are measured on a rendered frame: a 0.02 mm wire along the elevation axis at each
-depth (in water at 20 °C, sim_us's default medium), ``BmodeSimulator.envelope`` through
+depth, drawn as sim_us draws wires (a line target, ``sim_us.wires``: a point in the image
+plane; a mesh cylinder that thin is a solid whose back wall, 0.02 mm below its front,
+echoed through the PLA and widened the axial profile up to 1.57 × at 26-50 mm) (in water
+at 20 °C, sim_us's default medium, the scanner set to water's speed as
+the reference's delays are to its medium's: at its own 1540 m/s the beam in water is out
+of focus, and the wire drew lateral widths up to 1.41 × and side lobes 24 dB off at
+22-30 mm, the beam no longer being the reference's), ``BmodeSimulator.envelope`` through
 the probe's PSF kernels with its side lobes and ring-down, sampled at 0.01 mm pixels and
 scanlines (the sampling, the pixel-scale error and the image offsets changed from the
 probe's, nothing else). The elevation FWHM is ``sim_us.beam.slice_thickness``: the
@@ -119,12 +125,12 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-import trimesh  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
 from scipy.signal import hilbert  # noqa: E402
 
 from bench.config.scenario import load_scenario  # noqa: E402
 from bench.files import write_text_atomic  # noqa: E402
+from calib.sound import water_speed_m_s  # noqa: E402
 from sim_us import MediumConfig, ProbeConfig  # noqa: E402
 from sim_us.beam import (  # noqa: E402
     SIDE_LOBE_OFFSET_PER_FWHM,
@@ -133,8 +139,9 @@ from sim_us.beam import (  # noqa: E402
     lateral_fwhm_m,
     slice_thickness,
 )
-from sim_us.raycast import AcousticScene, ScenePart  # noqa: E402
+from sim_us.raycast import AcousticScene  # noqa: E402
 from sim_us.simulator import BmodeSimulator  # noqa: E402
+from sim_us.wires import Wire  # noqa: E402
 
 ROOT = Path(_HERE).parent
 PAPER_SCENARIO = ROOT / "scenarios" / "paper.yaml"
@@ -606,8 +613,13 @@ def twin_figures(probe: ProbeConfig) -> dict[str, list[float]]:
         )
     }
     for depth_mm in DEPTHS_MM:
-        mesh = trimesh.creation.cylinder(radius=WIRE_RADIUS_M, height=20e-3, sections=16)
-        mesh.apply_translation([0.0, depth_mm * 1e-3, 0.0])
+        # A line target across the image plane (sim_us.wires), as a point in the plane: a
+        # mesh cylinder this thin is a solid with a back wall 0.02 mm below its front,
+        # whose echo through the PLA widened the axial profile by up to 1.57 × (26-50 mm).
+        y = depth_mm * 1e-3
+        wire = Wire(
+            "wire", np.array([0.0, y, -10e-3]), np.array([0.0, y, 10e-3]), 2 * WIRE_RADIUS_M
+        )
         fine = replace(
             probe,
             width_mm=2.0 * round(half_width, 1),
@@ -617,8 +629,10 @@ def twin_figures(probe: ProbeConfig) -> dict[str, list[float]]:
             pixel_scale_error_pct=(0.0, 0.0),
             image_origin_offset_mm=0.0,
             lateral_offset_mm=0.0,
+            # The reference's delays are for its medium's speed: the twin's scanner too.
+            assumed_speed_m_s=water_speed_m_s(MediumConfig().temperature_c),
         )
-        sim = BmodeSimulator(AcousticScene((ScenePart("wire", mesh, "pla"),)), fine, MediumConfig())
+        sim = BmodeSimulator(AcousticScene((), (wire,)), fine, MediumConfig())
         env = sim.envelope(np.eye(4)[None])[0].astype(float)
         r, c = np.unravel_index(int(np.argmax(env)), env.shape)
         pos = np.arange(env.shape[1]) * FINE_MM
