@@ -75,11 +75,11 @@ How, twin side: ``sim_us`` as the simulator uses it. Lateral and axial FWHM and 
 lobe are measured on a rendered frame: a 0.02 mm wire along the elevation axis at each
 depth, drawn as sim_us draws wires (a line target, ``sim_us.wires``: a point in the image
 plane; a mesh cylinder that thin is a solid whose back wall, 0.02 mm below its front,
-echoed through the PLA and widened the axial profile up to 1.57 × at 26-50 mm) (in water
-at 20 °C, sim_us's default medium, the scanner set to water's speed as
-the reference's delays are to its medium's: at its own 1540 m/s the beam in water is out
-of focus, and the wire drew lateral widths up to 1.41 × and side lobes 24 dB off at
-22-30 mm, the beam no longer being the reference's), ``BmodeSimulator.envelope`` through
+echoed through the PLA and widened the axial profile up to 1.57 × at 26-50 mm), in water
+at 20 °C (sim_us's default medium) with the scanner set to water's speed, as the
+reference's delays are to its medium's (at its own 1540 m/s the beam in water is out of
+focus: lateral widths up to 1.41 × and side lobes 24 dB off at 22-30 mm),
+``BmodeSimulator.envelope`` through
 the probe's PSF kernels with its side lobes and ring-down, sampled at 0.01 mm pixels and
 scanlines (the sampling, the pixel-scale error and the image offsets changed from the
 probe's, nothing else). The elevation FWHM is ``sim_us.beam.slice_thickness``: the
@@ -613,9 +613,7 @@ def twin_figures(probe: ProbeConfig) -> dict[str, list[float]]:
         )
     }
     for depth_mm in DEPTHS_MM:
-        # A line target across the image plane (sim_us.wires), as a point in the plane: a
-        # mesh cylinder this thin is a solid with a back wall 0.02 mm below its front,
-        # whose echo through the PLA widened the axial profile by up to 1.57 × (26-50 mm).
+        # A line target across the image plane (sim_us.wires): a point in the plane.
         y = depth_mm * 1e-3
         wire = Wire(
             "wire", np.array([0.0, y, -10e-3]), np.array([0.0, y, 10e-3]), 2 * WIRE_RADIUS_M

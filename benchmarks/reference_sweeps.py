@@ -663,16 +663,18 @@ def to_grey(envelope: Array, reference: float, dynamic_range_db: float) -> NDArr
     return np.clip(grey, 0.0, 255.0).astype(np.uint8)
 
 
-def sheet(
-    s: Scanner, centre_us: Array, steer_deg: tuple[float, ...], depth: float | None = None
-) -> tuple[Array, Array]:
-    """A perfect flat reflector (reflection coefficient 1, smooth) at the cap's true
-    depth (or at true ``depth``, m), under the aperture: points (n, 3, us frame) of a λ/2
-    square grid (its first Bragg echo would need sin θ_in + sin θ_out = 2: none) and their
-    weights (taper × area per point / λ², as the sphere's)."""
+def cap_depth(centre_us: Array) -> float:
+    """The true depth (m) of the sphere's top, its centre at ``centre_us``."""
+    return float(centre_us[1] - RADIUS_M)
+
+
+def sheet(s: Scanner, depth: float, steer_deg: tuple[float, ...]) -> tuple[Array, Array]:
+    """A perfect flat reflector (reflection coefficient 1, smooth) at true ``depth`` (m),
+    under the aperture: points (n, 3, us frame) of a λ/2 square grid (its first Bragg echo
+    would need sin θ_in + sin θ_out = 2: none) and their weights (taper × area per point /
+    λ², as the sphere's)."""
     lam = wavelength_m(s.array)
     spacing = 0.5 * lam
-    depth = centre_us[1] - RADIUS_M if depth is None else depth
     a = s.array
     half_array = a.active_elements * a.pitch_mm * MM / 2
     hx = half_array + depth * np.tan(np.radians(max(abs(v) for v in steer_deg))) + SHEET_MARGIN_M
@@ -688,15 +690,12 @@ def sheet(
     return p[keep], w.ravel()[keep] * spacing**2 / lam**2
 
 
-def reference_level(
-    s: Scanner, centre_us: Array, x_px: float, shown: float, depth: float | None = None
-) -> tuple[float, float]:
-    """The envelope (× K, compounded as the frames) of the perfect reflector at the cap's
-    depth (or at true ``depth``, m) on the sphere's column ``x_px`` (pymust's x), and the
-    displayed depth of its peak (m). ``shown`` is displayed / true depth."""
-    p, w = sheet(s, centre_us, STEER_DEG, depth)
-    depth = (centre_us[1] - RADIUS_M if depth is None else depth) * shown
-    z = depth + np.arange(-1e-3, 1e-3 + 1e-9, 0.01e-3)
+def reference_level(s: Scanner, depth: float, x_px: float, shown: float) -> tuple[float, float]:
+    """The envelope (× K, compounded as the frames) of the perfect reflector at true
+    ``depth`` (m) on the sphere's column ``x_px`` (pymust's x), and the displayed depth of
+    its peak (m). ``shown`` is displayed / true depth."""
+    p, w = sheet(s, depth, STEER_DEG)
+    z = depth * shown + np.arange(-1e-3, 1e-3 + 1e-9, 0.01e-3)
     x = np.full_like(z, x_px)
     medium = s.medium
     s_flat = replace(s, medium=medium.copy())
@@ -706,16 +705,18 @@ def reference_level(
     return float(np.max(env)), float(z[int(np.argmax(env))])
 
 
-def zero_db_level(s: Scanner, centre_us: Array, x_px: float, probe: ProbeConfig) -> float:
+def zero_db_level(s: Scanner, x_px: float, probe: ProbeConfig) -> float:
     """The frames' 0 dB: the perfect reflector's envelope (as :func:`reference_level`) at
     the elevation focus as displayed, where sim_us's display puts its 0 dB
     (:func:`sim_us.beam.flat_echo_gain` is 1 there)."""
     shown = 1.0 / axial_scale(probe)
     focus = probe.elevation_focus_mm * MM / shown  # true depth
-    return reference_level(s, centre_us, x_px, shown, focus)[0]
+    return reference_level(s, focus, x_px, shown)[0]
 
 
-def regreyed(frames: NDArray[np.uint8], envelope_from: float, envelope_to: float, dr: float):
+def regreyed(
+    frames: NDArray[np.uint8], envelope_from: float, envelope_to: float, dr: float
+) -> NDArray[np.uint8]:
     """Frames displayed with 0 dB at ``envelope_from`` shown with 0 dB at ``envelope_to``
     (≥ it: darker, so nothing lit was clipped black): every lit grey level moved by the
     ratio in dB and rounded again (±0.5 grey, 0.12 dB, of re-quantization), black kept
@@ -728,14 +729,15 @@ def regreyed(frames: NDArray[np.uint8], envelope_from: float, envelope_to: float
 
 
 def diffuse_scale(
-    s: Scanner, centre_us: Array, x_px: float, z_peak: float, zero_db: float, d: Diffuse
+    s: Scanner, centre_us: Array, x_px: float, z_peak: float, cap_level: float, d: Diffuse
 ) -> float:
     """The amplitude scale of the diffuse scatterers: a sheet of them (their density, unit
     variance; the perfect reflector's extent and taper, at the cap's depth) facing the
-    probe returns a mean intensity ``(DIFFUSE_SHARE · PLA_REFLECTION · zero_db)²`` at the
+    probe returns a mean intensity ``(DIFFUSE_SHARE · PLA_REFLECTION · cap_level)²`` (the
+    perfect reflector's envelope there) at the
     mirror's peak depth ``z_peak`` (displayed), compounded as the frames, over ± 5 mm of
     the sphere's column ``x_px``, without attenuation."""
-    p_sheet, _ = sheet(s, centre_us, STEER_DEG)
+    p_sheet, _ = sheet(s, cap_depth(centre_us), STEER_DEG)
     lo, hi = p_sheet.min(axis=0), p_sheet.max(axis=0)
     extent = (hi[0] - lo[0]) * (hi[2] - lo[2])
     n = round(extent / d.area_m2)
@@ -758,7 +760,7 @@ def diffuse_scale(
         rc = rng.standard_normal(n) * taper
         iq = sum(beamformed(s_flat, transmit(s_flat, a, u, x, z), u, rc) for a in STEER_DEG)
         intensity.append(np.mean(np.abs(np.asarray(iq)) ** 2))
-    return float(DIFFUSE_SHARE * PLA_REFLECTION * zero_db / np.sqrt(np.mean(intensity)))
+    return float(DIFFUSE_SHARE * PLA_REFLECTION * cap_level / np.sqrt(np.mean(intensity)))
 
 
 def _surface_weights(n_points: int, lam: float) -> float:
@@ -799,8 +801,8 @@ def render_sweep(
     p_mid, w_cap = cap_in_frame(points, normals, T[FRAMES // 2])
     rc = w_cap * PLA_REFLECTION * _surface_weights(len(points), wavelength_m(a))
     shown = 1.0 / axial_scale(probe)
-    reference, z_peak = reference_level(s, centre, x_col, shown)
-    zero_db = zero_db_level(s, centre, x_col, probe)
+    reference, z_peak = reference_level(s, cap_depth(centre), x_col, shown)
+    zero_db = zero_db_level(s, x_col, probe)
     scale = None
     if diffuse is not None:
         # The mirror keeps 1 − d² of the energy; the diffuse share d² is the scatterers'.
@@ -976,9 +978,9 @@ def write_zero_db() -> None:
                 continue
             for i, spec in enumerate(SWEEPS):
                 if i not in levels:
-                    centre, s, _, _, _, x_col = sweep_scanner(a, probe, spec)
+                    _, s, _, _, _, x_col = sweep_scanner(a, probe, spec)
                     with threadpool_limits(1):
-                        levels[i] = zero_db_level(s, centre, x_col, probe)
+                        levels[i] = zero_db_level(s, x_col, probe)
                 info = meta["per_sweep"][i]
                 arrays["frames"][i] = regreyed(
                     arrays["frames"][i],
@@ -1362,7 +1364,7 @@ def focused_frame(surface: str, sweep: int, frame: int) -> NDArray[np.float64]:
     H, W = probe.image_shape
     x, y = pixel_axes(crop.rows, crop.cols, W, probe.spacing_m)
     shown = 1.0 / axial_scale(probe)
-    focus = centre[1] - RADIUS_M  # the cap's depth (true)
+    focus = cap_depth(centre)  # true
     out = np.zeros((H, W))
     lines = np.arange(0, len(crop.cols), 2)
     with threadpool_limits(1):

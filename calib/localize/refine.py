@@ -12,8 +12,7 @@ Method "refined" then fits each accepted centre to the cap's echo
 peak of the top's echo (:func:`_axial_peak`) one radius above the centre, and in
 elevation the vertex of a least-squares parabola through the cap's peak grey level (dB)
 per slice, slices clipped at 255 left out, refitted in a window centred on the vertex
-itself
-(:func:`_elevation_vertex`, :func:`_centred_vertex`).
+itself (:func:`_elevation_vertex`, :func:`_centred_vertex`).
 """
 
 from __future__ import annotations
@@ -144,8 +143,8 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
     coordinates, so the echo-weighted mean of x over the cap gives it (first over the
     cap's band, then over the rows about its top, which the speckle of a scattering
     medium around the sphere does not outweigh), and z is the vertex of the top's peak
-    grey level across the slices (:func:`_elevation_vertex`); the
-    top of the cap (normal incidence, the strongest echo, seen in every nearby frame
+    grey level across the slices (:func:`_elevation_vertex`); the top of the cap (normal
+    incidence, the strongest echo, seen in every nearby frame
     through the slice thickness) lies one radius above the centre, so the depth of its
     echo's peak (:func:`_axial_peak`) plus R gives y. A least-squares sphere fit would be
     pulled upwards instead: the elevation beam smears that top echo over neighbouring
