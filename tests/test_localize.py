@@ -486,13 +486,12 @@ def test_saturated_cap_centre_is_unbiased(saturated_errors):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="since every echo carries a flat reflector's level against depth, the worst "
-    "accepted centre at +20 dB is 0.56 mm off (was under 0.5); not yet looked into",
-)
 def test_saturated_cap_centres_are_all_within_half_a_millimetre(saturated_errors):
-    """No accepted centre of the saturation case 0.5 mm or more off, at either gain."""
+    """No accepted centre of the saturation case 0.5 mm or more off, at either gain. Since
+    every echo carries a flat reflector's level against depth the printed flanks return a
+    plateau of diffuse echo at half the clip in the slices about the one clipped top; the
+    parabola through that plateau put the elevation 0.54 mm off (a strict xfail until the
+    fit was required to reach the clip at the clipped slice: 0.27 mm at most since)."""
     errors, _ = saturated_errors
     for err, _n in errors.values():
         assert err.max() < 0.5
