@@ -490,8 +490,7 @@ def _cmd_sweep(args: argparse.Namespace, console: Console) -> int:
     workers = args.workers or os.cpu_count() or 1
     hours = spec.estimated_seconds() / 3600
     print_workload(
-        spec.count(),
-        len(spec.seeds),
+        spec.describe(),
         spec.acquisitions(),
         hours,
         workers,

@@ -74,6 +74,36 @@ def _sweep_file(tmp_path: Path, grid: str, seeds="[0]", methods="[refined, fixed
             "imaging.depth_mm",
         ),
         ("base: nowhere.yaml\n", "nowhere.yaml"),
+        (
+            f"base: {QUICK}\ngrid:\n  imaging.gain_db: [0]\ndraws: {{points: 2, seed: 1, "
+            "keys: {imaging.gain_db: {uniform: [-1, 1]}}}\n",
+            "draws: drawn points vary their keys and seeds themselves",
+        ),
+        (
+            f"base: {QUICK}\ndraws: {{points: 0, seed: 1, keys: {{}}}}\n",
+            "draws: points: how many points to draw",
+        ),
+        (
+            f"base: {QUICK}\ndraws: {{points: 3, seed: 1, keys: "
+            "{imaging.gain_db: {uniform: [5, -5]}}}\n",
+            "draws: keys: imaging.gain_db: uniform: [lo, hi], two numbers with lo < hi",
+        ),
+        (
+            f"base: {QUICK}\ndraws: {{points: 3, seed: 1, keys: "
+            "{imaging.gain_db: {gauss: [0, 1]}}}\n",
+            "draws: keys: imaging.gain_db: {uniform: [lo, hi], step: s} or {choice:",
+        ),
+        (
+            f"base: {QUICK}\ndraws: {{points: 3, seed: 1, keys: "
+            "{'protocol.target_depth_mm, imaging.depth_mm': {choice: [[10]]}}}\n",
+            "linked keys: each choice a list of 2 values",
+        ),
+        # A drawn value the scenario refuses: named as a grid's is.
+        (
+            f"base: {QUICK}\ndraws: {{points: 20, seed: 1, keys: "
+            "{imaging.gain_db: {uniform: [0, 90]}}}\n",
+            "imaging.gain_db",
+        ),
     ],
 )
 def test_bad_sweep_files_fail_with_one_clear_line(tmp_path, capsys, text, message):
@@ -396,6 +426,87 @@ def test_linked_keys_are_set_together_and_reported(tmp_path):
     page = sweep_html(spec, rows, tmp_path)
     assert "protocol.target_depth_mm, imaging.depth_mm" in page
     assert "refined <strong>0</strong>" in page or "refined **0**" in page
+
+
+def test_drawn_points_are_the_file_s_own_and_held_out(tmp_path):
+    """``draws:``: the same file draws the same points (each key uniform within its range
+    at its step, or one of its choices; linked keys together), every point with a twin
+    seed of its own, away from the grids' seeds; another draw seed draws other points.
+    results.csv has a column per key; the page gives the spread over the points and
+    every point against each key."""
+    from bench.jobs.sweep import DRAWN_SEEDS
+    from bench.outputs.sweep_report import results_csv, sweep_html
+
+    text = (
+        f"base: {QUICK}\ndraws:\n  points: 30\n  seed: 4\n  keys:\n"
+        "    imaging.gain_db: {uniform: [-20, 20], step: 0.1}\n"
+        "    phantom.sphere_radius_mm: {uniform: [3, 8], step: 1}\n"
+        "    protocol.target_depth_mm, imaging.depth_mm: {choice: [[15, 30], [25, 40]]}\n"
+        "stages: [localize]\nmethods: [refined]\n"
+    )
+    spec = load_sweep(_write(tmp_path / "drawn.yaml", text))
+    points = spec.points()
+    assert spec.count() == len(points) == 30 and points == load_sweep(spec.source).points()
+    gains = [dict(o)["imaging.gain_db"] for o, _ in points]
+    radii = [dict(o)["phantom.sphere_radius_mm"] for o, _ in points]
+    depths = [(dict(o)["protocol.target_depth_mm"], dict(o)["imaging.depth_mm"]) for o, _ in points]
+    assert all(-20 <= g <= 20 and abs(10 * g - round(10 * g)) < 1e-9 for g in gains)
+    assert len(set(gains)) >= 25 and min(gains) < -10 and max(gains) > 10  # spread, not a grid
+    assert set(radii) <= {3, 4, 5, 6, 7, 8} and all(type(r) is int for r in radii)
+    assert set(depths) == {(15, 30), (25, 40)}
+    seeds = [s for _, s in points]
+    assert len(set(seeds)) == 30 and all(DRAWN_SEEDS[0] <= s < DRAWN_SEEDS[1] for s in seeds)
+    assert spec.seeds == tuple(seeds)
+    assert spec.acquisitions() == 30  # nothing shared: each point its own twin
+    assert spec.describe().startswith("30 points drawn at random (draw seed 4")
+    other = load_sweep(_write(tmp_path / "other.yaml", text.replace("seed: 4", "seed: 5")))
+    assert [dict(o)["imaging.gain_db"] for o, _ in other.points()] != gains
+    rows = [
+        {"overrides": list(o), "seed": s, "rows": [{"method": "refined", "false_acceptances": 0,
+         "localization_median_error_mm": 0.01 * (i + 1), "rejected_fraction": 0.0}]}
+        for i, (o, s) in enumerate(points)
+    ]  # fmt: skip
+    lines = results_csv(spec, rows).splitlines()
+    assert lines[0].split(",")[:5] == [
+        "imaging.gain_db",
+        "phantom.sphere_radius_mm",
+        "protocol.target_depth_mm",
+        "imaging.depth_mm",
+        "seed",
+    ]
+    assert lines[1].split(",")[:5] == [str(v) for v in (*dict(points[0][0]).values(), seeds[0])]
+    page = sweep_html(spec, rows, tmp_path)
+    assert "The spread over the drawn points" in page
+    # The median error's spread over the 30 points: 0.01 … 0.30 mm, median 0.155.
+    assert re.search(r"refined</td>\s*<td[^>]*>30</td>\s*<td[^>]*>0.01</td>", page)
+    assert ">0.155<" in page and ">0.3<" in page
+    for key in ("imaging_gain_db", "phantom_sphere_radius_mm", "protocol_target_depth_mm"):
+        assert (tmp_path / "figures" / f"{key}__localization_median_error_mm.png").stat().st_size
+
+
+@pytest.mark.slow
+def test_a_drawn_sweep_runs_each_point_with_its_own_seed(tmp_path):
+    """Two drawn points run end to end (one sphere, short sweeps): each point's row under
+    its own drawn seed and values, the localizer's figures filled in."""
+    path = _write(
+        tmp_path / "drawn.yaml",
+        f"base: {QUICK}\ndraws:\n  points: 2\n  seed: 9\n  keys:\n"
+        "    imaging.gain_db: {uniform: [-10, 10]}\n"
+        "    protocol.spheres: {choice: [[1]]}\n"
+        "    protocol.frames_per_sweep: {choice: [13]}\n"
+        "    protocol.sweep_half_length_mm: {choice: [6]}\n"
+        "stages: [localize]\nmethods: [refined]\n",
+    )
+    spec = load_sweep(path)
+    result = _run_sweep(spec, tmp_path / "out", workers=2)
+    write_sweep(tmp_path / "out", result)
+    rows = _rows(tmp_path / "out")
+    assert [(float(r["imaging.gain_db"]), int(r["seed"])) for r in rows] == [
+        (dict(o)["imaging.gain_db"], s) for o, s in spec.points()
+    ]
+    for r in rows:
+        assert not r["error"] and int(r["sweeps"]) == 45 and int(r["false_acceptances"]) == 0
+        assert float(r["localization_median_error_mm"]) < 0.3
 
 
 @pytest.mark.slow

@@ -10,18 +10,18 @@ __all__ = ["print_cached_run", "print_workload"]
 
 
 def print_workload(
-    count: int, seeds: int, acquisitions: int, hours: float, workers: int, cluster: bool, console
+    points: str, acquisitions: int, hours: float, workers: int, cluster: bool, console
 ):
-    """What a sweep is about to run, before it runs: its points, the acquisitions they
-    take (points that differ in the gain alone share one) and the time it should take."""
+    """What a sweep is about to run, before it runs: its points (in words:
+    :meth:`bench.jobs.sweep.SweepSpec.describe`), the acquisitions they take (points that
+    differ in the gain alone share one) and the time it should take."""
     where = (
         f"≈ {_duration(hours)} of worker time on the cluster"
         if cluster
         else f"≈ {_duration(hours / workers)} on {workers} local worker(s)"
     )
     console.print(
-        f"{count // seeds:,} grid points × {seeds} seed(s) = {count:,} points, "
-        f"{acquisitions:,} acquisitions; {where} (cached points are not recomputed)"
+        f"{points}, {acquisitions:,} acquisitions; {where} (cached points are not recomputed)"
     )
 
 

@@ -15,6 +15,19 @@ A sweep file::
     stages: [localize]               # or [localize, calibrate]
     methods: [refined, fixed_threshold]
 
+Or points drawn at random instead of a grid, each with a twin seed of its own (the
+claims a grid supports, checked on conditions it did not list)::
+
+    base: quick.yaml
+    draws:
+      points: 40                     # how many
+      seed: 2026                     # the draws' own random stream
+      keys:                          # key path (or linked keys) -> how it is drawn
+        imaging.gain_db: {uniform: [-20, 20], step: 0.1}
+        phantom.sphere_radius_mm: {choice: [3, 4, 5]}
+        protocol.target_depth_mm, imaging.depth_mm: {choice: [[15, 30], [25, 45]]}
+    stages: [localize, calibrate]
+
 Each point is a pure function of (base scenario, overrides, seed): the tasks return
 metrics, never frames, and the main process writes ``DIR/points/<key>.json`` as each
 finishes. Points that differ in the display gain alone (a gain axis) are acquired once
@@ -69,6 +82,8 @@ from ..truth import image_error_mm, localization_errors
 
 __all__ = [
     "LOCALIZATION_METRICS",
+    "Draws",
+    "KeyDraw",
     "SweepError",
     "SweepPoint",
     "SweepResult",
@@ -103,9 +118,61 @@ class SweepError(UscalError):
     """A sweep file that cannot be run."""
 
 
+#: A drawn point's twin seed is drawn from this range: away from the few seeds grid files
+#: name, so that no drawn point repeats a grid's twin.
+DRAWN_SEEDS = (1000, 1_000_000)
+#: A uniform draw's default rounding (the key's own unit): fine enough that no two
+#: points share a value by chance, coarse enough to read in a table.
+DEFAULT_STEP = 0.01
+
+
+@dataclass(frozen=True)
+class KeyDraw:
+    """How one entry of ``draws.keys`` is drawn: uniformly over ``[lo, hi]`` rounded to
+    ``step`` (``kind`` "uniform", ``values`` (lo, hi)), or one of ``values`` with equal
+    probability ("choice"; for linked keys each value a list, one per key)."""
+
+    kind: str
+    values: tuple[Any, ...]
+    step: float = DEFAULT_STEP
+
+    def draw(self, rng: np.random.Generator) -> Any:
+        if self.kind == "choice":
+            return self.values[int(rng.integers(len(self.values)))]
+        lo, hi = self.values
+        x = round(round(float(rng.uniform(lo, hi)) / self.step) * self.step, 9)
+        whole = all(isinstance(v, int) for v in (lo, hi)) and float(self.step).is_integer()
+        return int(x) if whole else x
+
+
+@dataclass(frozen=True)
+class Draws:
+    """A sweep's points drawn at random (``draws:`` in the file): ``points`` of them,
+    from the stream seeded by ``seed``, each key as its :class:`KeyDraw` says and each
+    point with a twin seed of its own (:data:`DRAWN_SEEDS`)."""
+
+    points: int
+    seed: int
+    keys: dict[str, KeyDraw]
+
+    def drawn(self) -> list[tuple[tuple[tuple[str, Any], ...], int]]:
+        """(overrides, twin seed) of every point, the same for the same file."""
+        rng = np.random.default_rng(self.seed)
+        out = []
+        for _ in range(self.points):
+            overrides = tuple(
+                pair
+                for key, how in self.keys.items()
+                for pair in zip(linked_keys(key), _linked_values(key, how.draw(rng)), strict=True)
+            )
+            out.append((overrides, int(rng.integers(*DRAWN_SEEDS))))
+        return out
+
+
 @dataclass(frozen=True)
 class SweepSpec:
-    """A validated sweep file."""
+    """A validated sweep file: a grid × seeds, or points drawn at random (``draws``; then
+    ``grid`` is empty and ``seeds`` the points' own)."""
 
     source: Path
     base: Path
@@ -114,10 +181,14 @@ class SweepSpec:
     seeds: tuple[int, ...]
     stages: tuple[str, ...]
     methods: tuple[str, ...]
+    draws: Draws | None = None
 
     def points(self) -> list[tuple[tuple[tuple[str, Any], ...], int]]:
         """(overrides, seed) of every point: the grid's full product × the seeds; a
-        linked entry (``"a, b": [[a1, b1], ...]``) sets its keys together."""
+        linked entry (``"a, b": [[a1, b1], ...]``) sets its keys together. Drawn: the
+        points as drawn (:meth:`Draws.drawn`)."""
+        if self.draws is not None:
+            return self.draws.drawn()
         keys = list(self.grid)
         combos = itertools.product(*(self.grid[k] for k in keys)) if keys else [()]
         return [
@@ -134,7 +205,9 @@ class SweepSpec:
         ]
 
     def count(self) -> int:
-        """Points (grid product × seeds), without building them."""
+        """Points (grid product × seeds, or drawn), without building them."""
+        if self.draws is not None:
+            return self.draws.points
         n = len(self.seeds)
         for values in self.grid.values():
             n *= len(values)
@@ -158,9 +231,35 @@ class SweepSpec:
             {(b or json.dumps(o), s) for (o, s), b in zip(points, _batches(self), strict=True)}
         )
 
+    def varied(self) -> dict[str, list[Any]]:
+        """Each entry the sweep varies (grid or drawn: linked keys as one) and its values
+        over the points, in the file's order (a drawn entry's values as drawn)."""
+        if self.draws is None:
+            return dict(self.grid)
+        points = self.points()
+        out: dict[str, list[Any]] = {}
+        for key in self.draws.keys:
+            ks = linked_keys(key)
+            values = ([dict(o)[k] for k in ks] for o, _ in points)
+            out[key] = [v if len(ks) > 1 else v[0] for v in values]
+        return out
+
+    def describe(self) -> str:
+        """The points in words: "25 grid points × 3 seed(s) = 75 points", or drawn."""
+        if self.draws is not None:
+            return (
+                f"{self.draws.points:,} points drawn at random (draw seed {self.draws.seed}; "
+                f"{', '.join(self.draws.keys)}), each with a twin seed of its own"
+            )
+        return (
+            f"{self.count() // len(self.seeds):,} grid points × {len(self.seeds)} seed(s) = "
+            f"{self.count():,} points"
+        )
+
     def override_keys(self) -> list[str]:
-        """Every key path the grid sets, linked entries' keys one by one."""
-        return [k for key in self.grid for k in linked_keys(key)]
+        """Every key path the sweep sets, linked entries' keys one by one."""
+        entries = self.draws.keys if self.draws is not None else self.grid
+        return [k for key in entries for k in linked_keys(key)]
 
 
 def linked_keys(key: str) -> list[str]:
@@ -187,7 +286,7 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     data = read_yaml(str(source))
     if not isinstance(data, dict):
         raise _fail(source, "top level", "expected a mapping with base, grid, seeds, stages")
-    allowed = {"base", "grid", "seeds", "stages", "methods"}
+    allowed = {"base", "grid", "seeds", "stages", "methods", "draws"}
     unknown = sorted(set(data) - allowed)
     if unknown:
         raise _fail(source, ", ".join(unknown), f"unknown key(s); allowed: {sorted(allowed)}")
@@ -199,6 +298,14 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
         isinstance(v, list) and v and isinstance(k, str) for k, v in grid.items()
     ):
         raise _fail(source, "grid", "a mapping of key path -> non-empty list of values")
+    draws = None
+    if "draws" in data:
+        if "grid" in data or "seeds" in data:
+            raise _fail(
+                source, "draws", "drawn points vary their keys and seeds themselves: give "
+                "either draws, or grid and seeds",
+            )  # fmt: skip
+        draws = _load_draws(source, data["draws"])
     seeds = data.get("seeds", [0])
     if not (isinstance(seeds, list) and seeds and all(type(s) is int for s in seeds)):
         raise _fail(source, "seeds", "a non-empty list of whole numbers")
@@ -217,6 +324,18 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     # once, ≈ 1 ms a value). Reach and collisions depend on the whole point: a point that
     # cannot be reached fails alone in the sweep, with its reason.
     base_kind = load_scenario(base).phantom.kind
+    if draws is not None:
+        # Every drawn point's values, each key by itself (a point as a whole may still be
+        # out of reach: it fails alone, as a grid's does).
+        drawn = draws.drawn()
+        grid = {key: [] for key in draws.keys}
+        for overrides, _ in drawn:
+            values = dict(overrides)
+            for key in draws.keys:
+                ks = linked_keys(key)
+                v = [values[k] for k in ks]
+                grid[key].append(v if len(ks) > 1 else v[0])
+        seeds = [s_ for _, s_ in drawn]
     if any(
         k == "phantom.kind"
         and any((w in TARGET_PHANTOMS) != (base_kind in TARGET_PHANTOMS) for w in v)
@@ -238,10 +357,57 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
             for v in values
         ),
     )
+    if draws is not None:
+        grid = {}  # the drawn values were validated; the points are the draws'
     return SweepSpec(
         source, base, base.read_text(encoding="utf-8"), {k: list(v) for k, v in grid.items()},
-        tuple(seeds), tuple(stages), tuple(methods),
+        tuple(seeds), tuple(stages), tuple(methods), draws,
     )  # fmt: skip
+
+
+def _load_draws(source: Path, data: Any) -> Draws:
+    """``draws:`` validated: ``points`` (a whole number ≥ 1), ``seed`` (a whole number),
+    ``keys`` (key path -> ``{uniform: [lo, hi], step: s}`` or ``{choice: [v, ...]}``)."""
+    where = "draws"
+    if not isinstance(data, dict) or set(data) - {"points", "seed", "keys"}:
+        raise _fail(source, where, "a mapping with points, seed and keys")
+    points, seed, keys = data.get("points"), data.get("seed"), data.get("keys")
+    if type(points) is not int or points < 1:
+        raise _fail(source, f"{where}: points", "how many points to draw: a whole number ≥ 1")
+    if type(seed) is not int:
+        raise _fail(source, f"{where}: seed", "the draws' random seed: a whole number")
+    if not isinstance(keys, dict) or not keys:
+        raise _fail(source, f"{where}: keys", "a mapping of key path -> how it is drawn")
+    out: dict[str, KeyDraw] = {}
+    for key, how in keys.items():
+        at = f"{where}: keys: {key}"
+        n = len(linked_keys(str(key)))
+        allowed = "{uniform: [lo, hi], step: s} or {choice: [value, ...]}"
+        if not isinstance(how, dict) or len(set(how) & {"uniform", "choice"}) != 1:
+            raise _fail(source, at, allowed)
+        if "choice" in how:
+            values = how["choice"]
+            if set(how) != {"choice"} or not (isinstance(values, list) and values):
+                raise _fail(source, at, "choice: a non-empty list of values")
+            if n > 1 and not all(isinstance(v, list) and len(v) == n for v in values):
+                raise _fail(source, at, f"linked keys: each choice a list of {n} values")
+            out[str(key)] = KeyDraw("choice", tuple(values))
+            continue
+        bounds, step = how["uniform"], how.get("step", DEFAULT_STEP)
+        if set(how) - {"uniform", "step"} or n > 1:
+            raise _fail(source, at, f"{allowed} (linked keys: choice only)")
+        number = (int, float)
+        if not (
+            isinstance(bounds, list)
+            and len(bounds) == 2
+            and all(isinstance(b, number) and not isinstance(b, bool) for b in bounds)
+            and bounds[0] < bounds[1]
+        ):
+            raise _fail(source, at, "uniform: [lo, hi], two numbers with lo < hi")
+        if not (isinstance(step, number) and not isinstance(step, bool) and step > 0):
+            raise _fail(source, f"{at}: step", "the values' rounding: a number > 0")
+        out[str(key)] = KeyDraw("uniform", tuple(bounds), float(step))
+    return Draws(points, seed, out)
 
 
 #: The localization figures of a row, in the order ``results.csv`` lists them.
@@ -470,8 +636,9 @@ def _batches(spec: SweepSpec) -> list[str | None]:
     :data:`MAX_GAINS_PER_ACQUISITION` neighbouring gains; None for the rest (a wire,
     N-wire or cone point calibrates through ``uscal run``'s own path)."""
     points = spec.points()
-    # A target scenario's sweep has its target's name as its one method (load_sweep).
-    if set(spec.methods) & set(TARGET_PHANTOMS):
+    # A target scenario's sweep has its target's name as its one method (load_sweep);
+    # drawn points share nothing (each its own seed).
+    if set(spec.methods) & set(TARGET_PHANTOMS) or spec.draws is not None:
         return [None] * len(points)
     gains = sorted({float(dict(o)[SHARED_ACROSS]) for o, _ in points if SHARED_ACROSS in dict(o)})
     rank = {g: i for i, g in enumerate(gains)}

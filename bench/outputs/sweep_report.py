@@ -18,7 +18,14 @@ from ..jobs.sweep import LOCALIZATION_METRICS, SweepPoint, SweepResult, SweepSpe
 from ..tables import Column, Table, left
 from .report import report_html
 
-__all__ = ["median_table", "results_csv", "sweep_html", "sweep_table", "write_sweep"]
+__all__ = [
+    "median_table",
+    "results_csv",
+    "spread_table",
+    "sweep_html",
+    "sweep_table",
+    "write_sweep",
+]
 
 _METRICS = {
     "localization_median_error_mm": "localization error, median over sweeps (mm)",
@@ -94,6 +101,65 @@ def _figure(points, key: str, metric: str, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
+def _scatter(points, key: str, metric: str, path: Path) -> None:
+    """``metric`` at every drawn point against its value of ``key``, per localizer."""
+    fig = Figure(figsize=(5.2, 3.2), layout="constrained")
+    ax = fig.subplots()
+    by: dict[str, list[tuple[float, float]]] = {}
+    for point in _points(points):
+        value = point.override(key)
+        for row in point.rows:
+            x = row.figure(metric)
+            if x is not None and isinstance(value, (int, float)):
+                by.setdefault(row.method, []).append((float(value), float(x)))
+    if not by:
+        ax.text(0.5, 0.5, "no results (every point failed)", ha="center", transform=ax.transAxes)
+    for method, xy in by.items():
+        a = np.array(xy)
+        ax.plot(a[:, 0], a[:, 1], "o", ms=4, alpha=0.7, label=method)
+    ax.set_xlabel(key)
+    ax.set_ylabel(_METRICS[metric])
+    if metric == "localization_median_error_mm" and by:
+        ax.set_yscale("log")
+    if by:
+        ax.legend(fontsize=8)
+    fig.savefig(path, dpi=100)
+
+
+def spread_table(points: Sequence[dict[str, Any] | SweepPoint], metric: str) -> Table | None:
+    """``metric``'s spread over the points per localizer (rows): the points with a value,
+    its minimum, 10th percentile, median, 90th percentile, maximum (and the total of a
+    count): what a sweep of drawn conditions reports."""
+    by: dict[str, list[float]] = {}
+    for point in _points(points):
+        for row in point.rows:
+            x = row.figure(metric)
+            if x is not None:
+                by.setdefault(row.method, []).append(float(x))
+    if not by:
+        return None
+    heads = ("points", "min", "10th", "median", "90th", "max")
+    count = metric in ("false_acceptances", "calibration_false_acceptances")
+    rows = []
+    for method, xs in by.items():
+        a = np.array(xs)
+        ok = a[np.isfinite(a)]
+        q = np.percentile(ok, [0, 10, 50, 90, 100]) if len(ok) else np.full(5, np.nan)
+        rows.append(
+            (
+                method,
+                str(len(ok)),
+                *(f"{v:.3g}" for v in q),
+                *((f"{ok.sum():.0f}",) if count else ()),
+            )
+        )
+    columns = (
+        *left("method"),
+        *(Column(h, "right") for h in (*heads, *(("total",) if count else ()))),
+    )
+    return Table(columns, tuple(rows), f"{_METRICS[metric]}, over the points")
+
+
 def median_table(points: Sequence[SweepPoint], key: str, metric: str) -> Table | None:
     """The median of ``metric`` per localizer (rows) and value of the grid key ``key``
     (columns); None when no point measured it."""
@@ -120,14 +186,25 @@ def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -
         m: sum(r.false_acceptances or 0 for p in points for r in p.rows if r.method == m)
         for m in spec.methods
     }
+    drawn = spec.draws is not None
+    what = (
+        f"{spec.describe()}; each figure shows every point against one key"
+        if drawn
+        else f"{len(points)} points "
+        f"({' × '.join(f'{len(v)} {k}' for k, v in spec.grid.items()) or 'no grid'}, "
+        f"{len(spec.seeds)} seeds)"
+    )
     lines = [
         "# uscal sweep",
         "",
-        f"`{spec.source}`: base `{spec.base.name}`, {len(points)} points "
-        f"({' × '.join(f'{len(v)} {k}' for k, v in spec.grid.items()) or 'no grid'}, "
-        f"{len(spec.seeds)} seeds), stages {', '.join(spec.stages)}, localizers "
-        f"{', '.join(spec.methods)}. Lines: median over seeds and the other keys; bands: "
-        "25th-75th percentile. Every row is in `results.csv`.",
+        f"`{spec.source}`: base `{spec.base.name}`, {what}, stages {', '.join(spec.stages)}, "
+        f"localizers {', '.join(spec.methods)}."
+        + (
+            ""
+            if drawn
+            else " Lines: median over seeds and the other keys; bands: 25th-75th percentile."
+        )
+        + " Every row is in `results.csv`.",
         "",
         "Accepted centres more than 1 mm from the truth, over the whole grid: "
         + ", ".join(f"{m} **{n}**" for m, n in false_total.items())
@@ -200,19 +277,26 @@ def sweep_html(spec, points: Sequence[dict[str, Any] | SweepPoint], out: Path) -
         # The overrides as the point's document lists them: [[key, value], ...].
         lines += [f"- {[list(o) for o in p.overrides]}, seed {p.seed}: {p.error}" for p in failed]
         lines.append("")
-    for entry in spec.grid:
-        if len(spec.grid[entry]) < 2:
+    if drawn:
+        # Drawn conditions: the spread over the points is the result.
+        lines += ["## The spread over the drawn points", ""]
+        for metric in [*metrics, "localization_max_error_mm"]:
+            table = spread_table(points, metric)
+            if table is not None:
+                lines += [f"{table.title}:", "", table.markdown(), ""]
+    for entry, values in spec.varied().items():
+        if len(set(map(json.dumps, values))) < 2:
             continue  # a fixed setting, not a varied one
         # Linked keys (set together) are shown against the first.
         key = entry.split(",")[0].strip()
-        values = [v[0] if "," in entry else v for v in spec.grid[entry]]
+        values = [v[0] if "," in entry else v for v in values]
         lines += [f"## {entry}", ""]
         numeric = all(isinstance(v, (int, float)) for v in values)
         for metric in metrics if numeric else []:
             name = f"{key.replace('.', '_')}__{metric}.png"
-            _figure(points, key, metric, fig_dir / name)
+            (_scatter if drawn else _figure)(points, key, metric, fig_dir / name)
             lines += [f"![{_METRICS[metric]} vs {key}](figures/{name})", ""]
-        for metric in metrics:
+        for metric in [] if drawn and numeric else metrics:
             table = median_table(points, key, metric)
             if table is not None:
                 lines += [f"{table.title}:", "", table.markdown(), ""]
