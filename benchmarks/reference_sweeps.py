@@ -136,7 +136,10 @@ errors and their ratio per method. The diffuse sphere's speckle is a random draw
 either side: pymust's error is then taken over every stored realization of its
 scatterers (each, and their median) and sim_us's over ``SPECKLE_REALIZATIONS`` (20) of
 its speckle, imaging as the reference does and as a focused scanner (median, 10th-90th
-percentile). Before the tables, a point's PSF in water (pymust's, stored, beside
+percentile); pymust's median is taken over the first ``CRITERION_REALIZATIONS`` (5)
+draws, the number fixed before they were made, and a last table gives the ratio over
+those and over every stored draw with its 90 % bootstrap interval (either side
+resampled). Before the tables, a point's PSF in water (pymust's, stored, beside
 sim_us's lateral kernel for water's speed; focused scanner and plane waves). The last
 line is ``worst_error_ratio=<largest ref / twin error over the sweeps and methods both
 accepted; for the diffuse sphere pymust's median over sim_us's> wrong_centres=<centres
