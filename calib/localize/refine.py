@@ -479,7 +479,7 @@ def _row_peaks(grey: Array, clip: Array) -> Array:
     columns), ``clip`` each slice's level at 255), read between rows: the vertex value of
     the parabola through the brightest row and its two neighbours (log-compressed, a
     Gaussian pulse's envelope is a parabola about its peak), the brightest row's own
-    where it is clipped or on the window's edge.
+    where it is clipped, on the window's edge or beside a row at the brightness level.
 
     Where the sweep's axis is a little off the image normal (the frames are placed
     through the mount as the robot knows it), the cap's top moves across the pixel rows
@@ -492,9 +492,11 @@ def _row_peaks(grey: Array, clip: Array) -> Array:
     i = np.argmax(grey, axis=1)  # (slices, columns)
     g0 = np.take_along_axis(grey, i[:, None, :], axis=1)[:, 0, :]
     rows = grey.shape[1]
-    inner = (i > 0) & (i < rows - 1) & (g0 < clip[:, None] - 0.5)
     gm = np.take_along_axis(grey, np.clip(i - 1, 0, rows - 1)[:, None, :], axis=1)[:, 0, :]
     gp = np.take_along_axis(grey, np.clip(i + 1, 0, rows - 1)[:, None, :], axis=1)[:, 0, :]
+    # Both neighbours above the brightness level: one at the floor (0 here) is not on the
+    # pulse's parabola, and through it the vertex overshot the peak by up to a quarter.
+    inner = (i > 0) & (i < rows - 1) & (g0 < clip[:, None] - 0.5) & (gm > 0) & (gp > 0)
     bend = 2.0 * g0 - gm - gp
     rise = np.where(inner & (bend > 0), (gm - gp) ** 2 / (8.0 * np.where(bend > 0, bend, 1.0)), 0.0)
     return g0 + rise
