@@ -264,10 +264,14 @@ def parser() -> argparse.ArgumentParser:
 
     sweep = sub.add_parser(
         "sweep",
-        help="robustness sweep: a grid of scenario overrides × seeds, localized (and "
-        "calibrated) with each localizer; local processes or a Dask cluster",
+        help="robustness sweep: a grid of scenario overrides × seeds (or points drawn at "
+        "random), localized (and calibrated) with each localizer; local processes or a "
+        "Dask cluster",
     )
-    sweep.add_argument("sweep_file", help="sweep YAML (base, grid, seeds, stages, methods)")
+    sweep.add_argument(
+        "sweep_file",
+        help="sweep YAML (base, grid and seeds or draws, stages, methods)",
+    )
     sweep.add_argument(
         "--out", help="output directory (default: out/<sweep file name>); rerunning resumes"
     )
