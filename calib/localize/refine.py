@@ -248,7 +248,6 @@ def _refine_centre(vol: SweepVolume, centre: Array, radius: float) -> tuple[Arra
         top = np.maximum(vol.intensity(ks_all, rs[near_y], cs[near_x], level=level), 0.0)
         # A slice's top at a grey level of 255 is saturated.
         clip = np.full(K, 255.0 - level)
-        top = _row_peaks(top, clip)
         zs_all = vol.z0 + ks_all * dz
         z_new, z_sigma = _elevation_vertex(
             top, zs_all, z_mean, dz, clip, np.abs(zs_all - z_mean) <= radius
@@ -339,12 +338,7 @@ def _elevation_from_depths(
     )
     if found.sum() < 2:
         return None
-    # Each frame's top where its frame sits, not where the stack's whole pixel put it:
-    # a sweep's axis a little off the image normal (the frames placed through the mount
-    # as the robot knows it) moves the frames' offsets by up to half a pixel from one to
-    # the next, a saw-tooth in the depths the arc is fitted to.
-    d = tops[found] + vol.frame_residuals[vol._nearest[near[found]], 1]
-    z = zs[near[found]]
+    d, z = tops[found], zs[near[found]]
     lo, hi = z.max() - 0.999 * radius, z.min() + 0.999 * radius
     if hi <= lo:
         return None
@@ -472,34 +466,6 @@ def _elevation_vertex(
     # midpoint, known to a slice as any midpoint but stated, so that the caller joins it
     # with the cap's depth across the frames, which the clip does not hide.
     return mid, (_MIDPOINT_SIGMA_SLICES * dz if below_the_clip else 0.0)
-
-
-def _row_peaks(grey: Array, clip: Array) -> Array:
-    """Each slice's and column's peak grey level over the rows (``grey`` (slices, rows,
-    columns), ``clip`` each slice's level at 255), read between rows: the vertex value of
-    the parabola through the brightest row and its two neighbours (log-compressed, a
-    Gaussian pulse's envelope is a parabola about its peak), the brightest row's own
-    where it is clipped, on the window's edge or beside a row at the brightness level.
-
-    Where the sweep's axis is a little off the image normal (the frames are placed
-    through the mount as the robot knows it), the cap's top moves across the pixel rows
-    from frame to frame, and its brightest row reads the peak less the pulse's fall over
-    up to half a pixel: a tilt of the elevation profile that moved its vertex. On the
-    twin (quick.yaml, 0.2 mm pixels, 6.4 mm spheres at a 12 mm target, every error
-    source off) the centres lay 0.03-0.09 mm high in elevation on average over a sphere's
-    45 sweeps, up to 0.16 mm in one; the same sphere alone, its sweep along the normal,
-    unbiased."""
-    i = np.argmax(grey, axis=1)  # (slices, columns)
-    g0 = np.take_along_axis(grey, i[:, None, :], axis=1)[:, 0, :]
-    rows = grey.shape[1]
-    gm = np.take_along_axis(grey, np.clip(i - 1, 0, rows - 1)[:, None, :], axis=1)[:, 0, :]
-    gp = np.take_along_axis(grey, np.clip(i + 1, 0, rows - 1)[:, None, :], axis=1)[:, 0, :]
-    # Both neighbours above the brightness level: one at the floor (0 here) is not on the
-    # pulse's parabola, and through it the vertex overshot the peak by up to a quarter.
-    inner = (i > 0) & (i < rows - 1) & (g0 < clip[:, None] - 0.5) & (gm > 0) & (gp > 0)
-    bend = 2.0 * g0 - gm - gp
-    rise = np.where(inner & (bend > 0), (gm - gp) ** 2 / (8.0 * np.where(bend > 0, bend, 1.0)), 0.0)
-    return g0 + rise
 
 
 def _reaches_the_clip(u: Array, y: Array, u_clipped: Array, y_clipped: Array) -> bool:
