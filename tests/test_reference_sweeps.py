@@ -247,6 +247,22 @@ def test_the_beam_in_water_draws_the_reference_s_psf():
     assert level < ref["levels_db"][RS.WATER_PSF_OFFSETS_MM.index(0.3)] - 10.0
 
 
+def test_the_ratio_s_interval_follows_the_draws():
+    """The bootstrap interval of pymust's median over sim_us's: about 1 for draws of one
+    distribution, excluding 1 for draws twice as large, narrower with more draws, NaN
+    with nothing accepted on one side; the same figures for the same draws."""
+    # Evenly spread errors (deterministic): the same spread on either side, or doubled.
+    twin = np.linspace(0.03, 0.15, 20)
+    same = RS.ratio_interval(np.linspace(0.03, 0.15, 7), twin)
+    assert same[0] < 1.0 < same[1]
+    lo, hi = RS.ratio_interval(2.0 * np.linspace(0.03, 0.15, 40), twin)
+    assert 1.0 < lo < 2.0 < hi
+    few = RS.ratio_interval(2.0 * np.linspace(0.03, 0.15, 5), twin)
+    assert few[1] - few[0] > hi - lo
+    assert np.isnan(RS.ratio_interval(np.full(5, np.nan), twin)).all()
+    assert RS.ratio_interval(twin[:5], twin) == RS.ratio_interval(twin[:5], twin)
+
+
 def test_every_stored_realization_is_the_same_scene():
     """The diffuse sphere's further realizations (its scatterers drawn again) image the
     scene and poses realization 0 does, each saying how it was made."""

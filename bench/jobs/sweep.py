@@ -155,8 +155,9 @@ class Draws:
     seed: int
     keys: dict[str, KeyDraw]
 
-    def drawn(self) -> list[tuple[tuple[tuple[str, Any], ...], int]]:
-        """(overrides, twin seed) of every point, the same for the same file."""
+    @functools.cached_property
+    def drawn(self) -> tuple[tuple[tuple[tuple[str, Any], ...], int], ...]:
+        """(overrides, twin seed) of every point, the same for the same file (drawn once)."""
         rng = np.random.default_rng(self.seed)
         out = []
         for _ in range(self.points):
@@ -166,6 +167,15 @@ class Draws:
                 for pair in zip(linked_keys(key), _linked_values(key, how.draw(rng)), strict=True)
             )
             out.append((overrides, int(rng.integers(*DRAWN_SEEDS))))
+        return tuple(out)
+
+    def values(self) -> dict[str, list[Any]]:
+        """Each entry's values over the points, as drawn (linked keys: a list per point)."""
+        out: dict[str, list[Any]] = {}
+        for key in self.keys:
+            ks = linked_keys(key)
+            values = ([dict(o)[k] for k in ks] for o, _ in self.drawn)
+            out[key] = [v if len(ks) > 1 else v[0] for v in values]
         return out
 
 
@@ -188,7 +198,7 @@ class SweepSpec:
         linked entry (``"a, b": [[a1, b1], ...]``) sets its keys together. Drawn: the
         points as drawn (:meth:`Draws.drawn`)."""
         if self.draws is not None:
-            return self.draws.drawn()
+            return list(self.draws.drawn)
         keys = list(self.grid)
         combos = itertools.product(*(self.grid[k] for k in keys)) if keys else [()]
         return [
@@ -234,15 +244,7 @@ class SweepSpec:
     def varied(self) -> dict[str, list[Any]]:
         """Each entry the sweep varies (grid or drawn: linked keys as one) and its values
         over the points, in the file's order (a drawn entry's values as drawn)."""
-        if self.draws is None:
-            return dict(self.grid)
-        points = self.points()
-        out: dict[str, list[Any]] = {}
-        for key in self.draws.keys:
-            ks = linked_keys(key)
-            values = ([dict(o)[k] for k in ks] for o, _ in points)
-            out[key] = [v if len(ks) > 1 else v[0] for v in values]
-        return out
+        return dict(self.grid) if self.draws is None else self.draws.values()
 
     def describe(self) -> str:
         """The points in words: "25 grid points × 3 seed(s) = 75 points", or drawn."""
@@ -327,15 +329,8 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     if draws is not None:
         # Every drawn point's values, each key by itself (a point as a whole may still be
         # out of reach: it fails alone, as a grid's does).
-        drawn = draws.drawn()
-        grid = {key: [] for key in draws.keys}
-        for overrides, _ in drawn:
-            values = dict(overrides)
-            for key in draws.keys:
-                ks = linked_keys(key)
-                v = [values[k] for k in ks]
-                grid[key].append(v if len(ks) > 1 else v[0])
-        seeds = [s_ for _, s_ in drawn]
+        grid = draws.values()
+        seeds = [s_ for _, s_ in draws.drawn]
     if any(
         k == "phantom.kind"
         and any((w in TARGET_PHANTOMS) != (base_kind in TARGET_PHANTOMS) for w in v)
