@@ -10,7 +10,7 @@ from calib.acquisition.protocol import facing_pose
 from calib.dh import forward_kinematics
 from calib.errors import CollisionError
 from twin.phantoms import PhantomConfig
-from twin.robot import RobotConfig
+from twin.robot import PLAN_MARGIN_M, RobotConfig
 from twin.tools import ToolsConfig
 from twin.world import build_twin
 
@@ -100,6 +100,25 @@ def test_probe_pushed_into_sphere_collides():
     q = twin.robot.move_to(probe_pose_above(twin, "sphere_4")).q
     contacts = twin.scene.collisions(q)
     assert contacts == []
+
+
+def test_a_plan_keeps_room_for_the_arms_placement_error():
+    """A pose is checked where the controller's inverse kinematics put the arm, and the
+    move lands off it by the arm's placement error: a pose that leaves less than
+    PLAN_MARGIN_M is refused, with the room it leaves; one that leaves more is not."""
+    twin = make(RobotConfig(dh_error_scale=0))
+
+    def room(depth):
+        q = twin.robot.move_to(probe_pose_above(twin, "sphere_4", depth)).q
+        return twin.scene.clearance(q, 0.02)
+
+    # The face's depth above the centre at which the probe would touch the sphere.
+    touching = 12 * MM - room(12 * MM)
+    assert room(touching + 3 * MM) == pytest.approx(3 * MM, abs=0.05 * MM)
+    close = probe_pose_above(twin, "sphere_4", touching + 0.3 * MM)
+    with pytest.raises(CollisionError, match=r"would leave 0\.[23]\d mm .* keeps 0\.5 mm"):
+        twin.robot.check_pose(close, "close")
+    twin.robot.check_pose(probe_pose_above(twin, "sphere_4", touching + PLAN_MARGIN_M + 0.2 * MM))
 
 
 def test_arm_into_tank_wall_collides():
