@@ -173,6 +173,7 @@ def simulate_acquisition(
     touches: Sequence[Touch] = (),
     progress: str | None = None,
     frames_dir: Path | None = None,
+    T_ee_us_coarse: NDArray[np.float64] | None = None,
 ) -> SimulatedAcquisition:
     """Teach, plan, check and acquire the scenario's spheres with the twin.
 
@@ -183,7 +184,9 @@ def simulate_acquisition(
     sweep counts :func:`bench.progress.report` receives. ``frames_dir``: each sphere's
     frames go to a file there as soon as it is scanned and the sweeps map it
     (:func:`frames_to_file`), so a long acquisition never holds its frames and the twin
-    in memory at once.
+    in memory at once. ``T_ee_us_coarse``: the mount the sweeps are planned through
+    (a second pass: the first pass's calibration) instead of the coarse estimate drawn
+    from the scenario's error.
     """
     clock_start = twin.robot.clock_s
     rngs = stage_rngs(scenario)
@@ -192,6 +195,8 @@ def simulate_acquisition(
     proto = scenario.protocol
     T_ee_us = twin.truth.T_ee_us
     coarse = coarse_estimate(T_ee_us, scenario.calibration, rngs["calibration"])
+    if T_ee_us_coarse is not None:
+        coarse = np.asarray(T_ee_us_coarse, dtype=float)
     depth = proto.target_depth_mm * 1e-3
     sweeps: list[Sweep] = []
     replaced: list[Replacement] = []

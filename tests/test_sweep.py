@@ -98,6 +98,10 @@ def _sweep_file(tmp_path: Path, grid: str, seeds="[0]", methods="[refined, fixed
             "{'protocol.target_depth_mm, imaging.depth_mm': {choice: [[10]]}}}\n",
             "linked keys: each choice a list of 2 values",
         ),
+        (
+            f"base: {QUICK}\ngrid:\n  protocol.second_pass: [false, true]\n",
+            "protocol.second_pass: a sweep scans each point once",
+        ),
         # A drawn value the scenario refuses: named as a grid's is.
         (
             f"base: {QUICK}\ndraws: {{points: 20, seed: 1, keys: "

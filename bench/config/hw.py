@@ -157,6 +157,17 @@ def load_hw_config(path: str | os.PathLike[str], overrides: list[str] | tuple = 
     if "host" not in (data.get("robot") or {}):
         raise ScenarioError("the controller's address is required", source=source, key="robot.host")
     cfg = HwConfig(**sections, source=source)
+    if cfg.protocol.second_pass:
+        raise ScenarioError(
+            "a second pass on the rig is a second acquisition: calibrate the first, then "
+            "acquire again with rig.coarse_position_mm and rig.coarse_rotation_xyz_deg set "
+            "to its T_ee_us's position_mm and rotation_xyz_deg (calibration.yaml), so the "
+            "sweeps run along its normal",
+            source=source,
+            key="protocol.second_pass",
+            value=True,
+            allowed="false",
+        )
     check_plan_targets(cfg.protocol, source, acquisition_targets(cfg.phantom.kind, cfg.protocol))
     lo, hi = np.array(cfg.robot.workspace_min_mm), np.array(cfg.robot.workspace_max_mm)
     if np.any(lo >= hi):

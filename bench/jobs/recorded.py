@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from calib.acquisition.protocol import sweep_axis_off_normal
 from calib.files.dataset import read_dataset
 from calib.pipeline import FoldRun, calibrate_dataset, fold_summary, residual_rms_mm
 
@@ -94,6 +95,9 @@ def calibrate_recorded(
     if cals.single is not None and cals.three is not None:
         a, b = cals.single.result.T_ee_us, cals.three.result.T_ee_us
         calibration["single_vs_three"] = transform_difference(a, b)
+    used = cals.three if cals.three is not None else cals.single
+    if used is not None:
+        calibration["sweep_axis"] = sweep_axis_off_normal(dataset.sweeps, used.result.T_ee_us)
     evaluation: dict[str, Any] | None = None
     if found.reference is not None:
         evaluation = {"dh_from": ", ".join(found.dh_from), "touches": len(dataset.touches)}

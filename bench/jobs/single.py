@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib import se3
+from calib.acquisition.protocol import sweep_axis_off_normal
 from calib.calibration.alternation import AlternationResult
 from calib.calibration.uncertainty import UncertaintyInputs, alternation_bound
 from calib.errors import UscalError
@@ -201,6 +202,43 @@ def _record_run(
     return logged
 
 
+def _second_pass(
+    scenario: Scenario,
+    twin,
+    imager,
+    acq: SimulatedAcquisition,
+    cals,
+    refinement: DHRefinement | None,
+    cad: dict[str, Array],
+):
+    """``protocol.second_pass``: every sphere scanned again with the sweeps planned
+    through the first pass's calibration (three-marker when it ran), so that they run
+    along the image normal, and calibrated on those. Returns the second acquisition, its
+    calibrations, and the first pass's figures against the truth."""
+    used = cals.three if cals.three is not None else cals.single
+    T_first = used.result.T_ee_us
+    truth = twin.truth
+    first = {
+        "robot_time_s": acq.robot_time_s,
+        "coarse_error": transform_difference(acq.T_ee_us_coarse, truth.T_ee_us),
+        "sweep_axis": sweep_axis_off_normal(acq.dataset.sweeps, T_first),
+        "true_error": {
+            name: _true_errors(scenario, alt.result.T_ee_us, truth.T_ee_us)
+            for name, alt in (("single", cals.single), ("three", cals.three))
+            if alt is not None
+        },
+    }
+    again = simulate_acquisition(
+        scenario, twin, imager, progress="second pass: acquire sweeps", T_ee_us_coarse=T_first
+    )
+    if refinement is not None:  # the first pass's touches and DH model hold for it too
+        ds = again.dataset
+        sweeps = tuple(s for t in ds.targets() for s in with_kinematics(ds.of(t), refinement.table))
+        again = replace(again, dataset=replace(ds, sweeps=sweeps, touches=acq.dataset.touches))
+    method = method_inputs(scenario, cad_centres=cad, T_coarse=T_first)
+    return again, calibrate_markers(again.dataset, method), first
+
+
 def run(
     scenario: Scenario,
     progress: Callable[[str], None] | None = None,
@@ -225,6 +263,17 @@ def run(
             "--until-rotation-deg / --until-translation-mm: the sequential acquisition is "
             f"one acquisition; this scenario runs the paper's experiment on "
             f"{len(scenario.evaluation.datasets)} datasets (set evaluation.datasets=[A])"
+        )
+    if scenario.protocol.second_pass and (
+        until is not None
+        or len(scenario.evaluation.datasets) >= 2
+        or scenario.phantom.kind in TARGET_PHANTOMS
+    ):
+        raise UscalError(
+            "protocol.second_pass: a second scan along the calibrated normal follows one "
+            "sphere acquisition calibrated as it stands; not the sequential acquisition "
+            "(--until-*), the paper's experiment on several datasets (evaluation.datasets) "
+            "or a wire or N-wire phantom"
         )
     if len(scenario.evaluation.datasets) >= 2:
         save = Path(save_dataset) if save_dataset is not None else None
@@ -260,6 +309,9 @@ def run(
 
     method = method_inputs(scenario, cad_centres=cad, T_coarse=acq.T_ee_us_coarse)
     cals = calibrate_markers(acq.dataset, method)
+    first_pass = None
+    if scenario.protocol.second_pass:
+        acq, cals, first_pass = _second_pass(scenario, twin, imager, acq, cals, refinement, cad)
     single, three = cals.single, cals.three
     assert single is not None  # markers 1 and 3: the single-marker calibration always runs
     # Localization error of the final single-marker localizations vs the true centres.
@@ -304,6 +356,9 @@ def run(
         },
         "calibration": {
             "coarse_error": transform_difference(acq.T_ee_us_coarse, truth.T_ee_us),
+            "sweep_axis": sweep_axis_off_normal(
+                acq.dataset.sweeps, (three if three is not None else single).result.T_ee_us
+            ),
             "single": _calibration_metrics(
                 scenario,
                 acq,
@@ -324,6 +379,9 @@ def run(
             "total": time.perf_counter() - t_start,
         },
     }
+    if first_pass is not None:
+        metrics["first_pass"] = first_pass
+        metrics["acquisition"]["robot_time_s"] += first_pass["robot_time_s"]
     if three is not None:
         metrics["calibration"]["three"] = _calibration_metrics(
             scenario,
