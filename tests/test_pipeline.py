@@ -48,8 +48,14 @@ def two_spheres_with_touches(tmp_path_factory):
 
 @pytest.mark.slow
 def test_a_recorded_dataset_with_touches_runs_the_papers_folds(two_spheres_with_touches):
-    sc, truth, _, directory = two_spheres_with_touches
+    sc, truth, acq, directory = two_spheres_with_touches
     result = calibrate_recorded(directory, sc, (1,))
+    # The sweeps ran along the coarse mount's elevational axis: the recorded calibration
+    # says how far that is from its own normal (the true one, to its error).
+    coarse_off = np.degrees(np.arccos(acq.T_ee_us_coarse[:3, 2] @ truth.T_ee_us[:3, 2]))
+    assert coarse_off > 2.0
+    axis = result.metrics["calibration"]["sweep_axis"]
+    assert axis["angle_deg"] == pytest.approx(coarse_off, abs=1.0)
     ev = result.metrics["evaluation"]
     assert ev["dh_from"] == "A" and ev["touches"] == 24
     # Two spheres: each trained alone and tested on the other, then leave-one-out.
