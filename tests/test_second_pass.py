@@ -81,6 +81,7 @@ def test_the_second_pass_is_planned_through_the_first_pass_calibration():
         first["robot_time_s"] + result.acquisition.robot_time_s
     )
     assert m["acquisition"]["robot_time_s"] > 1.9 * first["robot_time_s"]
+    assert "simulate_s" not in first and m["timing_s"]["simulate"] < m["timing_s"]["total"]
     # The report says both passes' tilts and what the first pass was off by.
     md = report_markdown(scenario, result, {})
     assert "The second pass's sweeps ran" in md and "The first pass's sweeps ran" in md
