@@ -141,8 +141,8 @@ class ProtocolConfig:
             "doc": "Scan every sphere again once calibrated, each sweep planned through the "
             "calibrated T_ee_us (so it runs along the image normal), and calibrate on the "
             "second scan. The first runs along the coarse mount's elevational axis, off the "
-            "normal by that mount's error (the paper's ±10°); at targets shallower than "
-            "about 15 mm a sweep tilted in depth biased the rotation beyond its 95 % bound. "
+            "normal by that mount's error (the paper's ±10°); at 10-13 mm targets a sweep "
+            "tilted 7-9° in depth biased the rotation beyond its 95 % bound. "
             "Twice the robot time; one acquisition only (uscal run)."
         },
     )
