@@ -453,6 +453,11 @@ class SimRobot:
         there (planning check before any motion; nothing moves)."""
         T = np.asarray(T_base_ee, dtype=float)
         q = solve_ik(self.nominal, T, self._q_reported, pose_label=pose_label)
+        # The clearance is taken over the same arm/tool and phantom/tank geoms as the
+        # contacts: only a pose short of the margin is asked which geoms touch.
+        room = self.scene.clearance(q, PLAN_MARGIN_M)
+        if room >= PLAN_MARGIN_M:
+            return
         contacts = self.scene.collisions(q)
         if contacts:
             c = contacts[0]
@@ -460,13 +465,11 @@ class SimRobot:
                 f"pose {pose_label or describe_pose(T)} would put {c.robot_geom} "
                 f"{1e3 * c.depth:.1f} mm into {c.environment_geom}"
             )
-        room = self.scene.clearance(q, PLAN_MARGIN_M)
-        if room < PLAN_MARGIN_M:
-            raise CollisionError(
-                f"pose {pose_label or describe_pose(T)} would leave {1e3 * room:.2f} mm between "
-                f"the arm or tool and the phantom or tank; a plan keeps "
-                f"{1e3 * PLAN_MARGIN_M:g} mm (the arm's placement error)"
-            )
+        raise CollisionError(
+            f"pose {pose_label or describe_pose(T)} would leave {1e3 * room:.2f} mm between "
+            f"the arm or tool and the phantom or tank; a plan keeps "
+            f"{1e3 * PLAN_MARGIN_M:g} mm (the arm's placement error)"
+        )
 
     def clearances(self, T_base_ee: ArrayLike, within: float) -> Array:
         """How far (m, up to ``within``) the arm and tool stay from the phantom and tank

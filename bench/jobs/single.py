@@ -90,9 +90,17 @@ def refine_from_touches(
         tip_cad=np.asarray(scenario.evaluation.stylus_tip_cad_mm, dtype=float) * 1e-3,
         evaluation=scenario.evaluation,
     )
+    return _with_refined_kinematics(acq, refinement, touches), refinement
+
+
+def _with_refined_kinematics(
+    acq: SimulatedAcquisition, refinement: DHRefinement, touches
+) -> SimulatedAcquisition:
+    """``acq`` with every frame's flange pose recomputed from its joint angles with the
+    refined DH model, and the touches it was refined from."""
     ds = acq.dataset
     sweeps = tuple(s for t in ds.targets() for s in with_kinematics(ds.of(t), refinement.table))
-    return replace(acq, dataset=replace(ds, sweeps=sweeps, touches=tuple(touches))), refinement
+    return replace(acq, dataset=replace(ds, sweeps=sweeps, touches=tuple(touches)))
 
 
 def _calibration_metrics(
@@ -234,9 +242,7 @@ def _second_pass(
     )
     first["simulate_s"] = time.perf_counter() - t0  # the second scan's, counted in "simulate"
     if refinement is not None:  # the first pass's touches and DH model hold for it too
-        ds = again.dataset
-        sweeps = tuple(s for t in ds.targets() for s in with_kinematics(ds.of(t), refinement.table))
-        again = replace(again, dataset=replace(ds, sweeps=sweeps, touches=acq.dataset.touches))
+        again = _with_refined_kinematics(again, refinement, acq.dataset.touches)
     method = method_inputs(scenario, cad_centres=cad, T_coarse=T_first)
     return again, calibrate_markers(again.dataset, method), first
 

@@ -327,18 +327,18 @@ def load_sweep(path: str | os.PathLike[str]) -> SweepSpec:
     # cannot be reached fails alone in the sweep, with its reason.
     base_scenario = load_scenario(base)
     base_kind = base_scenario.phantom.kind
-    if base_scenario.protocol.second_pass or any(
-        "protocol.second_pass" in linked_keys(k) for k in (draws.values() if draws else grid)
-    ):
-        raise _fail(
-            source, "protocol.second_pass", "a sweep scans each point once; a second scan "
-            "along the calibrated normal is uscal run's (protocol.second_pass: false here)",
-        )  # fmt: skip
     if draws is not None:
         # Every drawn point's values, each key by itself (a point as a whole may still be
         # out of reach: it fails alone, as a grid's does).
         grid = draws.values()
         seeds = [s_ for _, s_ in draws.drawn]
+    if base_scenario.protocol.second_pass or any(
+        "protocol.second_pass" in linked_keys(k) for k in grid
+    ):
+        raise _fail(
+            source, "protocol.second_pass", "a sweep scans each point once; a second scan "
+            "along the calibrated normal is uscal run's (protocol.second_pass: false here)",
+        )  # fmt: skip
     if any(
         k == "phantom.kind"
         and any((w in TARGET_PHANTOMS) != (base_kind in TARGET_PHANTOMS) for w in v)

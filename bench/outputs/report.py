@@ -236,12 +236,10 @@ def _sweep_axis_md(metrics: dict) -> str:
     """How far the sweeps ran off the calibrated image normal and, with a second pass,
     what the first pass's calibrations were off by (simulated runs)."""
     axis = metrics.get("calibration", {}).get("sweep_axis")
-    if axis is None:
+    if axis is None or not np.isfinite(axis["angle_deg"]):
         return ""
     first = metrics.get("first_pass")
     which = "second pass's " if first is not None else ""
-    if not np.isfinite(axis["angle_deg"]):
-        return ""
     text = (
         f"The {which}sweeps ran {axis['angle_deg']:.1f}° off the calibrated image normal "
         f"({axis['in_depth_deg']:+.1f}° towards depth, {axis['across_deg']:+.1f}° across the "
