@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from calib.calibration.alternation import AlternationResult
 from calib.calibration.uncertainty import Bound95, UncertaintyInputs
-from calib.calibration.verdict import Requirements, Verdict, judge
+from calib.calibration.verdict import Requirements, SweepGeometry, Verdict, judge
 from calib.dh import DHTable
 from calib.evaluation.cross_validation import FoldResult, training_precision
 from calib.files.dataset import AcquisitionInfo
@@ -222,15 +222,20 @@ def calibration_entry(
     requirements: Requirements | None = None,
     *,
     verdict: Verdict | None = None,
+    geometry: SweepGeometry | None = None,
 ) -> dict[str, Any]:
     """What ``metrics.json`` keeps of one calibration, truth aside (``bound``: its 95 %
     error bounds and the declared terms they include), with its verdict
     (:func:`calib.calibration.verdict.judge` against ``requirements``, or ``verdict`` when it was
-    made already, e.g. from a bound the paper's dataset tasks computed). Its precision is
-    the mean over the training spheres of the spread of their reconstructed centres."""
+    made already, e.g. from a bound the paper's dataset tasks computed; ``geometry``: how
+    its sweeps met the spheres, :func:`calib.calibration.verdict.sweep_geometry`). Its
+    precision is the mean over the training spheres of the spread of their reconstructed
+    centres."""
     precision = training_precision(alt)
     if verdict is None:
-        verdict = judge(alt, bound[0] if bound is not None else None, requirements)
+        verdict = judge(
+            alt, bound[0] if bound is not None else None, requirements, geometry=geometry
+        )
     return {
         "verdict": verdict.as_dict(),
         "precision_mm": float(np.mean([precision[t] for t in train])),

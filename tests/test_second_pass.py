@@ -70,6 +70,11 @@ def test_the_second_pass_is_planned_through_the_first_pass_calibration():
     # was within a degree of the truth: its sweeps ran within two of the final normal.
     assert first["true_error"]["single"]["rotation_deg"] < 1.5
     assert m["calibration"]["sweep_axis"]["angle_deg"] < 2.0
+    # Scanned once, that tilt over caps 5-8 mm under the face made the calibration
+    # suspect; the second pass's sweeps, along the normal, leave it nothing to say.
+    assert first["tilted_over_shallow_caps"] == {"single": True}
+    reasons = m["calibration"]["single"]["verdict"]["reasons"]
+    assert not any("towards depth" in r for r in reasons), reasons
     first_error = first["true_error"]["single"]
     coarse = result.acquisition.T_ee_us_coarse
     truth = m["calibration"]["coarse_error"]  # the second pass's planning mount vs truth

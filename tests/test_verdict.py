@@ -13,7 +13,15 @@ import pytest
 from calib import se3
 from calib.calibration.alternation import AlternationResult
 from calib.calibration.markers import CalibrationResult, Observation
-from calib.calibration.verdict import BoundFigures, Requirements, judge, pose_agreement
+from calib.calibration.verdict import (
+    BoundFigures,
+    Requirements,
+    SweepGeometry,
+    judge,
+    pose_agreement,
+    sweep_geometry,
+)
+from calib.records import Sweep
 
 from .test_cli import uscal
 from .test_run import QUICK
@@ -89,6 +97,71 @@ def test_views_that_disagree_are_suspect_with_what_to_do():
     a = pose_agreement(_alternation(pose_error_mm=0.8))
     assert a is not None and a.p_value < 1e-6
     assert 0.4 < a.between_rss_mm / np.sqrt(3) < 1.2  # ≈ 0.8 mm per axis, 9 views
+
+
+@pytest.mark.parametrize(
+    "tilt_deg, caps_mm, flagged",
+    [
+        (7.5, 6.0, True),  # the coarse mount tilts the sweeps towards depth, caps shallow
+        (-3.0, 10.0, True),  # either way
+        (2.6, 13.9, True),
+        (2.4, 6.0, False),  # within the second pass's own residual tilt
+        (7.5, 14.1, False),  # deeper caps: no single scan there fell outside its bound
+        (0.0, 3.0, False),
+    ],
+)
+def test_sweeps_tilted_in_depth_over_shallow_caps_are_suspect_with_what_to_do(
+    tilt_deg, caps_mm, flagged
+):
+    v = judge(_alternation(), BOUND, geometry=SweepGeometry(tilt_deg, caps_mm * MM))
+    assert v.status == ("suspect" if flagged else "accepted"), v.line()
+    if flagged:
+        (reason,) = v.reasons
+        assert f"{tilt_deg:+.1f}° off the calibrated image normal towards depth" in reason
+        assert f"{caps_mm:.1f} mm under the face" in reason
+        assert "protocol.second_pass" in reason and "second acquisition" in reason
+    # Asked for nothing, the verdict does not look.
+    assert judge(_alternation(), BOUND).status == "accepted"
+    # With a requirement, a suspect calibration is not within it.
+    required = judge(
+        _alternation(), BOUND, Requirements(image_mm=1.0), geometry=SweepGeometry(7.5, 6e-3)
+    )
+    assert required.status == "rejected"
+
+
+def test_sweep_geometry_is_the_kept_sweeps_tilt_and_the_caps_depth():
+    alt = _alternation()
+
+    def sweep(o, tilt_deg):
+        """Three frames about the observation's flange pose, moving along the image's
+        normal (the identity mount's z) turned ``tilt_deg`` towards depth (its y)."""
+        t = np.radians(tilt_deg)
+        step = o.T_base_ee[:3, :3] @ np.array([0.0, np.sin(t), np.cos(t)]) * 1e-3
+        T = np.array(
+            [se3.make(o.T_base_ee[:3, :3], o.T_base_ee[:3, 3] + k * step) for k in (-1, 0, 1)]
+        )
+        return Sweep(
+            o.target, o.pose_id, np.zeros((3, 2, 2), np.uint8), (1e-4, 1e-4), np.zeros((3, 6)), T
+        )
+
+    sweeps = [sweep(o, 20.0 if o.pose_id < 10 else 4.0) for o in alt.observations]
+    depth = np.median([o.p_us[1] for o in alt.observations])
+    g = sweep_geometry(alt, sweeps, 5e-3)
+    assert g.in_depth_deg == pytest.approx(4.0)  # the median: ten sweeps far off do not move it
+    assert g.cap_depth_m == pytest.approx(depth - 5e-3)
+    # The sweeps the fit dropped are not read.
+    kept = np.array([o.pose_id < 10 for o in alt.observations])
+    dropped = AlternationResult(
+        CalibrationResult(
+            alt.result.T_ee_us, None, kept, np.zeros(len(kept)), np.eye(6) * 1e-8, 0.0
+        ),
+        alt.observations,
+        alt.localizations,
+        alt.history,
+    )
+    assert sweep_geometry(dropped, sweeps, 5e-3).in_depth_deg == pytest.approx(20.0)
+    # No sweep of a kept centre: nothing to say.
+    assert sweep_geometry(alt, [], 5e-3) is None
 
 
 def test_a_small_pose_error_is_noise_a_large_one_is_not():

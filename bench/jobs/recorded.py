@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from calib.acquisition.protocol import sweep_axis_off_normal
+from calib.calibration.verdict import sweep_geometry
 from calib.files.dataset import read_dataset
 from calib.pipeline import FoldRun, calibrate_dataset, fold_summary, residual_rms_mm
 
@@ -89,6 +90,7 @@ def calibrate_recorded(
                 targets[n_markers:],
                 found.bounds[kind],
                 requirements(settings),
+                geometry=sweep_geometry(alt, dataset.sweeps, info.sphere_radius_mm * 1e-3),
             )
     n_sweeps = sum(len(v) for v in final.values())
     n_rejected = sum(not loc.accepted for v in final.values() for loc in v)

@@ -17,6 +17,7 @@ from calib import se3
 from calib.acquisition.protocol import sweep_axis_off_normal
 from calib.calibration.alternation import AlternationResult
 from calib.calibration.uncertainty import UncertaintyInputs, alternation_bound
+from calib.calibration.verdict import sweep_geometry
 from calib.errors import UscalError
 from calib.kinematics import DHRefinement, with_kinematics
 from calib.localize import localize_sphere
@@ -138,7 +139,14 @@ def _calibration_metrics(
             alternation_bound(alt, image_points(scenario), cad_centres=multi, inputs=inputs),
             inputs,
         )
-    entry = calibration_entry(alt, list(train), list(test), bound, requirements(scenario))
+    entry = calibration_entry(
+        alt,
+        list(train),
+        list(test),
+        bound,
+        requirements(scenario),
+        geometry=sweep_geometry(alt, acq.dataset.sweeps, radius),
+    )
     out: dict[str, Any] = {"true_error": _true_errors(scenario, T_est, truth.T_ee_us)}
     if X_equiv is not None:
         # Against the mount that is right through the controller's (off) model.
@@ -235,6 +243,13 @@ def _second_pass(
             for name, alt in (("single", cals.single), ("three", cals.three))
             if alt is not None
         },
+    }
+    # Whether the verdict would have called the first pass suspect for its sweeps' tilt.
+    first["tilted_over_shallow_caps"] = {
+        name: geometry is not None and geometry.tilted_over_shallow_caps
+        for name, alt in (("single", cals.single), ("three", cals.three))
+        if alt is not None
+        for geometry in [sweep_geometry(alt, acq.dataset.sweeps, stated_radius(scenario))]
     }
     t0 = time.perf_counter()
     again = simulate_acquisition(

@@ -54,7 +54,7 @@ import numpy as np
 
 from calib.calibration.alternation import AlternationSettings, alternate
 from calib.calibration.uncertainty import alternation_bound
-from calib.calibration.verdict import judge
+from calib.calibration.verdict import judge, sweep_geometry
 from calib.errors import UscalError
 from calib.localize import localize_sphere
 
@@ -560,7 +560,12 @@ def _sphere_rows(
                     alt, image_points(scenario), inputs=scenario_uncertainty(scenario)
                 )
                 row["calibration_bound_image_mm"] = bound.image_mm
-                verdict = judge(alt, bound, requirements(scenario))
+                verdict = judge(
+                    alt,
+                    bound,
+                    requirements(scenario),
+                    geometry=sweep_geometry(alt, acq.dataset.of(targets[0]), radius),
+                )
                 row["calibration_verdict"] = verdict.status
                 row["calibration_verdict_reasons"] = "; ".join(verdict.reasons)
                 # The localizer again, with the estimated mount (the consensus the

@@ -248,11 +248,12 @@ def _sweep_axis_md(metrics: dict) -> str:
     )
     if first is None:
         text += (
-            " A sweep tilted towards depth moves a target's depth from frame to frame; on the "
-            "twin, 7.5–9° of it at a 12 mm target put 6 of 10 calibrations outside their 95 % "
-            'bounds (README, "The sweep\'s tilt in depth"), and a second scan along the '
-            "calibrated normal (protocol.second_pass; on a rig, a second acquisition with "
-            "this calibration as the coarse mount) 1 of 10."
+            " A sweep tilted towards depth moves a target's depth from frame to frame; with "
+            "the caps' tops within 14 mm of the face and the sweeps 2.5° or more off in "
+            "depth, a calibration is suspect (on the twin, 20 of 82 such single scans fell "
+            'outside their 95 % bounds; README, "The sweep\'s tilt in depth"), and a second '
+            "scan along the calibrated normal (protocol.second_pass; on a rig, a second "
+            "acquisition with this calibration as the coarse mount) removes most of it."
         )
     else:
         a = first["sweep_axis"]
@@ -267,6 +268,11 @@ def _sweep_axis_md(metrics: dict) -> str:
             f"twin's ground truth: {errs}. The calibrations above are the second pass's "
             "(protocol.second_pass)."
         )
+        if any(first.get("tilted_over_shallow_caps", {}).values()):
+            text += (
+                " Scanned once, the first pass would have been suspect: its sweeps' tilt "
+                "towards depth over caps within 14 mm of the face."
+            )
     return text + "\n"
 
 

@@ -31,6 +31,15 @@ The pipeline already holds the evidence; a calibration is judged on these questi
   first-order bound no longer describes the error, and the coarse mount from the CAD is
   as good: views too alike, or views that disagree), are rejected: the answer is
   whatever the fit stopped at.
+- **Did the sweeps run along the image normal where the caps are shallow?** A sweep
+  tilted towards depth off the image normal (the coarse mount it was planned through is
+  off) moves a cap's depth from frame to frame; within about 14 mm of the face, where
+  the cap's echo changes fast with depth (the beam converging into its elevation focus,
+  the face's near field), that moves the elevation the localizer reads, by up to 0.1 mm
+  a sweep and more for the shallower caps: the centres' elevation errors then follow
+  their depth, a rotation of ``T_ee_us`` about the image's lateral axis that no residual
+  and so no bound shows. Such a single scan is suspect; a second scan along the
+  calibrated normal removes it (:class:`SweepGeometry`).
 - **Were enough centres kept?** A fit that drops more than a tenth of the localizer's
   centres as outliers saw errors that are not the noise it assumes (false detections,
   or poses that disagree).
@@ -42,12 +51,14 @@ The pipeline already holds the evidence; a calibration is judged on these questi
 The thresholds are stated once, below, each with its reason: a quarter of the bound (an
 iteration's leftover motion well inside the estimate's own uncertainty), pose scatter
 above the localizer's and above half a millimetre at a 0.1 % significance level, a radius
-0.4 mm off, a scale 1 % and three standard errors off, a tenth of the centres, a
-millimetre of bound.
+0.4 mm off, a scale 1 % and three standard errors off, sweeps 2.5° off the normal in
+depth about caps within 14 mm of the face, a tenth of the centres, a millimetre of
+bound.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -60,6 +71,8 @@ from scipy.optimize import least_squares
 from scipy.special import fdtrc
 
 from .. import se3
+from ..acquisition.protocol import sweep_axis_off_normal
+from ..records import Sweep
 from .alternation import AlternationResult, AlternationSettings
 from .markers import centres_in_base
 from .uncertainty import Bound95, orientation_groups
@@ -69,10 +82,12 @@ __all__ = [
     "ImageScale",
     "PoseAgreement",
     "Requirements",
+    "SweepGeometry",
     "Verdict",
     "image_scale",
     "judge",
     "pose_agreement",
+    "sweep_geometry",
 ]
 
 Array = NDArray[np.float64]
@@ -114,6 +129,19 @@ RADIUS_MISMATCH_MM = 0.4
 #: by three of its standard errors: at the 25–40 mm the spheres are imaged, 1 % moves a
 #: centre 0.25–0.4 mm along the beam, the size of the localizer's noise.
 SCALE_MISMATCH = 0.01
+#: A single scan whose sweeps ran this far (median, degrees) off the calibrated image
+#: normal towards depth, about caps whose tops lie (median) less than ``SHALLOW_CAPS_M``
+#: under the face, is suspect. Measured on the twin (quick.yaml's rig, 62 single- and
+#: three-marker calibrations at 10-18 mm targets, 47 at 20-40 mm; each its own seed):
+#: accepted single scans there fell outside their 95 % bounds 12 times, 11 of them with
+#: the sweeps 2.6-10° off in depth, none with the caps 15 mm or deeper; the thresholds
+#: set from those, then checked on 72 calibrations of 37 more seeds with the probe's
+#: frequency (9-13 MHz), lens (3-5 mm, focus 14-30 mm) and the spheres' radius
+#: (3.5-6.5 mm) drawn at random: 9 of the 39 they make suspect fell outside their bounds,
+#: none of the 33 they leave accepted. Measured for these linear probes and printed
+#: spheres; another probe's near field may reach deeper.
+TILTED_SWEEP_DEG = 2.5
+SHALLOW_CAPS_M = 14e-3
 #: A fit dropping more than this share of the localizer's centres is suspect.
 MAX_DROPPED_SHARE = 0.1
 #: Beyond these 95 % bounds a calibration has learnt nothing a CAD drawing would not
@@ -254,6 +282,45 @@ def image_scale(alt: AlternationResult) -> ImageScale | None:
 
 
 @dataclass(frozen=True)
+class SweepGeometry:
+    """How a calibration's sweeps met its spheres: ``in_depth_deg`` the kept sweeps'
+    median tilt towards depth off the calibrated image normal
+    (:func:`calib.acquisition.protocol.sweep_axis_off_normal`) and ``cap_depth_m`` the
+    median depth of the caps' tops under the face (the kept centres' depth less the
+    radius)."""
+
+    in_depth_deg: float
+    cap_depth_m: float
+
+    @property
+    def tilted_over_shallow_caps(self) -> bool:
+        return bool(
+            abs(self.in_depth_deg) >= TILTED_SWEEP_DEG and self.cap_depth_m < SHALLOW_CAPS_M
+        )
+
+
+def sweep_geometry(
+    alt: AlternationResult, sweeps: Sequence[Sweep], radius: float
+) -> SweepGeometry | None:
+    """The :class:`SweepGeometry` of a calibration of spheres of ``radius`` (m) from
+    ``sweeps`` (those of its dataset; the ones it kept are read); None without a kept
+    centre or a sweep that moved."""
+    kept = {
+        (o.target, o.pose_id): o.p_us
+        for o, k in zip(alt.observations, alt.result.retained, strict=True)
+        if k
+    }
+    used = [s for s in sweeps if (s.target, s.pose_id) in kept]
+    if not used:
+        return None
+    tilt = sweep_axis_off_normal(used, alt.result.T_ee_us)["in_depth_deg"]
+    if not np.isfinite(tilt):
+        return None
+    caps = float(np.median([p[1] for p in kept.values()])) - radius
+    return SweepGeometry(float(tilt), caps)
+
+
+@dataclass(frozen=True)
 class Verdict:
     """``status`` and its ``reasons`` (one line each, what to do about it), with the
     evidence: whether the alternation ``settled`` (its last update, mm and degrees), the
@@ -367,10 +434,12 @@ def judge(
     bound: Bound95 | BoundFigures | None = None,
     requirements: Requirements | None = None,
     *,
+    geometry: SweepGeometry | None = None,
     tol_mm: float = AlternationSettings.tol_mm,
     tol_deg: float = AlternationSettings.tol_deg,
 ) -> Verdict:
-    """The verdict on one calibration (see the module's questions). ``tol_mm`` /
+    """The verdict on one calibration (see the module's questions). ``geometry``: how its
+    sweeps met the spheres (:func:`sweep_geometry`; None: not asked). ``tol_mm`` /
     ``tol_deg``: the alternation's own tolerances (an update below both has converged
     whatever the bound)."""
     requirements = requirements or Requirements()
@@ -428,6 +497,16 @@ def judge(
             f"the images' scale looks off: {parts} against the pixel spacing and speed of "
             "sound assumed; check the spacing the scanner reports and the speed-of-sound "
             "correction (imaging.sound_speed_correction, the medium's temperature)"
+        )
+    if geometry is not None and geometry.tilted_over_shallow_caps:
+        suspect.append(
+            f"its sweeps ran {geometry.in_depth_deg:+.1f}° off the calibrated image normal "
+            f"towards depth with the caps' tops {geometry.cap_depth_m * _MM:.1f} mm under "
+            "the face: there a sweep's tilt moves the elevation the localizer reads (the "
+            "cap's echo changes with its depth from frame to frame), a rotation of T_ee_us "
+            "about the image's lateral axis that its bound cannot show — scan again along "
+            "the calibrated normal (protocol.second_pass; on a rig, a second acquisition "
+            "with this calibration as the coarse mount), or image the spheres deeper"
         )
     kept = [o for o, k in zip(alt.observations, alt.result.retained, strict=True) if k]
     views = len(np.unique(orientation_groups(kept))) if kept else 0
