@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibration.uncertainty import alternation_bound
+from calib.calibration.verdict import sweep_geometry
 from calib.dh import DHTable
 from calib.kinematics import (
     TouchReference,
@@ -197,6 +198,13 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
         uncertainty[r.fold.name] = uncertainty_entry(
             alternation_bound(r.alternation, grid, cad_centres=multi, inputs=inputs), inputs
         )
+        # How its sweeps met the spheres, for its verdict (judged with its bound).
+        geometry = sweep_geometry(r.alternation, everything, stated_radius(scenario))
+        if geometry is not None:
+            uncertainty[r.fold.name]["sweep_geometry"] = {
+                "in_depth_deg": geometry.in_depth_deg,
+                "cap_depth_mm": geometry.cap_depth_m * _MM,
+            }
     t_bounds = time.perf_counter() - t0
 
     # ---- against the truth (beyond the paper)

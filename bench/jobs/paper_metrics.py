@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.calibration.verdict import BoundFigures, judge
+from calib.calibration.verdict import BoundFigures, SweepGeometry, judge
 from calib.evaluation.cross_validation import (
     FoldResult,
     Summary,
@@ -69,7 +69,13 @@ def evaluation_metrics(
         for r in o.folds:
             figures = fold_bounds.get(r.fold.name, {}).get("bound95")
             bound = None if figures is None else BoundFigures.from_dict(figures)
-            verdicts[r.fold.name] = judge(r.alternation, bound, requirements(scenario))
+            g = fold_bounds.get(r.fold.name, {}).get("sweep_geometry")
+            geometry = (
+                None if g is None else SweepGeometry(g["in_depth_deg"], g["cap_depth_mm"] / 1e3)
+            )
+            verdicts[r.fold.name] = judge(
+                r.alternation, bound, requirements(scenario), geometry=geometry
+            )
 
     def calibration_entry(r: FoldResult) -> dict[str, Any]:
         """A fold's calibration (:func:`bench.results.calibration_entry`, its bounds
