@@ -18,6 +18,7 @@ import numpy as np
 from markdown_it import MarkdownIt
 from numpy.typing import NDArray
 
+from calib.calibration.verdict import SHALLOW_CAPS_M, TILTED_SWEEP_DEG
 from calib.evaluation.cross_validation import METHOD_TITLES
 
 from ..config.scenario import Scenario
@@ -249,8 +250,9 @@ def _sweep_axis_md(metrics: dict) -> str:
     if first is None:
         text += (
             " A sweep tilted towards depth moves a target's depth from frame to frame; with "
-            "the caps' tops within 14 mm of the face and the sweeps 2.5° or more off in "
-            "depth, a calibration is suspect (on the twin, 20 of 82 such single scans fell "
+            f"the caps' tops within {SHALLOW_CAPS_M * 1e3:g} mm of the face and the sweeps "
+            f"{TILTED_SWEEP_DEG:g}° or more off in depth, a calibration is suspect (on the "
+            "twin, 20 of 82 such single scans fell "
             'outside their 95 % bounds; README, "The sweep\'s tilt in depth"), and a second '
             "scan along the calibrated normal (protocol.second_pass; on a rig, a second "
             "acquisition with this calibration as the coarse mount) removes most of it."
@@ -271,7 +273,7 @@ def _sweep_axis_md(metrics: dict) -> str:
         if any(first.get("tilted_over_shallow_caps", {}).values()):
             text += (
                 " Scanned once, the first pass would have been suspect: its sweeps' tilt "
-                "towards depth over caps within 14 mm of the face."
+                f"towards depth over caps within {SHALLOW_CAPS_M * 1e3:g} mm of the face."
             )
     return text + "\n"
 

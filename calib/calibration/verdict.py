@@ -34,12 +34,11 @@ The pipeline already holds the evidence; a calibration is judged on these questi
 - **Did the sweeps run along the image normal where the caps are shallow?** A sweep
   tilted towards depth off the image normal (the coarse mount it was planned through is
   off) moves a cap's depth from frame to frame; within about 14 mm of the face, where
-  the cap's echo changes fast with depth (the beam converging into its elevation focus,
-  the face's near field), that moves the elevation the localizer reads, by up to 0.1 mm
-  a sweep and more for the shallower caps: the centres' elevation errors then follow
-  their depth, a rotation of ``T_ee_us`` about the image's lateral axis that no residual
-  and so no bound shows. Such a single scan is suspect; a second scan along the
-  calibrated normal removes it (:class:`SweepGeometry`).
+  the cap's echo brightens fast with depth, that moves the elevation the localizer
+  reads, by up to 0.1 mm a sweep, most for the shallowest caps: the centres' elevation
+  errors then follow their depth, a rotation of ``T_ee_us`` about the image's lateral
+  axis that no residual and so no bound shows. Such a single scan is suspect; a second
+  scan along the calibrated normal removes it (:class:`SweepGeometry`).
 - **Were enough centres kept?** A fit that drops more than a tenth of the localizer's
   centres as outliers saw errors that are not the noise it assumes (false detections,
   or poses that disagree).
