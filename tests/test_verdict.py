@@ -384,7 +384,11 @@ def test_where_only_the_cap_s_top_echoes_the_radius_is_not_read():
         "seed=35",
     ]
     v = run(load_scenario(QUICK, sets)).metrics["calibration"]["single"]["verdict"]
-    assert v["status"] == "accepted"  # the cap was found: the check had sweeps to read
+    # The cap was found: the check had sweeps to read, and nothing but the sweeps' tilt
+    # (this seed's coarse mount tilts them 10° in depth over caps 8 mm deep) is said.
+    assert v["kept"] >= 20
+    others = [r for r in v["reasons"] if "off the calibrated image normal towards depth" not in r]
+    assert others == [] and v["status"] in ("accepted", "suspect"), v["reasons"]
     assert "radius_seen_mm" not in v
     assert not any("draw the sphere" in r for r in v["reasons"])
 
