@@ -231,14 +231,17 @@ def calibration_entry(
     its sweeps met the spheres, :func:`calib.calibration.verdict.sweep_geometry`). Its
     precision is the mean over the training spheres of the spread of their reconstructed
     centres."""
+    # A training sphere none of whose sweeps was localized has no spread (the fit ran on
+    # the others: gel, caps 5 mm under the face, one sphere of three found in no sweep).
     precision = training_precision(alt)
+    seen = [precision[t] for t in train if t in precision]
     if verdict is None:
         verdict = judge(
             alt, bound[0] if bound is not None else None, requirements, geometry=geometry
         )
     return {
         "verdict": verdict.as_dict(),
-        "precision_mm": float(np.mean([precision[t] for t in train])),
+        "precision_mm": float(np.mean(seen)) if seen else float("nan"),
         "n_retained": int(alt.result.retained.sum()),
         "iterations": len(alt.history),
         "rejected": dict(alt.result.rejection_reasons),

@@ -406,3 +406,17 @@ def test_run_exits_3_when_the_calibration_is_not_accepted_within_the_requirement
     assert verdict["status"] == "rejected" and verdict["required"]["image_mm"] == 0.01
     assert "verdict:" in (out / "calibration.yaml").read_text()
     assert "**Verdict: rejected**" in (out / "report.md").read_text()
+
+
+def test_a_training_sphere_no_sweep_found_leaves_the_others_precision():
+    """Gel, caps 5 mm under the face: one sphere of three localized in no sweep. The
+    calibration's entry is made from the spheres that were (before: a KeyError, a
+    traceback instead of the run's results)."""
+    from bench.results import calibration_entry
+    from calib.evaluation.cross_validation import training_precision
+
+    alt = _alternation()
+    entry = calibration_entry(alt, ["sphere_1", "sphere_2"], [], None)
+    assert entry["precision_mm"] == pytest.approx(training_precision(alt)["sphere_1"])
+    assert entry["trained_on"] == ["sphere_1", "sphere_2"]
+    assert np.isnan(calibration_entry(alt, ["sphere_2"], [], None)["precision_mm"])
