@@ -24,6 +24,7 @@ from calib.acquisition.protocol import (
     touch_plan,
 )
 from calib.calibration.markers import CalibrationConfig
+from calib.errors import CollisionError
 from calib.files.dataset import AcquisitionInfo, ConeTipPhantom, DatasetWriter, WirePhantom
 from calib.files.plus_config import NWire, NWirePattern, NWirePhantom
 from calib.records import Dataset, Sweep, Touch
@@ -161,7 +162,14 @@ def teach_at(
     if miss_rng is not None:
         miss = miss_rng.normal(0.0, teaching_error_mm * 1e-3, 3)
     T_face = facing_pose(point + miss, depth, lateral_axis=lateral_axis)
-    return twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), label)
+    try:
+        return twin.robot.teach(T_face @ se3.invert(twin.truth.T_ee_us), label)
+    except CollisionError as e:
+        raise CollisionError(
+            f"{e}: the probe's face cannot be {1e3 * depth:g} mm above that target without "
+            "touching the phantom; a deeper target depth (protocol.target_depth_mm) leaves "
+            "it room"
+        ) from None
 
 
 def simulate_acquisition(

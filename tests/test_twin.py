@@ -121,6 +121,24 @@ def test_a_plan_keeps_room_for_the_arms_placement_error():
     twin.robot.check_pose(probe_pose_above(twin, "sphere_4", touching + PLAN_MARGIN_M + 0.2 * MM))
 
 
+def test_a_taught_pose_in_the_phantom_says_which_and_what_leaves_room():
+    """Teaching the probe too close above a sphere (the operator's jog into the phantom)
+    is one error naming the taught pose and what to change, not a move to bare joint
+    angles (seed 603 in gel at a 10 mm target: "moving to joints [...] puts probe_body 0.1
+    mm into sphere_2")."""
+    from bench.acquire_sim import teach_at
+
+    twin = make(RobotConfig(dh_error_scale=0))
+    centre = twin.truth.landmarks_base["sphere_4"]
+    with pytest.raises(CollisionError) as caught:
+        teach_at(twin, centre, 2 * MM, "taught pose at sphere_4")
+    said = str(caught.value)
+    assert said.startswith("moving to taught pose at sphere_4 (joints [")
+    assert "mm into sphere_4" in said
+    assert "cannot be 2 mm above that target" in said and "protocol.target_depth_mm" in said
+    teach_at(twin, centre, 20 * MM, "taught pose at sphere_4")  # room enough: no error
+
+
 def test_arm_into_tank_wall_collides():
     twin = make(RobotConfig(dh_error_scale=0))
     # Arm stretched out horizontally over the tank at shoulder height: the upper arm lies

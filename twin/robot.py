@@ -549,7 +549,9 @@ class SimRobot:
         configuration); the controller reports its own view of it."""
         near = self._q_reported if q_near is None else np.asarray(q_near, dtype=float)
         q = solve_ik(self.scene.scene.table, T_base_ee_true, near, pose_label=pose_label)
-        return self.move_joints(q, ignore, guided=True)
+        joints = f"joints {np.round(np.degrees(q), 1).tolist()} deg"
+        label = f"{pose_label} ({joints})" if pose_label else joints
+        return self._settle(q, label, ignore, guided=True)
 
     @property
     def home(self) -> Array:
