@@ -149,6 +149,9 @@ def test_sweep_geometry_is_the_kept_sweeps_tilt_and_the_caps_depth():
     g = sweep_geometry(alt, sweeps, 5e-3)
     assert g.in_depth_deg == pytest.approx(4.0)  # the median: ten sweeps far off do not move it
     assert g.cap_depth_m == pytest.approx(depth - 5e-3)
+    # As metrics.json keeps it (the paper's dataset tasks hand it on so), and back.
+    assert g.as_dict()["cap_depth_mm"] == pytest.approx((depth - 5e-3) * 1e3)
+    assert SweepGeometry.from_dict(g.as_dict()) == g
     # The sweeps the fit dropped are not read.
     kept = np.array([o.pose_id < 10 for o in alt.observations])
     dropped = AlternationResult(

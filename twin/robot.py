@@ -533,9 +533,7 @@ class SimRobot:
         put at ``q`` by hand (the motors sit where the joints' compliance, transmission
         error and lost motion leave them) instead of the motors being driven there."""
         q_cmd = np.asarray(q, dtype=float)
-        return self._settle(
-            q_cmd, f"joints {np.round(np.degrees(q_cmd), 1).tolist()} deg", ignore, guided
-        )
+        return self._settle(q_cmd, _joints_label(q_cmd), ignore, guided)
 
     def place_tool(
         self,
@@ -549,8 +547,7 @@ class SimRobot:
         configuration); the controller reports its own view of it."""
         near = self._q_reported if q_near is None else np.asarray(q_near, dtype=float)
         q = solve_ik(self.scene.scene.table, T_base_ee_true, near, pose_label=pose_label)
-        joints = f"joints {np.round(np.degrees(q), 1).tolist()} deg"
-        label = f"{pose_label} ({joints})" if pose_label else joints
+        label = f"{pose_label} ({_joints_label(q)})" if pose_label else _joints_label(q)
         return self._settle(q, label, ignore, guided=True)
 
     @property
@@ -632,3 +629,8 @@ class SimRobot:
             T = T @ holder_deflection(T[:3, :3], tools)
         self.clock_s += self.cfg.grab_s
         return T
+
+
+def _joints_label(q: Array) -> str:
+    """A move's target as its errors name it: the joint angles in degrees."""
+    return f"joints {np.round(np.degrees(q), 1).tolist()} deg"

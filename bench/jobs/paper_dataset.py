@@ -201,10 +201,7 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
         # How its sweeps met the spheres, for its verdict (judged with its bound).
         geometry = sweep_geometry(r.alternation, everything, stated_radius(scenario))
         if geometry is not None:
-            uncertainty[r.fold.name]["sweep_geometry"] = {
-                "in_depth_deg": geometry.in_depth_deg,
-                "cap_depth_mm": geometry.cap_depth_m * _MM,
-            }
+            uncertainty[r.fold.name]["sweep_geometry"] = geometry.as_dict()
     t_bounds = time.perf_counter() - t0
 
     # ---- against the truth (beyond the paper)

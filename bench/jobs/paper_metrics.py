@@ -70,9 +70,7 @@ def evaluation_metrics(
             figures = fold_bounds.get(r.fold.name, {}).get("bound95")
             bound = None if figures is None else BoundFigures.from_dict(figures)
             g = fold_bounds.get(r.fold.name, {}).get("sweep_geometry")
-            geometry = (
-                None if g is None else SweepGeometry(g["in_depth_deg"], g["cap_depth_mm"] / 1e3)
-            )
+            geometry = None if g is None else SweepGeometry.from_dict(g)
             verdicts[r.fold.name] = judge(
                 r.alternation, bound, requirements(scenario), geometry=geometry
             )

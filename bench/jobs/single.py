@@ -245,12 +245,12 @@ def _second_pass(
         },
     }
     # Whether the verdict would have called the first pass suspect for its sweeps' tilt.
-    first["tilted_over_shallow_caps"] = {
-        name: geometry is not None and geometry.tilted_over_shallow_caps
-        for name, alt in (("single", cals.single), ("three", cals.three))
-        if alt is not None
-        for geometry in [sweep_geometry(alt, acq.dataset.sweeps, stated_radius(scenario))]
-    }
+    tilted = {}
+    for name, alt in (("single", cals.single), ("three", cals.three)):
+        if alt is not None:
+            geometry = sweep_geometry(alt, acq.dataset.sweeps, stated_radius(scenario))
+            tilted[name] = geometry is not None and geometry.tilted_over_shallow_caps
+    first["tilted_over_shallow_caps"] = tilted
     t0 = time.perf_counter()
     again = simulate_acquisition(
         scenario, twin, imager, progress="second pass: acquire sweeps", T_ee_us_coarse=T_first

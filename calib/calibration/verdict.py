@@ -291,6 +291,14 @@ class SweepGeometry:
     in_depth_deg: float
     cap_depth_m: float
 
+    def as_dict(self) -> dict[str, float]:
+        """As ``metrics.json`` keeps it (degrees, mm)."""
+        return {"in_depth_deg": self.in_depth_deg, "cap_depth_mm": self.cap_depth_m * _MM}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, float]) -> SweepGeometry:
+        return cls(float(d["in_depth_deg"]), float(d["cap_depth_mm"]) / _MM)
+
     @property
     def tilted_over_shallow_caps(self) -> bool:
         return bool(
