@@ -875,13 +875,15 @@ def _slab_lobe_moments(
     for q in range(n):
         fq, kq, lq = f[q], k[q], ln[q]
         phi, depth, z0 = tilts[fq, kq, lq], depths[fq, kq, lq], z[kq]
-        rates = np.full(2, np.nan)
+        lo = hi = np.nan  # the rates towards the lower and the upper neighbour
         for side in range(2):
             kn = min(max(kq + 2 * side - 1, 0), K - 1)
             t_n, d_n = tilts[fq, kn, lq], depths[fq, kn, lq]
             if kn != kq and np.isfinite(t_n) and abs(d_n - depth) <= max_slope * abs(z[kn] - z0):
-                rates[side] = (t_n - phi) / (z[kn] - z0)
-        lo, hi = rates[0], rates[1]
+                if side == 0:
+                    lo = (t_n - phi) / (z[kn] - z0)
+                else:
+                    hi = (t_n - phi) / (z[kn] - z0)
         if np.isnan(lo):
             lo = hi
         if np.isnan(hi):
@@ -951,9 +953,13 @@ def _add_blurred_intensity(image, field, k_rows, k_cols, norm):  # pragma: no co
     row r's taps ``k_cols[r]``), in place; ``norm`` per row."""
     n, H, W = field.shape
     R, C = len(k_rows) // 2, k_cols.shape[1] // 2
-    tmp = np.zeros((2, H, W), np.float32)
-    buf = np.zeros((2, W + 2 * C), np.float32)
-    acc = np.zeros((2, W), np.float32)
+    # The complex values as interleaved (real, imaginary) float32 pairs: every pass below
+    # runs over contiguous rows of 2W floats (split into two planes, the axial pass read
+    # them with a stride of two and was not vectorized: 2× slower).
+    pairs = field.view(np.float32).reshape((n, H, 2 * W))
+    tmp = np.zeros((H, 2 * W), np.float32)
+    buf = np.zeros(2 * (W + 2 * C), np.float32)
+    acc = np.zeros(2 * W, np.float32)
     for f in range(n):
         tmp[:] = 0.0
         for r in range(H):
@@ -963,27 +969,22 @@ def _add_blurred_intensity(image, field, k_rows, k_cols, norm):  # pragma: no co
                     rr = -rr - 1
                 elif rr >= H:
                     rr = 2 * H - rr - 1
-                w = k_rows[t]
-                for c in range(W):
-                    v = field[f, rr, c]
-                    tmp[0, r, c] += w * v.real
-                    tmp[1, r, c] += w * v.imag
+                _add_scaled(tmp[r], k_rows[t], pairs[f, rr])
         for r in range(H):
             # The row with its reflected margins, then one contiguous pass per tap.
-            for p in range(2):
-                for c in range(W):
-                    buf[p, C + c] = tmp[p, r, c]
-                for c in range(C):
-                    buf[p, C - 1 - c] = tmp[p, r, c]
-                    buf[p, C + W + c] = tmp[p, r, W - 1 - c]
-                acc[p, :] = 0.0
-                for t in range(k_cols.shape[1]):
-                    w = k_cols[r, t]
-                    for c in range(W):
-                        acc[p, c] += w * buf[p, c + t]
+            row = tmp[r]
+            buf[2 * C : 2 * (C + W)] = row
+            for c in range(C):
+                for p in range(2):
+                    buf[2 * (C - 1 - c) + p] = row[2 * c + p]
+                    buf[2 * (C + W + c) + p] = row[2 * (W - 1 - c) + p]
+            acc[:] = 0.0
+            for t in range(k_cols.shape[1]):
+                _add_scaled(acc, k_cols[r, t], buf[2 * t : 2 * (t + W)])
             g = norm[r]
+            out = image[f, r]
             for c in range(W):
-                image[f, r, c] += g * (acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c])
+                out[c] += g * (acc[2 * c] * acc[2 * c] + acc[2 * c + 1] * acc[2 * c + 1])
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -1068,32 +1069,43 @@ def _add_blurred_surface_speckle(image, field, k_rows, k_cols):  # pragma: no co
     values."""
     n, H, W = field.shape
     C = k_cols.shape[1] // 2
-    re = np.zeros((H, W), np.float32)
-    im = np.zeros((H, W), np.float32)
-    col = np.zeros((2, W + 2 * C), np.float32)
-    acc = np.zeros((2, W), np.float32)
+    # Read as interleaved (real, imaginary) float32 pairs, each pass over contiguous
+    # floats (as _add_blurred_intensity): no copy into planes of their own.
+    pairs = field.view(np.float32).reshape((n, H, 2 * W))
+    col = np.zeros(2 * (W + 2 * C), np.float32)
+    acc = np.zeros(2 * W, np.float32)
     lo = np.empty(H, np.int64)
     hi = np.empty(H, np.int64)
+    lo2 = np.empty(H, np.int64)
+    hi2 = np.empty(H, np.int64)
     for f in range(n):
         _row_extents(field[f], lo, hi)
         for r in range(H):
-            if hi[r] >= 0:
-                for c in range(lo[r], hi[r] + 1):
-                    re[r, c] = field[f, r, c].real
-                    im[r, c] = field[f, r, c].imag
+            lo2[r], hi2[r] = (2 * lo[r], 2 * hi[r] + 1) if hi[r] >= 0 else (2 * W, -1)
         for r in range(H):
             o0, o1 = _reach(lo, hi, k_rows, r, C, W)
             if o0 > o1:
                 continue
             # Output columns o0..o1 read col[o0 .. o1 + 2C]: the axial pass and zeros.
-            col[:, o0 : o1 + 2 * C + 1] = 0.0
-            _axial_into(col[0], k_rows, re, lo, hi, r, C)
-            _axial_into(col[1], k_rows, im, lo, hi, r, C)
-            _correlate_span(acc[0], k_cols[r], col[0], o0, o1)
-            _correlate_span(acc[1], k_cols[r], col[1], o0, o1)
+            col[2 * o0 : 2 * (o1 + 2 * C + 1)] = 0.0
+            _axial_into(col, k_rows, pairs[f], lo2, hi2, r, 2 * C)
+            _correlate_pairs(acc, k_cols[r], col, o0, o1)
             out = image[f, r]
             for c in range(o0, o1 + 1):
-                out[c] += acc[0, c] * acc[0, c] + acc[1, c] * acc[1, c]
+                out[c] += acc[2 * c] * acc[2 * c] + acc[2 * c + 1] * acc[2 * c + 1]
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def _correlate_pairs(out, taps, src, o0, o1):  # pragma: no cover - compiled
+    """:func:`_correlate_span` of interleaved pairs: ``out[2c + p] = Σ_t taps[t] ·
+    src[2 (c + t) + p]`` for c in o0..o1, p in 0, 1."""
+    m = 2 * (o1 + 1 - o0)
+    acc = out[2 * o0 : 2 * o0 + m]
+    acc[:] = 0.0
+    for t in range(taps.shape[0]):
+        w = taps[t]
+        if w != 0.0:
+            _add_scaled(acc, w, src[2 * (o0 + t) : 2 * (o0 + t) + m])
 
 
 def _ring_down_kernel(sigma: float, probe: ProbeConfig, spacing: float) -> NDArray[np.float32]:
@@ -1174,11 +1186,18 @@ def _splat_surface_speckle(
     ``row_f − half + 2 u half``, elevation ``(u − ½) · slab · sign`` off the hit point
     along its frame's z axis, energy share ``(2 p + 2 (1 − 2 p) u) / m`` (the trapezoidal
     density of the smooth model's slab, p its shallow end's share). Each one's amplitude
-    is the scene-fixed field at its point (:func:`sim_us.speckle._smooth_values`) times
+    is the scene-fixed field at its point (:meth:`sim_us.speckle.ScattererField.smooth_at`) times
     the root of its energy, split linearly over its two rows.
     """
-    u3 = np.empty((1, 3))
-    val = np.empty(1, dtype=np.complex64)
+    # The sub-scatterers are made in chunks, the field looked up for a chunk at once
+    # (its hashing vectorizes), then splatted in the order they were made.
+    chunk = 2048
+    u = np.empty((chunk, 3))
+    scale = np.empty(chunk, dtype=np.float32)
+    rows = np.empty(chunk)
+    bases = np.empty(chunk, dtype=np.int64)
+    val = np.empty(chunk, dtype=np.complex64)
+    k = 0
     for j in range(len(row_f)):
         h = half[j]
         m = 1
@@ -1186,25 +1205,42 @@ def _splat_surface_speckle(
             m = min(int(np.ceil(4.0 * h)) + 1, _MAX_SLAB_SCATTERERS)
         f = frame[j]
         for i in range(m):
-            u = (i + 0.5) / m
-            y = row_f[j] - h + 2.0 * u * h
+            t = (i + 0.5) / m
+            y = row_f[j] - h + 2.0 * t * h
             if not (-1.0 < y < H):
                 continue
-            w = (2.0 * share[j] + 2.0 * (1.0 - 2.0 * share[j]) * u) / m if m > 1 else 1.0
+            w = (2.0 * share[j] + 2.0 * (1.0 - 2.0 * share[j]) * t) / m if m > 1 else 1.0
             if w <= 0.0:
                 continue
-            dz = (u - 0.5) * slab[j] * sign[j] if m > 1 else 0.0
-            for k in range(3):
-                u3[0, k] = (point[j, k] + dz * z_axis[f, k]) / cell
-            _smooth_values(u3, table, key, val)
-            v = val[0] * np.float32(np.sqrt(energy[j] * w))
-            r0 = int(np.floor(y))
-            frac = np.float32(y - r0)
-            base = (f * H + r0) * W + col[j]
-            if r0 >= 0:
-                out[base] += v * (np.float32(1.0) - frac)
-            if r0 + 1 < H:
-                out[base + W] += v * frac
+            dz = (t - 0.5) * slab[j] * sign[j] if m > 1 else 0.0
+            for a in range(3):
+                u[k, a] = (point[j, a] + dz * z_axis[f, a]) / cell
+            scale[k] = np.float32(np.sqrt(energy[j] * w))
+            rows[k] = y
+            bases[k] = f * H * W + col[j]
+            k += 1
+            if k == chunk:
+                _splat_scatterers(out, H, W, u, scale, rows, bases, val, k, table, key)
+                k = 0
+    _splat_scatterers(out, H, W, u, scale, rows, bases, val, k, table, key)
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _splat_scatterers(out, H, W, u, scale, rows, bases, val, k, table, key):  # pragma: no cover
+    """Splat the first ``k`` sub-scatterers of a chunk (see :func:`_splat_surface_speckle`):
+    the field at each point (cell units ``u``) times its ``scale``, split linearly over
+    the two rows about its row ``rows`` of the column at flat index ``bases``."""
+    _smooth_values(u[:k], table, key, val)
+    for i in range(k):
+        y = rows[i]
+        v = val[i] * scale[i]
+        r0 = int(np.floor(y))
+        frac = np.float32(y - r0)
+        base = bases[i] + r0 * W
+        if r0 >= 0:
+            out[base] += v * (np.float32(1.0) - frac)
+        if r0 + 1 < H:
+            out[base + W] += v * frac
 
 
 def _splat_points(

@@ -132,20 +132,36 @@ class ScattererField:
 
 # Written by hand and compiled with numba: the eight corners' lookups and weights in numpy
 # took ≈ 40 array passes over the points (a third of a frame's time with surface speckle).
+# The corners' hashes are made in loops of their own over the points (integer arithmetic
+# the compiler vectorizes, as in _add_lattice_lines): made point by point, eight at a
+# time, they were most of a water frame's surface speckle (≈ 50 ns a point).
 @numba.njit(cache=True, nogil=True, boundscheck=False)
 def _smooth_values(u, table, key, out):  # pragma: no cover - compiled
     """Trilinear interpolation of the cells about points ``u`` (n, 3) in cell units,
     normalised to unit variance (see :meth:`ScattererField.smooth_at`)."""
-    for i in range(u.shape[0]):
-        b0, b1, b2 = np.floor(u[i, 0]), np.floor(u[i, 1]), np.floor(u[i, 2])
-        f0, f1, f2 = u[i, 0] - b0, u[i, 1] - b1, u[i, 2] - b2
-        c0, c1, c2 = np.int64(b0), np.int64(b1), np.int64(b2)
+    n = u.shape[0]
+    cells = np.empty((3, n), dtype=np.int64)
+    frac = np.empty((3, n))
+    for i in range(n):
+        for a in range(3):
+            b = np.floor(u[i, a])
+            cells[a, i] = np.int64(b)
+            frac[a, i] = u[i, a] - b
+    slots = np.empty((8, n), dtype=np.intp)
+    c0, c1, c2 = cells[0], cells[1], cells[2]
+    for corner in range(8):
+        d0, d1, d2 = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+        s = slots[corner]
+        for i in range(n):
+            s[i] = _cell_slot(c0[i] + d0, c1[i] + d1, c2[i] + d2, key)
+    for i in range(n):
+        f0, f1, f2 = frac[0, i], frac[1, i], frac[2, i]
         acc = np.complex64(0.0)
         norm = 0.0
         for corner in range(8):
             d0, d1, d2 = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
             w = (f0 if d0 else 1.0 - f0) * (f1 if d1 else 1.0 - f1) * (f2 if d2 else 1.0 - f2)
-            acc += table[_cell_slot(c0 + d0, c1 + d1, c2 + d2, key)] * np.float32(w)
+            acc += table[slots[corner, i]] * np.float32(w)
             norm += w * w
         out[i] = acc / np.float32(np.sqrt(norm))
 
