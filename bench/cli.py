@@ -423,6 +423,7 @@ def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console
                 estimate_scale=not args.fixed_pixel_scale and info.cone_tip is None,
                 wire_tolerance_m=settings.phantom.tolerance_position_mm * 1e-3,
                 axial_bias_m=echo_depth_bias_m(settings),
+                mount_sigma_m=settings.calibration.mount_error_mm * 1e-3,
             )
         written = write_target(tmp, result)
     print_target(result, console)
@@ -509,7 +510,7 @@ def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
     from .console import print_cached_run, progress_bars
     from .jobs.budget import plan_budget, run_budget
     from .jobs.single import run
-    from .outputs.budget_report import write_budget
+    from .outputs.budget_report import declared_mount_error_mm, write_budget
     from .progress import reporting
 
     sources = [n.strip() for n in args.sources.split(",") if n.strip()] if args.sources else None
@@ -519,6 +520,12 @@ def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
         result = run_budget(spec, out, run, args.scheduler, args.workers or None)
     files = write_budget(out, result)
     print_cached_run("runs", len(result.runs), result, files, console)
+    declare = declared_mount_error_mm(result.runs)
+    if declare is not None:
+        console.print(
+            f"declare calibration.mount_error_mm: {declare:.2f} (the mount error this rig's "
+            "sources add and no view shows, 1 σ per axis; budget.md says how it is measured)"
+        )
     return 1 if result.failed else 0
 
 

@@ -210,6 +210,7 @@ def uncertainty_entry(bound: Bound95, inputs: UncertaintyInputs) -> dict[str, An
         "axial_bias_mm": inputs.axial_bias_m * _MM,
         "kinematic_sigma_mm": inputs.kinematic_sigma_m * _MM,
         "axial_scale_sigma": inputs.axial_scale_sigma,
+        "mount_sigma_mm": inputs.mount_sigma_m * _MM,
     }
     return {"bound95": bound.as_dict(), "uncertainty": details}
 

@@ -174,6 +174,23 @@ def test_axial_scale_term_grows_the_translation_bound():
     assert scaled.translation_mm > 1.5 * plain.translation_mm
 
 
+def test_declared_mount_error_goes_into_the_translation_whole():
+    """The rig's own mount error (declared, 1 σ per axis) moves T_ee_us as a whole: the
+    translation bound is at least its own 95 % quantile (χ with 3 degrees of freedom,
+    2.80 σ), the rotation bound does not move, and the term is reported."""
+    obs, res = single(0.1)
+    plain = bound95(obs, res, IMAGE)
+    sigma = 0.4
+    declared = bound95(obs, res, IMAGE, inputs=UncertaintyInputs(mount_sigma_m=sigma * MM))
+    assert declared.translation_mm >= 2.8 * sigma > 2 * plain.translation_mm
+    assert declared.image_mm >= 2.8 * sigma
+    # (The draws come from the whole covariance's eigenvectors: the same rotation block,
+    # drawn through other combinations.)
+    assert declared.rotation_deg == pytest.approx(plain.rotation_deg, rel=1e-3)
+    assert declared.terms["mount"]["translation_mm"] == pytest.approx(np.sqrt(3) * sigma)
+    assert "mount" not in plain.terms
+
+
 # ----------------------------------------------------------------- quick-scenario runs
 
 

@@ -66,6 +66,7 @@ def method_settings(scenario: Scenario) -> MethodSettings:
         print_tolerance_mm=scenario.phantom.tolerance_position_mm,
         radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
         axial_fwhm_mm=axial_fwhm_m(scenario.imaging) * 1e3,
+        mount_error_mm=scenario.calibration.mount_error_mm,
         nominal_dh=scenario.robot.nominal_table,
     )
 
@@ -110,4 +111,5 @@ def scenario_uncertainty(
         radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
         axial_fwhm_mm=axial_fwhm_m(scenario.imaging) * 1e3,
         kinematic_modes=kinematic_modes,
+        mount_error_mm=scenario.calibration.mount_error_mm,
     )

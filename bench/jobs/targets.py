@@ -109,10 +109,12 @@ def calibrate_nwire_dataset(
     estimate_scale: bool = True,
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
+    mount_sigma_m: float = 0.0,
 ) -> TargetRun:
-    """Detect, calibrate and judge (see the module doc). ``wire_tolerance_m`` and
-    ``axial_bias_m``: the declared errors of the bounds (the phantom's build tolerance,
-    the echoes' depth bias; :func:`calib.calibration.nwire.calibrate_nwire`)."""
+    """Detect, calibrate and judge (see the module doc). ``wire_tolerance_m``,
+    ``axial_bias_m`` and ``mount_sigma_m``: the declared errors of the bounds (the
+    phantom's build tolerance, the echoes' depth bias, the rig's own mount error;
+    :func:`calib.calibration.nwire.calibrate_nwire`)."""
     assert info.nwire is not None
     t0 = time.perf_counter()
     images, poses = dataset_frames(dataset)
@@ -133,6 +135,7 @@ def calibrate_nwire_dataset(
         estimate_scale=estimate_scale,
         wire_tolerance_m=wire_tolerance_m,
         axial_bias_m=axial_bias_m,
+        mount_sigma_m=mount_sigma_m,
         groups_of_frames=_views(info, poses),
     )
     verdict = judge_targets(cal, requirements)
@@ -262,6 +265,7 @@ def calibrate_wire_dataset(
     estimate_scale: bool = True,
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
+    mount_sigma_m: float = 0.0,
 ) -> TargetRun:
     """A single wire's dataset: the wire's dot in every frame
     (:func:`calib.localize.nwire.detect_wire`), then ``T_ee_us``, the pixel scale and the
@@ -308,6 +312,7 @@ def calibrate_wire_dataset(
             estimate_scale=estimate_scale,
             declared=_wire_tolerance(tobs, target, wire_tolerance_m),
             axial_bias_m=axial_bias_m,
+            mount_sigma_m=mount_sigma_m,
             groups=None if views is None else views[tobs.frame],
         )
         for start in starts
@@ -354,6 +359,7 @@ def calibrate_cone_dataset(
     estimate_scale: bool = False,
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
+    mount_sigma_m: float = 0.0,
 ) -> TargetRun:
     """A cone's sweeps: the apex of each (:func:`calib.localize.cone_tip.locate_cone_tip`,
     the sweep's elevations from the robot's poses along the coarse mount's image normal;
@@ -438,6 +444,7 @@ def calibrate_cone_dataset(
         estimate_scale=estimate_scale,
         declared=tolerance,
         axial_bias_m=axial_bias_m,
+        mount_sigma_m=mount_sigma_m,
         groups=views,
     )
     verdict = judge_targets(cal, requirements)
@@ -487,6 +494,7 @@ def run_target(scenario, twin, acq, t_start: float) -> TargetRun:
         requirements(scenario),
         wire_tolerance_m=scenario.phantom.tolerance_position_mm / _MM,
         axial_bias_m=echo_depth_bias_m(scenario),
+        mount_sigma_m=scenario.calibration.mount_error_mm / _MM,
     )
     truth = twin.truth
     X_equiv = equivalent_mount(scenario, acq, truth)

@@ -76,7 +76,13 @@ def _bound_doc(cal: CalibrationSummary) -> dict[str, Any]:
             f"radius tolerance {declared.radius_tolerance_mm:g} mm, "
             f"axial bias {declared.axial_bias_mm:.3g} mm, "
             f"{kinematics}, axial scale "
-            f"{declared.axial_scale_sigma:.2g}; 1 σ per axis)."
+            f"{declared.axial_scale_sigma:.2g}"
+            + (
+                f", the rig's own mount error {declared.mount_sigma_mm:g} mm"
+                if declared.mount_sigma_mm > 0
+                else ""
+            )
+            + "; 1 σ per axis)."
         ),
     }
 

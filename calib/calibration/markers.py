@@ -94,6 +94,20 @@ class CalibrationConfig:
             "(the paper's loss)."
         },
     )
+    mount_error_mm: float = field(
+        default=0.0,
+        metadata={
+            "doc": "The rig's own error of the mount's position that no view shows, 1 σ "
+            "per axis (mm): a holder bending under the probe's weight, the arm twisting "
+            "differently under the touches' and the sweeps' loads, the localizer's bias on "
+            "the phantom as printed. The same in every sweep, it moves T_ee_us as a whole "
+            "and the residuals cannot show it; declared, it is a systematic term of the "
+            "95 % bounds. `uscal budget` on the rig's twin measures it (its 'declare' "
+            "line). 0 = none declared.",
+            "ge": 0,
+            "le": 50,
+        },
+    )
     require_image_mm: float | None = field(
         default=None,
         metadata={

@@ -25,11 +25,13 @@ between views), and the covariance adds:
   so it is in the covariance instead), the printed spheres' radius tolerance (each
   sphere's centres move along their beams alike: the localizer fits the CAD radius), a
   bias of the localized centres along the beam common to every sweep (the cap's echo is
-  a pulse: up to half the axial resolution), the
-  kinematic model's error after a DH refinement, and the uncertainty of the axial scale
-  (speed of sound). The kinematic model's error is the refinement's own covariance
-  carried to each sweep's pose (:func:`calib.kinematics.kinematic_modes`), less what a
-  rigid change of base and flange frames absorbs; one draw of it moves every sweep, and
+  a pulse: up to half the axial resolution), the kinematic model's error after a DH
+  refinement, the uncertainty of the axial scale (speed of sound), and the rig's own
+  error of the mount that no view shows (declared: a holder's bending, the arm's
+  compliance, the localizer's bias on the printed phantom). The kinematic model's error
+  is the refinement's own covariance carried to each sweep's pose
+  (:func:`calib.kinematics.kinematic_modes`), less what a rigid change of base and
+  flange frames absorbs; one draw of it moves every sweep, and
   the part that differs between views is what the jackknife measures too, so it is not
   added on top: the statistical covariance is at least the first order plus it. (Where
   only a residual size is known, 1 σ per axis of each view's point, independent between
@@ -111,6 +113,12 @@ class UncertaintyInputs:
     axial_scale_sigma : float
         1 σ of the relative axial (depth) scale of the localized centres (speed of sound:
         the thermometer's uncertainty when corrected, the whole known difference when not).
+    mount_sigma_m : float
+        1 σ per axis of an error of the mount's position that the rig itself makes and no
+        view shows (a holder bent by the probe's weight, the arm's compliance under the
+        sweeps' load where the touches carried another, the localizer's bias on the
+        phantom as printed): one draw moves ``T_ee_us`` as a whole, in the flange frame.
+        Declared (a twin's error budget of the rig, a datasheet), not estimated.
     """
 
     print_tolerance_m: float = 0.0
@@ -119,6 +127,7 @@ class UncertaintyInputs:
     kinematic_sigma_m: float = 0.0
     axial_scale_sigma: float = 0.0
     kinematic_modes: Mapping[tuple[str, int], Array] | None = None
+    mount_sigma_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -545,6 +554,13 @@ def bound95(
         D = ((f(x0, e_scale=h) - r0) / h)[:, None]
         c = propagate(D, inputs.axial_scale_sigma)
         terms["axial_scale"] = _rss(c, A_rt)
+        cov_sys += c
+    if inputs.mount_sigma_m > 0:
+        # The mount's origin moved in the flange frame (ξ's ρ, no rotation): the whole
+        # declared error goes into T_ee_us, none of it into the residuals.
+        c = np.zeros((6, 6))
+        c[:3, :3] = inputs.mount_sigma_m**2 * np.eye(3)
+        terms["mount"] = _rss(c, A_rt)
         cov_sys += c
     cov = cov_stat + cov_sys
     terms["total"] = _rss(cov, A_rt)
