@@ -49,7 +49,8 @@ def print_run(run: RunSummary, console: Console) -> None:
         if b is None or e_true is None:
             continue
         console.print(
-            f"{c.method}: 95 % error bounds (from the data alone) rotation {b.rotation_deg:.3f}°, "
+            f"{c.method}: 95 % error bounds (data and declared errors, no truth) "
+            f"rotation {b.rotation_deg:.3f}°, "
             f"translation {b.translation_mm:.3f} mm, image {b.image_mm:.3f} mm; "
             f"the truth is {'inside' if e_true.within(b) else 'OUTSIDE'}"
         )

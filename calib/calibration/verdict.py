@@ -556,8 +556,9 @@ def judge(
     ):
         suspect.append(
             f"its 95 % bound over the image, {bound.image_mm:.2f} mm, is above "
-            f"{DEFAULT_IMAGE_MM:g} mm: the data do not pin T_ee_us down to the millimetre; "
-            "acquire more sweeps or views, or state what you need (--require-image-mm)"
+            f"{DEFAULT_IMAGE_MM:g} mm: the data and the errors declared do not pin T_ee_us "
+            "down to the millimetre; acquire more sweeps or views, or state what you need "
+            "(--require-image-mm)"
         )
     if requirements.any:
         if bound is None:
