@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 import traceback
@@ -424,6 +425,7 @@ def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console
                 wire_tolerance_m=settings.phantom.tolerance_position_mm * 1e-3,
                 axial_bias_m=echo_depth_bias_m(settings),
                 mount_sigma_m=settings.calibration.mount_error_mm * 1e-3,
+                mount_sigma_rad=math.radians(settings.calibration.mount_error_deg),
             )
         written = write_target(tmp, result)
     print_target(result, console)
@@ -510,7 +512,7 @@ def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
     from .console import print_cached_run, progress_bars
     from .jobs.budget import plan_budget, run_budget
     from .jobs.single import run
-    from .outputs.budget_report import declared_mount_error_mm, write_budget
+    from .outputs.budget_report import declared_mount_error, write_budget
     from .progress import reporting
 
     sources = [n.strip() for n in args.sources.split(",") if n.strip()] if args.sources else None
@@ -520,11 +522,12 @@ def _cmd_budget(args: argparse.Namespace, console: Console) -> int:
         result = run_budget(spec, out, run, args.scheduler, args.workers or None)
     files = write_budget(out, result)
     print_cached_run("runs", len(result.runs), result, files, console)
-    declare = declared_mount_error_mm(result.runs)
+    declare = declared_mount_error(result.runs)
     if declare is not None:
         console.print(
-            f"declare calibration.mount_error_mm: {declare:.2f} (the mount error this rig's "
-            "sources add and no view shows, 1 σ per axis; budget.md says how it is measured)"
+            f"declare calibration.mount_error_mm: {declare[0]:.2f}, mount_error_deg: "
+            f"{declare[1]:.2f} (the mount error this rig's sources add and no view shows, "
+            "1 σ per axis; budget.md says how it is measured)"
         )
     return 1 if result.failed else 0
 

@@ -211,6 +211,7 @@ def uncertainty_entry(bound: Bound95, inputs: UncertaintyInputs) -> dict[str, An
         "kinematic_sigma_mm": inputs.kinematic_sigma_m * _MM,
         "axial_scale_sigma": inputs.axial_scale_sigma,
         "mount_sigma_mm": inputs.mount_sigma_m * _MM,
+        "mount_sigma_deg": float(np.degrees(inputs.mount_sigma_rad)),
     }
     return {"bound95": bound.as_dict(), "uncertainty": details}
 

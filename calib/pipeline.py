@@ -104,9 +104,9 @@ class MethodSettings:
     axial_fwhm_mm : float
         The probe's axial resolution (FWHM): the localizer's bias along the beam is taken
         as uniform within ± half of it.
-    mount_error_mm : float
-        The rig's own error of the mount's position that no view shows (1 σ per axis,
-        declared: :attr:`calib.calibration.markers.CalibrationConfig.mount_error_mm`).
+    mount_error_mm, mount_error_deg : float
+        The rig's own error of the mount's position and orientation that no view shows
+        (1 σ per axis, declared: :class:`calib.calibration.markers.CalibrationConfig`).
     nominal_dh : DHTable or None
         The arm's nominal kinematic model, which the touches refine (a dataset with
         touches needs it).
@@ -120,6 +120,7 @@ class MethodSettings:
     radius_tolerance_mm: float = 0.0
     axial_fwhm_mm: float = 0.0
     mount_error_mm: float = 0.0
+    mount_error_deg: float = 0.0
     nominal_dh: DHTable | None = None
 
     def alternation(
@@ -353,6 +354,7 @@ def declared_uncertainty(
     axial_fwhm_mm: float = 0.0,
     kinematic_modes: Mapping[tuple[str, int], Array] | None = None,
     mount_error_mm: float = 0.0,
+    mount_error_deg: float = 0.0,
 ) -> UncertaintyInputs:
     """The systematic terms the pipeline knows of (:class:`calib.calibration.uncertainty.
     UncertaintyInputs`): the phantom's print specification (1 σ per axis of a sphere
@@ -364,7 +366,8 @@ def declared_uncertainty(
     residual after a DH refinement (RMS distance of the touches from the model; per axis
     it is that over √3; reported, and used only where the refinement's own error at the
     sweeps' poses, ``kinematic_modes``, is not known), and the rig's own error of the
-    mount that no view shows (``mount_error_mm``, 1 σ per axis, as declared)."""
+    mount that no view shows (``mount_error_mm``, ``mount_error_deg``: 1 σ per axis, as
+    declared)."""
 
     def ratio_at(t_c: float) -> float:
         return speed_ratio(
@@ -384,6 +387,7 @@ def declared_uncertainty(
         axial_scale_sigma=scale_sigma,
         kinematic_modes=kinematic_modes,
         mount_sigma_m=mount_error_mm * 1e-3,
+        mount_sigma_rad=np.radians(mount_error_deg),
     )
 
 
@@ -503,6 +507,7 @@ def calibrate_dataset(
         axial_fwhm_mm=settings.axial_fwhm_mm,
         kinematic_modes=refinement_modes(refinement, dataset.sweeps),
         mount_error_mm=settings.mount_error_mm,
+        mount_error_deg=settings.mount_error_deg,
     )
     sweep0 = dataset.sweeps[0]
     H, W = sweep0.images.shape[1:]

@@ -19,7 +19,7 @@ from bench.config.scenario import load_scenario
 from bench.jobs.budget import MODES, plan_budget
 from bench.jobs.budget import run_budget as _run_budget
 from bench.jobs.single import run
-from bench.outputs.budget_report import declared_mount_error_mm, write_budget
+from bench.outputs.budget_report import declared_mount_error, write_budget
 
 from .test_cli import uscal_here
 
@@ -98,16 +98,18 @@ def test_budget_measures_a_source_alone_and_left_out_and_resumes(local_budget):
         assert float(none["image_mm"]) < 0.4
     md = (out / "budget.md").read_text()
     assert "Largest: **speed_of_sound**" in md
+
     # The declared mount error it measures: the rms over the seeds of what the sources
-    # add to the error-free rig's translation error, per axis.
-    added = [
-        float(by[("-", "all", s)]["translation_mm"]) ** 2
-        - float(by[("-", "none", s)]["translation_mm"]) ** 2
-        for s in ("1", "2")
-    ]
-    declare = np.sqrt(np.mean(np.maximum(added, 0.0)) / 3)
-    assert declared_mount_error_mm(first.runs) == pytest.approx(declare, rel=1e-3)  # csv: 6 digits
-    assert f"calibration.mount_error_mm: {declare:.2f}" in md
+    # add to the error-free rig's translation and rotation errors, per axis.
+    def added(figure):
+        a = [float(by[("-", "all", s)][figure]) ** 2 for s in ("1", "2")]
+        n = [float(by[("-", "none", s)][figure]) ** 2 for s in ("1", "2")]
+        return np.sqrt(np.mean(np.maximum(np.subtract(a, n), 0.0)) / 3)
+
+    mm, deg = declared_mount_error(first.runs)
+    assert mm == pytest.approx(added("translation_mm"), rel=1e-3)  # the csv: 6 digits
+    assert deg == pytest.approx(added("rotation_deg"), rel=1e-3)
+    assert f"calibration.mount_error_mm: {mm:.2f}` and `mount_error_deg: {deg:.2f}" in md
     html = (out / "budget.html").read_text()
     assert html.count("<img") >= 4 and (out / "figures" / "tornado_image_mm.png").stat().st_size
     again = run_budget(spec, out, workers=2)

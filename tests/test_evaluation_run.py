@@ -101,6 +101,13 @@ def test_evaluation_against_ground_truth(small_run):
     single = m["calibration"]["single"]
     assert single["true_error"]["image_mm"] < 1.0
     assert m["timing_s"]["workers"] == 2
+    # The rig's own mount error paper.yaml declares is in the folds' bounds: each at
+    # least its own 95 % quantile over the image (a whole translation of T_ee_us).
+    declared = load_scenario(ROOT / "scenarios" / "paper.yaml", check_reach=False)
+    sigma = declared.calibration.mount_error_mm
+    assert sigma > 0
+    assert single["uncertainty"]["declared"]["mount_sigma_mm"] == pytest.approx(sigma)
+    assert all(f["bound95"]["image_mm"] >= 2.8 * sigma for f in ev["folds"])
 
 
 def test_each_dataset_puts_the_phantom_somewhere_new():

@@ -174,10 +174,11 @@ def test_axial_scale_term_grows_the_translation_bound():
     assert scaled.translation_mm > 1.5 * plain.translation_mm
 
 
-def test_declared_mount_error_goes_into_the_translation_whole():
+def test_declared_mount_error_goes_into_the_bound_whole():
     """The rig's own mount error (declared, 1 σ per axis) moves T_ee_us as a whole: the
     translation bound is at least its own 95 % quantile (χ with 3 degrees of freedom,
-    2.80 σ), the rotation bound does not move, and the term is reported."""
+    2.80 σ), the rotation bound does not move, and the term is reported; its rotation
+    likewise, about the image's origin."""
     obs, res = single(0.1)
     plain = bound95(obs, res, IMAGE)
     sigma = 0.4
@@ -189,6 +190,13 @@ def test_declared_mount_error_goes_into_the_translation_whole():
     assert declared.rotation_deg == pytest.approx(plain.rotation_deg, rel=1e-3)
     assert declared.terms["mount"]["translation_mm"] == pytest.approx(np.sqrt(3) * sigma)
     assert "mount" not in plain.terms
+    # Its orientation: a turn about the image's origin, which stays where it was.
+    deg = 1.5
+    turned = bound95(obs, res, IMAGE, inputs=UncertaintyInputs(mount_sigma_rad=np.radians(deg)))
+    assert turned.rotation_deg >= 2.8 * deg > 2 * plain.rotation_deg
+    assert turned.terms["mount"]["translation_mm"] == pytest.approx(0.0, abs=1e-6)  # mm
+    assert turned.terms["mount"]["rotation_deg"] == pytest.approx(np.sqrt(3) * deg)
+    assert turned.translation_mm == pytest.approx(plain.translation_mm, rel=0.02)  # (draws)
 
 
 # ----------------------------------------------------------------- quick-scenario runs

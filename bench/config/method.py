@@ -67,6 +67,7 @@ def method_settings(scenario: Scenario) -> MethodSettings:
         radius_tolerance_mm=scenario.phantom.tolerance_radius_mm,
         axial_fwhm_mm=axial_fwhm_m(scenario.imaging) * 1e3,
         mount_error_mm=scenario.calibration.mount_error_mm,
+        mount_error_deg=scenario.calibration.mount_error_deg,
         nominal_dh=scenario.robot.nominal_table,
     )
 
@@ -112,4 +113,5 @@ def scenario_uncertainty(
         axial_fwhm_mm=axial_fwhm_m(scenario.imaging) * 1e3,
         kinematic_modes=kinematic_modes,
         mount_error_mm=scenario.calibration.mount_error_mm,
+        mount_error_deg=scenario.calibration.mount_error_deg,
     )

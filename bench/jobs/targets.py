@@ -110,11 +110,12 @@ def calibrate_nwire_dataset(
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
     mount_sigma_m: float = 0.0,
+    mount_sigma_rad: float = 0.0,
 ) -> TargetRun:
     """Detect, calibrate and judge (see the module doc). ``wire_tolerance_m``,
-    ``axial_bias_m`` and ``mount_sigma_m``: the declared errors of the bounds (the
-    phantom's build tolerance, the echoes' depth bias, the rig's own mount error;
-    :func:`calib.calibration.nwire.calibrate_nwire`)."""
+    ``axial_bias_m``, ``mount_sigma_m`` and ``mount_sigma_rad``: the declared errors of
+    the bounds (the phantom's build tolerance, the echoes' depth bias, the rig's own
+    mount error; :func:`calib.calibration.nwire.calibrate_nwire`)."""
     assert info.nwire is not None
     t0 = time.perf_counter()
     images, poses = dataset_frames(dataset)
@@ -136,6 +137,7 @@ def calibrate_nwire_dataset(
         wire_tolerance_m=wire_tolerance_m,
         axial_bias_m=axial_bias_m,
         mount_sigma_m=mount_sigma_m,
+        mount_sigma_rad=mount_sigma_rad,
         groups_of_frames=_views(info, poses),
     )
     verdict = judge_targets(cal, requirements)
@@ -266,6 +268,7 @@ def calibrate_wire_dataset(
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
     mount_sigma_m: float = 0.0,
+    mount_sigma_rad: float = 0.0,
 ) -> TargetRun:
     """A single wire's dataset: the wire's dot in every frame
     (:func:`calib.localize.nwire.detect_wire`), then ``T_ee_us``, the pixel scale and the
@@ -313,6 +316,7 @@ def calibrate_wire_dataset(
             declared=_wire_tolerance(tobs, target, wire_tolerance_m),
             axial_bias_m=axial_bias_m,
             mount_sigma_m=mount_sigma_m,
+            mount_sigma_rad=mount_sigma_rad,
             groups=None if views is None else views[tobs.frame],
         )
         for start in starts
@@ -360,6 +364,7 @@ def calibrate_cone_dataset(
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
     mount_sigma_m: float = 0.0,
+    mount_sigma_rad: float = 0.0,
 ) -> TargetRun:
     """A cone's sweeps: the apex of each (:func:`calib.localize.cone_tip.locate_cone_tip`,
     the sweep's elevations from the robot's poses along the coarse mount's image normal;
@@ -445,6 +450,7 @@ def calibrate_cone_dataset(
         declared=tolerance,
         axial_bias_m=axial_bias_m,
         mount_sigma_m=mount_sigma_m,
+        mount_sigma_rad=mount_sigma_rad,
         groups=views,
     )
     verdict = judge_targets(cal, requirements)
@@ -495,6 +501,7 @@ def run_target(scenario, twin, acq, t_start: float) -> TargetRun:
         wire_tolerance_m=scenario.phantom.tolerance_position_mm / _MM,
         axial_bias_m=echo_depth_bias_m(scenario),
         mount_sigma_m=scenario.calibration.mount_error_mm / _MM,
+        mount_sigma_rad=np.radians(scenario.calibration.mount_error_deg),
     )
     truth = twin.truth
     X_equiv = equivalent_mount(scenario, acq, truth)

@@ -23,7 +23,7 @@ __all__ = [
     "budget_csv",
     "budget_markdown",
     "budget_medians",
-    "declared_mount_error_mm",
+    "declared_mount_error",
     "sources_table",
     "tornado_rows",
     "tornado_table",
@@ -74,23 +74,29 @@ def budget_medians(runs: Runs) -> dict[tuple[str, str], dict[str, float]]:
     return out
 
 
-def declared_mount_error_mm(runs: Runs) -> float | None:
-    """The rig's own mount error a budget measures, as ``calibration.mount_error_mm``
-    declares it (1 σ per axis, mm): per seed, the true translation error of ``T_ee_us``
-    the scenario's sources add to the error-free rig, √(scenario² − every source off²);
-    their rms over the seeds, over √3 (three axes). An upper estimate of what no view
-    shows: it holds the part the data's own scatter shows too. None without a seed that
-    ran both."""
-    by_seed: dict[int, dict[str, float]] = {}
+def declared_mount_error(runs: Runs) -> tuple[float, float] | None:
+    """The rig's own mount error a budget measures, as ``calibration.mount_error_mm`` and
+    ``mount_error_deg`` declare it (1 σ per axis, mm and degrees): per seed, the true
+    translation and rotation errors of ``T_ee_us`` the scenario's sources add to the
+    error-free rig, √(scenario² − every source off²); their rms over the seeds, over √3
+    (three axes). An upper estimate of what no view shows: it holds the part the data's
+    own scatter shows too. None without a seed that ran both."""
+    by_seed: dict[int, dict[str, BudgetOutcome]] = {}
     for run, outcome in _outcomes(runs):
         if run.source == "-" and outcome.figures is not None:
-            by_seed.setdefault(run.seed, {})[run.mode] = outcome.figure("translation_mm")
-    added = [
-        max(d["all"] ** 2 - d["none"] ** 2, 0.0)
-        for d in by_seed.values()
-        if {"all", "none"} <= d.keys() and np.isfinite(d["all"]) and np.isfinite(d["none"])
-    ]
-    return float(np.sqrt(np.mean(added) / 3.0)) if added else None
+            by_seed.setdefault(run.seed, {})[run.mode] = outcome
+    pairs = [d for d in by_seed.values() if {"all", "none"} <= d.keys()]
+
+    def added(figure: str) -> float:
+        a = np.array([d["all"].figure(figure) for d in pairs])
+        n = np.array([d["none"].figure(figure) for d in pairs])
+        ok = np.isfinite(a) & np.isfinite(n)
+        return float(np.sqrt(np.mean(np.maximum(a[ok] ** 2 - n[ok] ** 2, 0.0)) / 3.0))
+
+    if not pairs:
+        return None
+    mm, deg = added("translation_mm"), added("rotation_deg")
+    return (mm, deg) if np.isfinite(mm) and np.isfinite(deg) else None
 
 
 def tornado_rows(
@@ -191,14 +197,15 @@ def budget_markdown(spec: BudgetSpec, runs: Runs, out: Path) -> str:
         sources_table(spec).markdown(),
         "",
     ]
-    declare = declared_mount_error_mm(runs)
+    declare = declared_mount_error(runs)
     if declare is not None:
         lines += [
-            f"**Declare `calibration.mount_error_mm: {declare:.2f}`** for this rig: the true "
-            "translation error of `T_ee_us` its sources add to the error-free rig (rms over "
-            "the seeds of √(scenario² − every source off²), per axis). It is the same in "
-            "every sweep and no view shows it; declared, the calibrations' 95 % bounds "
-            "carry it (an upper estimate: it holds the part their own scatter shows too).",
+            f"**Declare `calibration.mount_error_mm: {declare[0]:.2f}` and `mount_error_deg: "
+            f"{declare[1]:.2f}`** for this rig: the true translation and rotation errors of "
+            "`T_ee_us` its sources add to the error-free rig (rms over the seeds of "
+            "√(scenario² − every source off²), per axis). They are the same in every sweep "
+            "and no view shows them; declared, the calibrations' 95 % bounds carry them (an "
+            "upper estimate: it holds the part their own scatter shows too).",
             "",
         ]
     if failed:

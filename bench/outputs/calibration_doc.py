@@ -78,8 +78,9 @@ def _bound_doc(cal: CalibrationSummary) -> dict[str, Any]:
             f"{kinematics}, axial scale "
             f"{declared.axial_scale_sigma:.2g}"
             + (
-                f", the rig's own mount error {declared.mount_sigma_mm:g} mm"
-                if declared.mount_sigma_mm > 0
+                f", the rig's own mount error {declared.mount_sigma_mm:g} mm / "
+                f"{declared.mount_sigma_deg:g}°"
+                if declared.mount_sigma_mm > 0 or declared.mount_sigma_deg > 0
                 else ""
             )
             + "; 1 σ per axis)."

@@ -69,6 +69,7 @@ class DeclaredTerms:
     kinematic_sigma_mm: float = 0.0
     axial_scale_sigma: float = 0.0
     mount_sigma_mm: float = 0.0
+    mount_sigma_deg: float = 0.0
 
     @classmethod
     def from_metrics(cls, d: Mapping[str, Any]) -> DeclaredTerms:

@@ -108,6 +108,16 @@ class CalibrationConfig:
             "le": 50,
         },
     )
+    mount_error_deg: float = field(
+        default=0.0,
+        metadata={
+            "doc": "The rig's own error of the mount's orientation that no view shows, 1 σ "
+            "per axis (degrees), about the image's origin; as mount_error_mm (`uscal "
+            "budget` measures both). 0 = none declared.",
+            "ge": 0,
+            "le": 30,
+        },
+    )
     require_image_mm: float | None = field(
         default=None,
         metadata={

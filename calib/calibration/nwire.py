@@ -246,6 +246,7 @@ def calibrate_nwire(
     wire_tolerance_m: float = 0.0,
     axial_bias_m: float = 0.0,
     mount_sigma_m: float = 0.0,
+    mount_sigma_rad: float = 0.0,
     groups_of_frames: NDArray[np.int_] | None = None,
 ) -> NWireCalibration:
     """``T_ee_us`` (and the pixel scale, and the phantom's pose when ``T_base_phantom``
@@ -261,8 +262,8 @@ def calibrate_nwire(
     a pulse; at least the rms distance between the dots' centres and their echoes'
     peaks, which a comet tail lengthens), each propagated to first order through the
     fit; and the rig's own error of the mount that no view shows (``mount_sigma_m``,
-    declared). ``groups_of_frames`` (one per frame): the jackknife's groups (a robot's views);
-    without, blocks of consecutive frames."""
+    ``mount_sigma_rad``, declared). ``groups_of_frames`` (one per frame): the
+    jackknife's groups (a robot's views); without, blocks of consecutive frames."""
     if obs.frames_used < MIN_FRAMES:
         why = obs.refusals().most_common(1)
         raise CalibrationError(
@@ -286,6 +287,7 @@ def calibrate_nwire(
         declared=_tolerance_columns(obs, patterns, spacing_m, wire_tolerance_m),
         axial_bias_m=axial_bias_m,
         mount_sigma_m=mount_sigma_m,
+        mount_sigma_rad=mount_sigma_rad,
         n_draws=n_draws,
         groups=None if groups_of_frames is None else np.asarray(groups_of_frames)[obs.frame],
     )

@@ -467,6 +467,7 @@ def calibrate_targets(
     n_draws: int = 4000,
     groups: NDArray[np.int_] | None = None,
     mount_sigma_m: float = 0.0,
+    mount_sigma_rad: float = 0.0,
 ) -> TargetCalibration:
     """``T_ee_us`` (and the pixel scale, and the phantom's pose when ``T_base_phantom``
     is None) from observations of ``targets`` in frames taken at poses ``T_base_ee``
@@ -480,8 +481,8 @@ def calibrate_targets(
     (``axial_bias_m``, 1 σ; at least the rms distance between the points' centres and
     their echoes' peaks, which a comet tail lengthens), propagated to first order
     through the fit; and the rig's own error of the mount's position that no view shows
-    (``mount_sigma_m``, 1 σ per axis, declared: it goes into ``T_ee_us``'s translation
-    whole; :class:`calib.calibration.uncertainty.UncertaintyInputs`).
+    (``mount_sigma_m``, ``mount_sigma_rad``: 1 σ per axis, declared; it goes into
+    ``T_ee_us`` whole; :class:`calib.calibration.uncertainty.UncertaintyInputs`).
 
     ``groups`` (n,): the jackknife's groups when the data have them — a robot's views
     (:func:`calib.calibration.uncertainty.pose_orientation_groups`: the sweeps of one
@@ -583,8 +584,10 @@ def calibrate_targets(
         A = np.linalg.pinv(J.T @ (w[:, None] * J)) @ (J.T * w) @ D
         cov = cov + A @ A.T
 
-    if mount_sigma_m > 0:
+    if mount_sigma_m > 0 or mount_sigma_rad > 0:
+        # (rotation vector, translation): a turn about the image's origin and a move of it.
         cov = cov.copy()
+        cov[0:3, 0:3] += mount_sigma_rad**2 * np.eye(3)
         cov[3:6, 3:6] += mount_sigma_m**2 * np.eye(3)
     # Draws: rotation, translation, and mean distance over the image.
     keep_idx = list(range(6)) + ([model.n - 2, model.n - 1] if estimate_scale else [])

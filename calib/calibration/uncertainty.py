@@ -119,6 +119,9 @@ class UncertaintyInputs:
         sweeps' load where the touches carried another, the localizer's bias on the
         phantom as printed): one draw moves ``T_ee_us`` as a whole, in the flange frame.
         Declared (a twin's error budget of the rig, a datasheet), not estimated.
+    mount_sigma_rad : float
+        The same for the mount's orientation: 1 σ per axis of a rotation about the
+        image's origin (radians).
     """
 
     print_tolerance_m: float = 0.0
@@ -128,6 +131,7 @@ class UncertaintyInputs:
     axial_scale_sigma: float = 0.0
     kinematic_modes: Mapping[tuple[str, int], Array] | None = None
     mount_sigma_m: float = 0.0
+    mount_sigma_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -555,11 +559,16 @@ def bound95(
         c = propagate(D, inputs.axial_scale_sigma)
         terms["axial_scale"] = _rss(c, A_rt)
         cov_sys += c
-    if inputs.mount_sigma_m > 0:
-        # The mount's origin moved in the flange frame (ξ's ρ, no rotation): the whole
-        # declared error goes into T_ee_us, none of it into the residuals.
+    if inputs.mount_sigma_m > 0 or inputs.mount_sigma_rad > 0:
+        # The mount's origin moved in the flange frame (ξ's ρ) and the mount turned about
+        # that origin (ω, with ρ = t × ω so the origin stays): the whole declared error
+        # goes into T_ee_us, none of it into the residuals.
+        t = T_X[:3, 3]
+        t_hat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        turn = np.vstack([t_hat, np.eye(3)])  # (6, 3): ξ of a turn about the origin
         c = np.zeros((6, 6))
         c[:3, :3] = inputs.mount_sigma_m**2 * np.eye(3)
+        c += inputs.mount_sigma_rad**2 * turn @ turn.T
         terms["mount"] = _rss(c, A_rt)
         cov_sys += c
     cov = cov_stat + cov_sys
