@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import sys
 import traceback
@@ -402,6 +401,7 @@ def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console
         calibrate_nwire_dataset,
         calibrate_wire_dataset,
         echo_depth_bias_m,
+        mount_error,
     )
     from .outputs.target_files import write_target
 
@@ -424,8 +424,7 @@ def _calibrate_target(args, settings, dataset: Path, out: Path, console: Console
                 estimate_scale=not args.fixed_pixel_scale and info.cone_tip is None,
                 wire_tolerance_m=settings.phantom.tolerance_position_mm * 1e-3,
                 axial_bias_m=echo_depth_bias_m(settings),
-                mount_sigma_m=settings.calibration.mount_error_mm * 1e-3,
-                mount_sigma_rad=math.radians(settings.calibration.mount_error_deg),
+                **mount_error(settings),
             )
         written = write_target(tmp, result)
     print_target(result, console)

@@ -1192,7 +1192,7 @@ def _splat_surface_speckle(
     # The sub-scatterers are made in chunks, the field looked up for a chunk at once
     # (its hashing vectorizes), then splatted in the order they were made.
     chunk = 2048
-    u = np.empty((chunk, 3))
+    cells = np.empty((chunk, 3))  # each sub-scatterer's point in cell units
     scale = np.empty(chunk, dtype=np.float32)
     rows = np.empty(chunk)
     bases = np.empty(chunk, dtype=np.int64)
@@ -1205,32 +1205,32 @@ def _splat_surface_speckle(
             m = min(int(np.ceil(4.0 * h)) + 1, _MAX_SLAB_SCATTERERS)
         f = frame[j]
         for i in range(m):
-            t = (i + 0.5) / m
-            y = row_f[j] - h + 2.0 * t * h
+            u = (i + 0.5) / m
+            y = row_f[j] - h + 2.0 * u * h
             if not (-1.0 < y < H):
                 continue
-            w = (2.0 * share[j] + 2.0 * (1.0 - 2.0 * share[j]) * t) / m if m > 1 else 1.0
+            w = (2.0 * share[j] + 2.0 * (1.0 - 2.0 * share[j]) * u) / m if m > 1 else 1.0
             if w <= 0.0:
                 continue
-            dz = (t - 0.5) * slab[j] * sign[j] if m > 1 else 0.0
+            dz = (u - 0.5) * slab[j] * sign[j] if m > 1 else 0.0
             for a in range(3):
-                u[k, a] = (point[j, a] + dz * z_axis[f, a]) / cell
+                cells[k, a] = (point[j, a] + dz * z_axis[f, a]) / cell
             scale[k] = np.float32(np.sqrt(energy[j] * w))
             rows[k] = y
             bases[k] = f * H * W + col[j]
             k += 1
             if k == chunk:
-                _splat_scatterers(out, H, W, u, scale, rows, bases, val, k, table, key)
+                _splat_scatterers(out, H, W, cells, scale, rows, bases, val, k, table, key)
                 k = 0
-    _splat_scatterers(out, H, W, u, scale, rows, bases, val, k, table, key)
+    _splat_scatterers(out, H, W, cells, scale, rows, bases, val, k, table, key)
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def _splat_scatterers(out, H, W, u, scale, rows, bases, val, k, table, key):  # pragma: no cover
+def _splat_scatterers(out, H, W, cells, scale, rows, bases, val, k, table, key):  # pragma: no cover
     """Splat the first ``k`` sub-scatterers of a chunk (see :func:`_splat_surface_speckle`):
-    the field at each point (cell units ``u``) times its ``scale``, split linearly over
-    the two rows about its row ``rows`` of the column at flat index ``bases``."""
-    _smooth_values(u[:k], table, key, val)
+    the field at each point (``cells``: cell units) times its ``scale``, split linearly
+    over the two rows about its row ``rows`` of the column at flat index ``bases``."""
+    _smooth_values(cells[:k], table, key, val)
     for i in range(k):
         y = rows[i]
         v = val[i] * scale[i]

@@ -139,6 +139,23 @@ def test_a_wire_and_a_cone_tip_in_one_fit_stay_within_their_bound(rng):
     assert 0.02 < cal.sigma_mm < 0.1  # half a pixel of 0.1 mm, per axis
 
 
+def test_a_declared_mount_error_goes_into_a_targets_bound_whole(rng):
+    """The rig's own mount error (1 σ per axis, declared) widens a target calibration's
+    bounds as a sphere calibration's: the translation bound at least its own 95 %
+    quantile (2.80 σ), the rotation bound likewise with its orientation term."""
+    obs, targets, poses = _observations(rng, [(WIRE, 60), (TIP, 60)], noise_px=0.5)
+    kw = dict(width_px=W, height_px=H, spacing_m=SPACING, start=_start(rng, 2.0, 2.0))
+    plain = calibrate_targets(obs, targets, poses, n_draws=1000, **kw)
+    sigma_mm, sigma_deg = 0.4, 1.5
+    declared = calibrate_targets(
+        obs, targets, poses, n_draws=1000, mount_sigma_m=sigma_mm * MM,
+        mount_sigma_rad=np.radians(sigma_deg), **kw,
+    )  # fmt: skip
+    assert declared.bound95["translation_mm"] >= 2.8 * sigma_mm > plain.bound95["translation_mm"]
+    assert declared.bound95["rotation_deg"] >= 2.8 * sigma_deg > plain.bound95["rotation_deg"]
+    np.testing.assert_allclose(declared.T_ee_us, plain.T_ee_us)  # the estimate is the same
+
+
 def test_wires_without_a_start_and_too_few_frames_are_refused(rng):
     obs, targets, poses = _observations(rng, [(WIRE, 20)])
     with pytest.raises(CalibrationError, match="needs a start"):

@@ -87,6 +87,14 @@ def echo_depth_bias_m(scenario) -> float:
     return bias
 
 
+def mount_error(scenario) -> dict[str, float]:
+    """The rig's own mount error a target's bounds declare (``mount_sigma_m``,
+    ``mount_sigma_rad``): the scenario's, as its sphere calibrations' bounds take it
+    (:func:`bench.config.method.scenario_uncertainty`)."""
+    inputs = scenario_uncertainty(scenario)
+    return {"mount_sigma_m": inputs.mount_sigma_m, "mount_sigma_rad": inputs.mount_sigma_rad}
+
+
 def _views(info: AcquisitionInfo, poses: Array) -> NDArray[np.int_] | None:
     """The jackknife's groups of a robot's frames: its views (the frames of one flange
     orientation share what that orientation does to the targets' echoes); None for a
@@ -500,8 +508,7 @@ def run_target(scenario, twin, acq, t_start: float) -> TargetRun:
         requirements(scenario),
         wire_tolerance_m=scenario.phantom.tolerance_position_mm / _MM,
         axial_bias_m=echo_depth_bias_m(scenario),
-        mount_sigma_m=scenario.calibration.mount_error_mm / _MM,
-        mount_sigma_rad=np.radians(scenario.calibration.mount_error_deg),
+        **mount_error(scenario),
     )
     truth = twin.truth
     X_equiv = equivalent_mount(scenario, acq, truth)

@@ -398,7 +398,7 @@ def calibrate(
     # The increment acts on the left, T = exp(ρ, ω) T_X: to first order the rotation
     # vector is ω (ee frame) and the translation changes by ρ + ω × t = ρ − [t]× ω.
     t = T_X[:3, 3]
-    t_hat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    t_hat = se3.hat(t)
     A = np.zeros((6, 6))
     A[:3, 3:] = np.eye(3)  # rotation vector ← ω
     A[3:, :3] = np.eye(3)  # translation ← ρ

@@ -380,7 +380,7 @@ def _to_rotvec_translation(T_X: Array) -> Array:
     the ee frame, change of ``T_X``'s translation): to first order ``ω`` and
     ``ρ + ω × t = ρ − [t]× ω``."""
     t = T_X[:3, 3]
-    t_hat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    t_hat = se3.hat(t)
     A = np.zeros((6, 6))
     A[:3, 3:] = np.eye(3)
     A[3:, :3] = np.eye(3)
@@ -563,9 +563,7 @@ def bound95(
         # The mount's origin moved in the flange frame (ξ's ρ) and the mount turned about
         # that origin (ω, with ρ = t × ω so the origin stays): the whole declared error
         # goes into T_ee_us, none of it into the residuals.
-        t = T_X[:3, 3]
-        t_hat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-        turn = np.vstack([t_hat, np.eye(3)])  # (6, 3): ξ of a turn about the origin
+        turn = np.vstack([se3.hat(T_X[:3, 3]), np.eye(3)])  # (6, 3): ξ of a turn about it
         c = np.zeros((6, 6))
         c[:3, :3] = inputs.mount_sigma_m**2 * np.eye(3)
         c += inputs.mount_sigma_rad**2 * turn @ turn.T
