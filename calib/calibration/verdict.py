@@ -21,7 +21,9 @@ The pipeline already holds the evidence; a calibration is judged on these questi
 - **Is the sphere the size it was said to be?** The cap's section in the frame through
   each centre gives the radius the images draw (:func:`calib.localize.
   apparent_sphere_radius`); a radius given wrong puts every centre off along its beam by
-  the difference, an error the residuals cannot show.
+  the difference, an error the residuals cannot show. A printed sphere out of round draws
+  its cap's own curvature instead (0.1 mm rms reads up to ≈ 0.5 mm off the radius), and
+  its centre is off along the beam by the cap's own error: the reason names both.
 - **Is the image's scale the one assumed?** ``T_ee_us`` refitted with the lateral and
   axial scale free (:func:`image_scale`): a pixel spacing the scanner reports wrong, or
   a speed of sound not corrected, shows as a scale off by more than 1 % and three
@@ -495,7 +497,10 @@ def judge(
                 f"the images draw the sphere {seen * _MM:.2f} mm in radius where "
                 f"{given * _MM:g} mm was given (over {n_seen} sweeps): check the radius "
                 "(phantom.sphere_radius_mm or the dataset's), the pixel spacing and the speed "
-                "of sound — every centre lies off along its beam by the difference"
+                "of sound — a radius given wrong puts every centre off along its beam by the "
+                "difference; a printed sphere out of round by a tenth of a millimetre draws "
+                "its cap as much as half a millimetre off its radius too, and its centre "
+                "off along the beam by its cap's own error"
             )
     scale = image_scale(alt)
     if scale is not None and scale.off():
