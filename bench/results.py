@@ -239,7 +239,11 @@ def calibration_entry(
     seen = [precision[t] for t in train if t in precision]
     if verdict is None:
         verdict = judge(
-            alt, bound[0] if bound is not None else None, requirements, geometry=geometry
+            alt,
+            bound[0] if bound is not None else None,
+            requirements,
+            geometry=geometry,
+            kinematic_modes=bound[1].kinematic_modes if bound is not None else None,
         )
     return {
         "verdict": verdict.as_dict(),

@@ -18,6 +18,7 @@ its 95 % bound. Targets: no ``accepted`` calibration is more than 1 mm off over 
 ``false_accepts=<n> coverage_accepted=<fraction>``.
 
 Run: python benchmarks/verdict.py [--runs 30] [--seed 0] [--workers 2] [--json FILE]
+[--refined-share 0.25] [--fault NAME]
 """
 
 from __future__ import annotations
@@ -67,10 +68,20 @@ FAULTS = {
 }
 
 
-def draw(n: int, seed: int, faults: bool = True) -> list[tuple[str, dict[str, Any], int]]:
+def draw(
+    n: int,
+    seed: int,
+    faults: bool = True,
+    *,
+    refined_share: float = 0.25,
+    fault: str | None = None,
+) -> list[tuple[str, dict[str, Any], int]]:
     """``n`` runs: (label, overrides, run seed), conditions drawn at random; with
     ``faults``, about half with one of :data:`FAULTS` (``benchmarks/uncertainty.py``
-    draws the same conditions without)."""
+    draws the same conditions without). ``refined_share``: the share of arms off their
+    model as the paper rig's and refined from their own touches; ``fault``: every run
+    with this one of :data:`FAULTS` (a stress of one combination, e.g. a pixel spacing
+    off on refined arms, where the arm model's own error hides a scale)."""
     rng = np.random.default_rng([seed, 0xE7D1C7])
     out = []
     for i in range(n):
@@ -88,13 +99,16 @@ def draw(n: int, seed: int, faults: bool = True) -> list[tuple[str, dict[str, An
             "robot.dh_error_scale": round(float(rng.choice([0.0, 0.02, 0.05])), 2),
             "localization.method": str(rng.choice(["refined", "paper"], p=[0.75, 0.25])),
         }
-        if rng.random() < 0.25:
+        if rng.random() < refined_share:
             # The arm's model off as the paper's rig's is, refined from the acquisition's
             # own touches of the cone vertices: a condition the pipeline handles.
             ov["robot.dh_error_scale"] = round(float(rng.uniform(0.3, 1.0)), 2)
             ov["evaluation.touches_one_dataset"] = True
         label = "clean"
-        if rng.random() < 0.5 and faults:
+        if fault is not None:
+            label = fault
+            ov |= FAULTS[label](rng)
+        elif rng.random() < 0.5 and faults:
             label = str(rng.choice(list(FAULTS)))
             ov |= FAULTS[label](rng)
         out.append((label, ov, int(rng.integers(1000, 1_000_000)) + i))
@@ -241,8 +255,17 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="the draw of conditions")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--json", help="write every run's figures here")
+    parser.add_argument(
+        "--refined-share",
+        type=float,
+        default=0.25,
+        help="share of arms off their model as the paper rig's, refined from their touches",
+    )
+    parser.add_argument("--fault", choices=list(FAULTS), help="every run with this fault")
     args = parser.parse_args()
-    todo = draw(args.runs, args.seed)
+    if not 0.0 <= args.refined_share <= 1.0:
+        parser.error(f"--refined-share must be within 0-1, got {args.refined_share}")
+    todo = draw(args.runs, args.seed, refined_share=args.refined_share, fault=args.fault)
     t0 = time.perf_counter()
     results = run_on_pool(todo, _safe, args.workers, _cells, args.json)
     failed = sum("error" in r for r in results)

@@ -60,7 +60,7 @@ from .probe import MediumConfig, ProbeConfig
 from .propagation import Echoes, trace
 from .raycast import AcousticScene, RayCaster
 from .speckle import ScattererField, _smooth_values
-from .transducer import band_loss, transducer
+from .transducer import MirrorTables, band_loss, transducer
 from .wires import wire_echoes
 
 __all__ = ["BmodeSimulator", "Timings"]
@@ -208,7 +208,7 @@ class BmodeSimulator:
         self._beam_speed, self._beam_key = c, key
         sx, sy = self.true_spacing
         rows_y, dz = self._pixel_y, self._dz
-        self.mirror = mirror_of(probe, c)
+        self._mirror: MirrorTables | None = None  # made when a surface is first drawn
         # A flat reflector's echo against depth (intensity per row, re the elevation
         # focus): every echo drawn at a depth carries it (sim_us.transducer.flat_echo).
         self._flat_rows = (flat_echo_gain(probe, rows_y, c) ** 2).astype(np.float32)
@@ -238,6 +238,15 @@ class BmodeSimulator:
         self._speckle_norm = (
             1.0 / (np.sum(k_ax.astype(float) ** 2) * np.sum(k_lat**2, axis=1))
         ).astype(np.float32)
+
+    @property
+    def mirror(self) -> MirrorTables:
+        """The echo of a surface element through the apertures in the beam's medium
+        (:func:`sim_us.beam.mirror_of`), made when the first surface is drawn: a scene
+        of wires alone never needs it (its tables cost as much as the beam's)."""
+        if self._mirror is None:
+            self._mirror = mirror_of(self.probe, self._beam_speed)
+        return self._mirror
 
     @property
     def T_face_image(self) -> Array:

@@ -15,6 +15,7 @@ from calib.calibration.alternation import AlternationResult
 from calib.calibration.markers import CalibrationResult, Observation
 from calib.calibration.verdict import (
     BoundFigures,
+    ImageScale,
     Requirements,
     SweepGeometry,
     judge,
@@ -212,6 +213,67 @@ def test_an_image_scale_off_is_found_and_named():
     clean = judge(_alternation(), BOUND).scale
     assert clean is not None and clean.off() == []
     assert abs(clean.axial - 1.0) < 3 * clean.axial_se + 0.002
+
+
+def _arm_stretched(
+    stretch: float, spacing_error: float = 0.0
+) -> tuple[AlternationResult, dict[tuple[str, int], np.ndarray]]:
+    """:func:`_alternation`'s views through an arm whose reported flange positions are
+    ``stretch`` (a share) too far from their mean (a kinematic model off smoothly with the
+    configuration), with the pixel spacing ``spacing_error`` too long; and that arm
+    model's declared error as a kinematic mode (:func:`calib.kinematics.kinematic_modes`'s
+    form): 1 σ a stretch of 1.5 %."""
+    rng = np.random.default_rng(1)
+    poses = _views()
+    mean = np.mean([T[:3, 3] for T in poses], axis=0)
+    obs, modes = [], {}
+    for i, T_true in enumerate(poses):
+        p_us = se3.apply(se3.invert(T_true), P_BASE) + rng.normal(0.0, 0.1 * MM, 3)
+        p_us[:2] *= 1.0 + spacing_error
+        T_reported = T_true.copy()
+        T_reported[:3, 3] = mean + (1.0 + stretch) * (T_true[:3, 3] - mean)
+        obs.append(Observation("sphere_1", i, p_us, T_reported))
+        mode = np.zeros((1, 4, 4))
+        mode[0, :3, 3] = 0.015 * (T_reported[:3, 3] - mean)
+        modes[("sphere_1", i)] = mode
+    result = CalibrationResult(
+        np.eye(4), None, np.ones(len(obs), bool), np.zeros(len(obs)), np.eye(6) * 1e-8, 0.0
+    )
+    history = [
+        {"iteration": 0, "change_mm": float("inf"), "change_deg": float("inf")},
+        {"iteration": 1, "change_mm": 0.001, "change_deg": 0.001},
+    ]
+    return AlternationResult(result, obs, {"sphere_1": []}, history), modes
+
+
+def test_an_arm_model_off_with_the_configuration_is_no_evidence_of_a_scale_off():
+    """An arm that reports its displacements 3 % long moves the centres as a scale 3 %
+    off would (the scale is read from how they move with the flange): without its model's
+    error declared the check blames the spacing; with it (a 1.5 % stretch at 1 σ, as a
+    refinement's modes carry it) the scale's standard errors hold it and the calibration
+    is accepted, and a spacing 6 % off is still found beside it (3 standard errors
+    are ≈ 5 % there: so uncertain an arm leaves only gross scale errors to see)."""
+    alt, modes = _arm_stretched(0.03)
+    blind = judge(alt, BOUND)
+    assert "scale looks off" in blind.line()
+    assert blind.scale is not None and blind.scale.axial_se_arm == 0.0
+    v = judge(alt, BOUND, kinematic_modes=modes)
+    assert v.status == "accepted", v.line()
+    s = v.scale
+    assert s is not None and s.axial - 1.0 > 0.02  # the reading itself is unchanged
+    # The arm's part: ≈ the declared 1.5 % stretch, in quadrature with the data's.
+    assert 0.8 < s.axial_se_arm / 0.015 < 1.25 and 0.8 < s.lateral_se_arm / 0.015 < 1.25
+    assert s.axial_se == pytest.approx(np.hypot(blind.scale.axial_se, s.axial_se_arm))
+    assert ImageScale.from_dict(s.as_dict()).as_dict() == s.as_dict()  # as stored
+    # Handed in as computed elsewhere (where the modes were), the same verdict.
+    assert judge(alt, BOUND, scale=s).line() == v.line()
+    spacing, modes = _arm_stretched(0.0, spacing_error=0.06)
+    v = judge(spacing, BOUND, kinematic_modes=modes)
+    assert v.status == "suspect" and "scale looks off" in v.line()
+    assert v.scale is not None and [name for name, _, _ in v.scale.off()] == [
+        "laterally",
+        "in depth",
+    ]
 
 
 def test_many_dropped_centres_are_suspect():

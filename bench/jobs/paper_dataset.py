@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from calib import se3
 from calib.calibration.uncertainty import alternation_bound
-from calib.calibration.verdict import sweep_geometry
+from calib.calibration.verdict import image_scale, sweep_geometry
 from calib.dh import DHTable
 from calib.kinematics import (
     TouchReference,
@@ -202,6 +202,10 @@ def run_dataset(task: DatasetTask, scan: DatasetScan | None = None) -> DatasetOu
         geometry = sweep_geometry(r.alternation, everything, stated_radius(scenario))
         if geometry is not None:
             uncertainty[r.fold.name]["sweep_geometry"] = geometry.as_dict()
+        # Its image scale, with the frozen model's modes carried (judged with its bound).
+        scale = image_scale(r.alternation, modes)
+        if scale is not None:
+            uncertainty[r.fold.name]["image_scale"] = scale.as_dict()
     t_bounds = time.perf_counter() - t0
 
     # ---- against the truth (beyond the paper)

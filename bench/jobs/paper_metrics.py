@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.calibration.verdict import BoundFigures, SweepGeometry, judge
+from calib.calibration.verdict import BoundFigures, ImageScale, SweepGeometry, judge
 from calib.evaluation.cross_validation import (
     FoldResult,
     Summary,
@@ -71,8 +71,14 @@ def evaluation_metrics(
             bound = None if figures is None else BoundFigures.from_dict(figures)
             g = fold_bounds.get(r.fold.name, {}).get("sweep_geometry")
             geometry = None if g is None else SweepGeometry.from_dict(g)
+            # The image scale as the dataset task read it (with the arm model's modes).
+            s = fold_bounds.get(r.fold.name, {}).get("image_scale")
             verdicts[r.fold.name] = judge(
-                r.alternation, bound, requirements(scenario), geometry=geometry
+                r.alternation,
+                bound,
+                requirements(scenario),
+                geometry=geometry,
+                scale=None if s is None else ImageScale.from_dict(s),
             )
 
     def calibration_entry(r: FoldResult) -> dict[str, Any]:

@@ -27,7 +27,9 @@ The pipeline already holds the evidence; a calibration is judged on these questi
 - **Is the image's scale the one assumed?** ``T_ee_us`` refitted with the lateral and
   axial scale free (:func:`image_scale`): a pixel spacing the scanner reports wrong, or
   a speed of sound not corrected, shows as a scale off by more than 1 % and three
-  standard errors.
+  standard errors. The scale is read from how the centres move with the flange, so an
+  arm model that errs smoothly with the configuration reads as a scale too: a refined
+  model's own error (the modes the bound carries) adds to the standard errors.
 - **Do the data determine ``T_ee_us`` at all?** Sweeps from fewer than two distinct
   flange orientations, or an estimate whose 95 % bound is beyond 10° or 10 mm (where a
   first-order bound no longer describes the error, and the coarse mount from the CAD is
@@ -59,7 +61,7 @@ bound.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -216,12 +218,16 @@ class PoseAgreement:
 class ImageScale:
     """The scale of the images (lateral, axial) against the one the pipeline assumed
     (1 = as assumed), fitted with ``T_ee_us`` and the spheres' centres, and its
-    standard errors."""
+    standard errors: ``lateral_se`` / ``axial_se`` in all, of which ``lateral_se_arm`` /
+    ``axial_se_arm`` the arm model's own error carried through the fit (0: none
+    declared)."""
 
     lateral: float
     axial: float
     lateral_se: float
     axial_se: float
+    lateral_se_arm: float = 0.0
+    axial_se_arm: float = 0.0
 
     def off(self) -> list[tuple[str, float, float]]:
         """The axes whose scale is off by more than :data:`SCALE_MISMATCH` and three
@@ -236,21 +242,47 @@ class ImageScale:
         return out
 
     def as_dict(self) -> dict[str, float]:
-        return {
+        out = {
             "lateral": round(self.lateral, 5),
             "axial": round(self.axial, 5),
             "lateral_se": round(self.lateral_se, 5),
             "axial_se": round(self.axial_se, 5),
         }
+        if self.lateral_se_arm or self.axial_se_arm:
+            out["lateral_se_arm"] = round(self.lateral_se_arm, 5)
+            out["axial_se_arm"] = round(self.axial_se_arm, 5)
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, float]) -> ImageScale:
+        return cls(
+            float(d["lateral"]),
+            float(d["axial"]),
+            float(d["lateral_se"]),
+            float(d["axial_se"]),
+            float(d.get("lateral_se_arm", 0.0)),
+            float(d.get("axial_se_arm", 0.0)),
+        )
 
 
-def image_scale(alt: AlternationResult) -> ImageScale | None:
+def image_scale(
+    alt: AlternationResult, kinematic_modes: Mapping[tuple[str, int], Array] | None = None
+) -> ImageScale | None:
     """:class:`ImageScale` of a calibration's retained centres: ``T_ee_us`` refitted with
     the image's lateral and axial scale free (``P_base = T_base_ee T_ee_us diag(s_x, s_y,
     1) p_us``, each sphere's centre free: the similarity PLUS's ImageToProbe allows), the
     scales' standard errors from the fit's Jacobian and residuals. The protocol's
     in-plane offsets and tilts make the scale observable: on the twin's quick.yaml to
-    ± 0.2–0.4 %. None with too few centres."""
+    ± 0.2–0.4 %. None with too few centres.
+
+    The scale is read from how the centres move with the flange's position and tilt, and
+    an arm whose model errs smoothly with its configuration moves them alike: on the
+    paper's rig (its DH model refined from touches) the arm's errors alone read 1.35 %
+    in depth where the images' scale is right. ``kinematic_modes`` (the refined model's
+    own error at the sweeps' poses, :func:`calib.kinematics.kinematic_modes`, as the 95 %
+    bound takes it) are carried through the fit to first order and add to the standard
+    errors in quadrature, as they add to the bound's first order: where the arm's model
+    is that uncertain, a scale reading as far off is no evidence against the spacing."""
     keep = alt.result.retained
     obs = [o for o, k in zip(alt.observations, keep, strict=True) if k]
     targets = list(dict.fromkeys(o.target for o in obs))
@@ -277,9 +309,28 @@ def image_scale(alt: AlternationResult) -> ImageScale | None:
     scale = np.r_[np.full(6, 1e-3), 0.01, 0.01, np.full(c0.size, 1e-3)]
     fit = least_squares(residuals, x0, x_scale=scale)
     dof = len(fit.fun) - len(x0)
-    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * float(fit.fun @ fit.fun) / dof
+    JtJ_inv = np.linalg.pinv(fit.jac.T @ fit.jac)
+    cov = JtJ_inv * float(fit.fun @ fit.fun) / dof
     se = np.sqrt(np.clip(np.diag(cov)[6:8], 0.0, None))
-    return ImageScale(float(fit.x[6]), float(fit.x[7]), float(se[0]), float(se[1]))
+    arm = np.zeros(2)
+    if kinematic_modes is not None:
+        # Each mode moves every centre (metres, (n, k, 3)); the residuals' columns are
+        # those moves (mm), and dx = −(JᵀJ)⁻¹ Jᵀ D the fit's answer to them.
+        M = np.array([kinematic_modes[(o.target, int(o.pose_id))] for o in obs])
+        q = se3.apply(T0, p_us)  # the centres in the flange frame
+        moved = np.einsum("nkij,nj->nki", M[..., :3, :3], q) + M[..., :3, 3]
+        D = moved.transpose(0, 2, 1).reshape(-1, M.shape[1]) * _MM
+        dx = -(JtJ_inv @ fit.jac.T @ D)[6:8]
+        arm = np.sqrt(np.sum(dx**2, axis=1))
+    total = np.hypot(se, arm)
+    return ImageScale(
+        float(fit.x[6]),
+        float(fit.x[7]),
+        float(total[0]),
+        float(total[1]),
+        float(arm[0]),
+        float(arm[1]),
+    )
 
 
 @dataclass(frozen=True)
@@ -444,13 +495,19 @@ def judge(
     requirements: Requirements | None = None,
     *,
     geometry: SweepGeometry | None = None,
+    kinematic_modes: Mapping[tuple[str, int], Array] | None = None,
+    scale: ImageScale | None = None,
     tol_mm: float = AlternationSettings.tol_mm,
     tol_deg: float = AlternationSettings.tol_deg,
 ) -> Verdict:
     """The verdict on one calibration (see the module's questions). ``geometry``: how its
-    sweeps met the spheres (:func:`sweep_geometry`; None: not asked). ``tol_mm`` /
-    ``tol_deg``: the alternation's own tolerances (an update below both has converged
-    whatever the bound)."""
+    sweeps met the spheres (:func:`sweep_geometry`; None: not asked).
+    ``kinematic_modes``: the refined arm model's own error at the sweeps' poses (as the
+    bound's :class:`calib.calibration.uncertainty.UncertaintyInputs` holds it; None: the
+    controller's model, none declared), which the scale's standard errors carry
+    (:func:`image_scale`); ``scale``: that image scale when it was computed already
+    (e.g. where the modes were). ``tol_mm`` / ``tol_deg``: the alternation's own
+    tolerances (an update below both has converged whatever the bound)."""
     requirements = requirements or Requirements()
     suspect: list[str] = []
     rejected: list[str] = []
@@ -502,7 +559,8 @@ def judge(
                 "its cap as much as half a millimetre off its radius too, and its centre "
                 "off along the beam by its cap's own error"
             )
-    scale = image_scale(alt)
+    if scale is None:
+        scale = image_scale(alt, kinematic_modes)
     if scale is not None and scale.off():
         parts = " and ".join(f"{p:+.1f} % {name} (± {se:.1f} %)" for name, p, se in scale.off())
         suspect.append(
