@@ -257,6 +257,7 @@ def calibration_entry(
         "trained_on": list(train),
         "tested_on": list(test),
         **(uncertainty_entry(*bound) if bound is not None else {}),
+        **({"sweep_geometry": geometry.as_dict()} if geometry is not None else {}),
         **layout_entry(alt),
     }
 

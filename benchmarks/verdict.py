@@ -153,6 +153,8 @@ def point(label: str, overrides: dict[str, Any], seed: int) -> dict[str, Any]:
                 c["verdict"]["last_update_deg"],
             ],
             "pose_agreement": c["verdict"].get("pose_agreement"),
+            # How its sweeps met the spheres (tilt towards depth, the caps' depth).
+            "sweep_geometry": c.get("sweep_geometry"),
         }
     return out
 

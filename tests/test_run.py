@@ -59,6 +59,9 @@ def test_metrics_have_the_documented_keys(quick_metrics):
         c = m["calibration"][method]
         assert {"rotation_deg", "translation_mm", "image_mm"} <= set(c["true_error"])
         assert {"precision_mm", "accuracy_mm", "n_retained", "iterations", "verdict"} <= set(c)
+        # The verdict's evidence of how the sweeps met the spheres.
+        assert set(c["sweep_geometry"]) == {"in_depth_deg", "cap_depth_mm"}
+        assert 0.0 < c["sweep_geometry"]["cap_depth_mm"] < 40.0
     assert {"simulate", "localize", "calibrate", "total"} <= set(m["timing_s"])
 
 
