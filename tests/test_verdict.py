@@ -67,8 +67,14 @@ def _alternation(
         p_us = p_us + view_error[i // 5] + rng.normal(0.0, noise_mm * MM, 3)
         p_us[:2] *= 1.0 + spacing_error  # what the image reports
         obs.append(Observation("sphere_1", i, p_us, T_base_ee))
+    return _settled_at_truth(obs, history)
+
+
+def _settled_at_truth(obs: list[Observation], history: list[dict] | None = None):
+    """An alternation of ``obs`` that ended at the true mount (identity), settled unless
+    ``history`` says otherwise."""
     result = CalibrationResult(
-        T, None, np.ones(len(obs), bool), np.zeros(len(obs)), np.eye(6) * 1e-8, 0.0
+        np.eye(4), None, np.ones(len(obs), bool), np.zeros(len(obs)), np.eye(6) * 1e-8, 0.0
     )
     history = history or [
         {"iteration": 0, "change_mm": float("inf"), "change_deg": float("inf")},
@@ -236,14 +242,7 @@ def _arm_stretched(
         mode = np.zeros((1, 4, 4))
         mode[0, :3, 3] = 0.015 * (T_reported[:3, 3] - mean)
         modes[("sphere_1", i)] = mode
-    result = CalibrationResult(
-        np.eye(4), None, np.ones(len(obs), bool), np.zeros(len(obs)), np.eye(6) * 1e-8, 0.0
-    )
-    history = [
-        {"iteration": 0, "change_mm": float("inf"), "change_deg": float("inf")},
-        {"iteration": 1, "change_mm": 0.001, "change_deg": 0.001},
-    ]
-    return AlternationResult(result, obs, {"sphere_1": []}, history), modes
+    return _settled_at_truth(obs), modes
 
 
 def test_an_arm_model_off_with_the_configuration_is_no_evidence_of_a_scale_off():

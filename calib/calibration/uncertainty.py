@@ -65,6 +65,8 @@ __all__ = [
     "alternation_bound",
     "bound95",
     "image_grid",
+    "modes_at",
+    "moved_by_modes",
     "orientation_groups",
     "pose_orientation_groups",
 ]
@@ -319,6 +321,18 @@ def _layout_mismatch(obs, targets, J: Array, D_cad: Array, r: Array) -> float:
     return float(np.sqrt(max(excess, 0.0) / max(float(np.sum(P_cad[last] ** 2)), 1e-30)))
 
 
+def modes_at(obs: Sequence[Observation], modes: Mapping[tuple[str, int], Array]) -> Array:
+    """(n, k, 4, 4): the kinematic modes (:attr:`UncertaintyInputs.kinematic_modes`) at
+    each observation's pose."""
+    return np.array([modes[(o.target, int(o.pose_id))] for o in obs])
+
+
+def moved_by_modes(M: Array, z: Array) -> Array:
+    """(n, k, 3) metres: points ``z`` (n, 3, flange frame) moved by each mode of ``M``
+    (:func:`modes_at`), to first order."""
+    return np.einsum("nkij,nj->nki", M[..., :3, :3], z) + M[..., :3, 3]
+
+
 def _gauge_free_displacements(
     obs: Sequence[Observation],
     modes: Mapping[tuple[str, int], Array],
@@ -329,7 +343,7 @@ def _gauge_free_displacements(
     kinematic modes (:attr:`UncertaintyInputs.kinematic_modes`), less what one rigid
     change of the base frame and one of the flange frame explain of that mode over all
     the observations' poses at the image's points (least squares, to first order)."""
-    M = np.array([modes[(o.target, int(o.pose_id))] for o in obs])  # (n, k, 4, 4)
+    M = modes_at(obs, modes)  # (n, k, 4, 4)
     T = np.array([o.T_base_ee for o in obs])  # (n, 4, 4)
     n, k = M.shape[:2]
     # Tool points: a few of the image's points (corners and middle) and each
@@ -351,16 +365,12 @@ def _gauge_free_displacements(
         A[:, :, 9:12] = R
         return A
 
-    def moved(z: Array) -> Array:
-        """(n, k, 3): the point z (n, 3) moved by each mode."""
-        return np.einsum("nkij,nj->nki", M[..., :3, :3], z) + M[..., :3, 3]
-
     A_fit = np.concatenate([design(np.broadcast_to(p, (n, 3))) for p in tool], axis=1)
-    b_fit = np.concatenate([moved(np.broadcast_to(p, (n, 3))) for p in tool], axis=2)
+    b_fit = np.concatenate([moved_by_modes(M, np.broadcast_to(p, (n, 3))) for p in tool], axis=2)
     # b_fit: (n, k, 3m) with each point's 3 rows in turn, matching A_fit's (n, 3m, 12).
     b_fit = b_fit.reshape(n, k, len(tool), 3).transpose(0, 2, 3, 1).reshape(n * 3 * len(tool), k)
     xi = np.linalg.lstsq(A_fit.reshape(-1, 12), b_fit, rcond=None)[0]  # (12, k)
-    return moved(own) - np.einsum("nij,jk->nki", design(own), xi)
+    return moved_by_modes(M, own) - np.einsum("nij,jk->nki", design(own), xi)
 
 
 def _dominating(A: Array, B: Array) -> Array:

@@ -78,7 +78,7 @@ from ..acquisition.protocol import sweep_axis_off_normal
 from ..records import Sweep
 from .alternation import AlternationResult, AlternationSettings
 from .markers import centres_in_base
-from .uncertainty import Bound95, orientation_groups
+from .uncertainty import Bound95, modes_at, moved_by_modes, orientation_groups
 
 __all__ = [
     "BoundFigures",
@@ -316,10 +316,8 @@ def image_scale(
     if kinematic_modes is not None:
         # Each mode moves every centre (metres, (n, k, 3)); the residuals' columns are
         # those moves (mm), and dx = −(JᵀJ)⁻¹ Jᵀ D the fit's answer to them.
-        M = np.array([kinematic_modes[(o.target, int(o.pose_id))] for o in obs])
-        q = se3.apply(T0, p_us)  # the centres in the flange frame
-        moved = np.einsum("nkij,nj->nki", M[..., :3, :3], q) + M[..., :3, 3]
-        D = moved.transpose(0, 2, 1).reshape(-1, M.shape[1]) * _MM
+        moved = moved_by_modes(modes_at(obs, kinematic_modes), se3.apply(T0, p_us))
+        D = moved.transpose(0, 2, 1).reshape(-1, moved.shape[1]) * _MM
         dx = -(JtJ_inv @ fit.jac.T @ D)[6:8]
         arm = np.sqrt(np.sum(dx**2, axis=1))
     total = np.hypot(se, arm)
