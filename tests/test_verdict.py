@@ -5,6 +5,7 @@ error sources, then on the twin (a wrong arm model) and through `uscal run`'s ex
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -386,6 +387,45 @@ def test_an_alternation_that_does_not_converge_returns_the_mean_of_its_estimates
     )
     v = result.metrics["calibration"]["single"]["verdict"]
     assert v["averaged_estimates"] == n - 1
+
+
+def _steps(estimates):
+    """The alternation's history entries between successive ``estimates``."""
+    return [
+        {
+            "change_mm": 1e3 * float(se3.translation_distance(b, a)),
+            "change_deg": float(np.degrees(se3.rotation_angle(b, a))),
+        }
+        for a, b in itertools.pairwise(estimates)
+    ]
+
+
+def test_an_alternation_still_drifting_at_its_limit_is_not_pulled_back_to_its_start():
+    """A start far off: each re-stack closes part of the gap (0.45 of it is left), so the
+    estimates drift monotonically towards the fixed point and are still moving at the
+    limit. The mean of all of them lies back towards the start; the mean of those the
+    alternation stopped among does not. An estimate moving back and forth between two
+    answers keeps every one."""
+    from calib.calibration.alternation import _mean_pose, _wobbling
+
+    axis = np.array([0.6, -0.8, 0.0])
+    fixed = se3.exp(np.r_[1e-3 * axis, 0.0, 0.0, 0.0])
+
+    def off(gap_deg, gap_mm):
+        return fixed @ se3.exp(
+            np.r_[1e-3 * gap_mm * axis, np.radians(gap_deg) * np.array([1.0, 0.0, 0.0])]
+        )
+
+    drift = [off(12.0 * 0.45**k, 3.0 * 0.45**k) for k in range(10)]
+    kept = _wobbling(drift, _steps(drift))
+    assert 2 <= len(kept) <= 4
+    assert all(a is b for a, b in zip(kept, drift[-len(kept) :], strict=True))
+    rotation_off = np.degrees(se3.rotation_angle(_mean_pose(kept), fixed))
+    assert rotation_off < 0.03  # the last three lie 0.045, 0.020 and 0.009° off
+    assert np.degrees(se3.rotation_angle(_mean_pose(drift), fixed)) > 1.0
+    back_and_forth = [off(0.3 * (-1) ** k, 0.1 * (-1) ** k) for k in range(9)]
+    kept = _wobbling(back_and_forth, _steps(back_and_forth))
+    assert len(kept) == len(back_and_forth)
 
 
 @pytest.mark.slow
