@@ -391,11 +391,10 @@ def test_an_alternation_that_does_not_converge_returns_the_mean_of_its_estimates
 
 def _steps(estimates):
     """The alternation's history entries between successive ``estimates``."""
+    from calib.calibration.alternation import _change
+
     return [
-        {
-            "change_mm": 1e3 * float(se3.translation_distance(b, a)),
-            "change_deg": float(np.degrees(se3.rotation_angle(b, a))),
-        }
+        dict(zip(("change_mm", "change_deg"), _change(b, a), strict=True))
         for a, b in itertools.pairwise(estimates)
     ]
 
@@ -406,7 +405,7 @@ def test_an_alternation_still_drifting_at_its_limit_is_not_pulled_back_to_its_st
     limit. The mean of all of them lies back towards the start; the mean of those the
     alternation stopped among does not. An estimate moving back and forth between two
     answers keeps every one."""
-    from calib.calibration.alternation import _mean_pose, _wobbling
+    from calib.calibration.alternation import _mean_pose, _stopped_among
 
     axis = np.array([0.6, -0.8, 0.0])
     fixed = se3.exp(np.r_[1e-3 * axis, 0.0, 0.0, 0.0])
@@ -417,15 +416,13 @@ def test_an_alternation_still_drifting_at_its_limit_is_not_pulled_back_to_its_st
         )
 
     drift = [off(12.0 * 0.45**k, 3.0 * 0.45**k) for k in range(10)]
-    kept = _wobbling(drift, _steps(drift))
-    assert 2 <= len(kept) <= 4
-    assert all(a is b for a, b in zip(kept, drift[-len(kept) :], strict=True))
-    rotation_off = np.degrees(se3.rotation_angle(_mean_pose(kept), fixed))
+    n = _stopped_among(drift, _steps(drift))
+    assert 2 <= n <= 4
+    rotation_off = np.degrees(se3.rotation_angle(_mean_pose(drift[-n:]), fixed))
     assert rotation_off < 0.03  # the last three lie 0.045, 0.020 and 0.009° off
     assert np.degrees(se3.rotation_angle(_mean_pose(drift), fixed)) > 1.0
     back_and_forth = [off(0.3 * (-1) ** k, 0.1 * (-1) ** k) for k in range(9)]
-    kept = _wobbling(back_and_forth, _steps(back_and_forth))
-    assert len(kept) == len(back_and_forth)
+    assert _stopped_among(back_and_forth, _steps(back_and_forth)) == len(back_and_forth)
 
 
 @pytest.mark.slow

@@ -143,9 +143,17 @@ def _mean_pose(Ts: Sequence[Array]) -> Array:
     return se3.make(R, np.mean([T[:3, 3] for T in Ts], axis=0))
 
 
-def _wobbling(estimates: Sequence[Array], steps: Sequence[dict[str, float]]) -> list[Array]:
-    """The trailing ``estimates`` an alternation stopped among: those within twice its
-    last two updates (mm and degrees, each ``steps``' ``change_mm`` / ``change_deg``) of
+def _change(T: Array, T_prev: Array) -> tuple[float, float]:
+    """How far an estimate moved from another: (mm, degrees)."""
+    return (
+        1e3 * float(se3.translation_distance(T, T_prev)),
+        float(np.degrees(se3.rotation_angle(T, T_prev))),
+    )
+
+
+def _stopped_among(estimates: Sequence[Array], steps: Sequence[dict[str, float]]) -> int:
+    """How many trailing ``estimates`` an alternation stopped among: those within twice
+    its last two updates (mm and degrees, ``steps``' ``change_mm`` / ``change_deg``) of
     the last. An estimate moving back and forth keeps them all; one still drifting
     towards its fixed point (a start far off: each re-stack under the last estimate
     closes only part of the gap) keeps its last few, whose mean is not pulled back
@@ -155,14 +163,13 @@ def _wobbling(estimates: Sequence[Array], steps: Sequence[dict[str, float]]) -> 
     0.27 mm), the last ones 0.4°."""
     wobble_mm = 2.0 * max(s["change_mm"] for s in steps[-2:])
     wobble_deg = 2.0 * max(s["change_deg"] for s in steps[-2:])
-    last = estimates[-1]
-    start = len(estimates) - 1
-    while start > 0 and (
-        1e3 * float(se3.translation_distance(estimates[start - 1], last)) <= wobble_mm
-        and float(np.degrees(se3.rotation_angle(estimates[start - 1], last))) <= wobble_deg
-    ):
-        start -= 1
-    return list(estimates[start:])
+    n = 1
+    while n < len(estimates):
+        d_mm, d_deg = _change(estimates[-n - 1], estimates[-1])
+        if d_mm > wobble_mm or d_deg > wobble_deg:
+            break
+        n += 1
+    return n
 
 
 def _first_or_next(
@@ -242,7 +249,7 @@ def alternate(
     ``settings.max_iterations`` (paper §III-F, "Single-marker calibration"). An
     alternation that reaches the limit without converging (the estimate moving back and
     forth: the localizations follow it) returns the mean of the estimates it stopped
-    among (:func:`_wobbling`), rather than wherever it stopped, and says so
+    among (:func:`_stopped_among`), rather than wherever it stopped, and says so
     (``averaged``).
 
     The first localization stacks at the robot-measured spacing (``initial`` may hand it
@@ -332,8 +339,7 @@ def alternate(
         t_calibrate = time.perf_counter() - t0
         change_mm = change_deg = float("inf")
         if T_prev is not None:
-            change_mm = 1e3 * float(se3.translation_distance(result.T_ee_us, T_prev))
-            change_deg = float(np.degrees(se3.rotation_angle(result.T_ee_us, T_prev)))
+            change_mm, change_deg = _change(result.T_ee_us, T_prev)
         history.append(
             {
                 "iteration": it,
@@ -376,7 +382,7 @@ def alternate(
     if not converged and not lost and len(iterates) >= 3:
         # Stopped at the limit with the estimate still moving (the localizations follow
         # it back and forth): where it stopped is as good as chance. The estimate is the
-        # mean of those it stopped among (:func:`_wobbling`; never the first, which stacks
+        # mean of those it stopped among (:func:`_stopped_among`; never the first, which stacks
         # at the robot-measured spacing), on the last localizations. On quick.yaml with
         # the paper's localizer (16 seeds that did not converge in 5; the estimates moving
         # back and forth, so all after the first were averaged) the true image error went
@@ -384,12 +390,12 @@ def alternate(
         # the mean and fitting once more gave 0.51 / 0.66 (the localizer's wobble again),
         # and the iterate of least loss 0.49 / 0.77 (the loss of different localizations
         # is no guide).
-        later = _wobbling([r.T_ee_us for r, _, _ in iterates[1:]], history[1:])
-        X = _mean_pose(later)
+        n = _stopped_among([r.T_ee_us for r, _, _ in iterates[1:]], history[1:])
+        later = [r for r, _, _ in iterates[-n:]]
+        X = _mean_pose([r.T_ee_us for r in later])
         Y = None
         if result.T_base_phantom is not None:
-            kept = [r for r, _, _ in iterates[len(iterates) - len(later) :]]
-            Y = _mean_pose([r.T_base_phantom for r in kept if r.T_base_phantom is not None])
+            Y = _mean_pose([r.T_base_phantom for r in later if r.T_base_phantom is not None])
         dist = centroid_distances_mm(obs, X, result.retained)
         result = replace(
             result,
